@@ -1,0 +1,194 @@
+"""The discrete-time sensorless controller: one object, one step per sampling period.
+
+It implements the laws of :mod:`gateway.control.laws` sampled with period T (ERRATA 9):
+at each sample t_k it takes the measured currents i_s_ab(t_k), the average applied voltage
+over (t_{k−1}, t_k] and, only in the comparison mode ``flux="true"``, the true rotor flux;
+it returns the setpoints for the next interval and integrates its own states (frame angle
+ε0, speed estimate ω̂, the flux estimator) with the forward-Euler rule, so they stay
+consistent with what was sent.
+
+Timing (docs/ARCHITECTURE.md): with ``delay = 0`` the setpoints act on (t_k, t_{k+1}],
+with ``delay = 1`` (CANopen synchronous RPDO) on (t_{k+1}, t_{k+2}]. The command carries
+the frame angle predicted for the start of that interval, ``eps_0``, with the frame speed
+``w_0``; (a, b) setpoints are rotated with the angle of the interval's midpoint. With a
+delay, the speed observer (16) integrates the torque of the currents acting on the motor
+over the present period (the previous command), not of the one just computed.
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
+from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
+
+Law = Literal["current-fed", "full-order"]
+FluxSource = Literal["estimated", "true"]
+EstimatorKind = Literal["open-loop", "drift-free"]
+
+LAWS: tuple[str, ...] = ("current-fed", "full-order")
+FLUX_SOURCES: tuple[str, ...] = ("estimated", "true")
+ESTIMATORS: tuple[str, ...] = ("open-loop", "drift-free")
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """How the controller runs.
+
+    law: "current-fed" ((15), (16), (20)) or "full-order" ((25)–(27), (32)).
+    flux: "estimated" (sensorless, (24)) or "true" (the paper's "flux measurements
+        available" case, for comparison only).
+    estimator: "open-loop" (the paper's integrator) or "drift-free" (see
+        :mod:`gateway.control.estimator`).
+    w_c: corner of the drift-free estimator, rad/s.
+    period: sampling period T, s.
+    delay: 0 or 1 periods between the sample and the interval the setpoints act on.
+    gains: :class:`Gains`.
+    """
+
+    law: Law = "current-fed"
+    flux: FluxSource = "estimated"
+    estimator: EstimatorKind = "open-loop"
+    w_c: float = 2.0
+    period: float = 1e-3
+    delay: int = 1
+    gains: Gains = field(default_factory=Gains)
+
+    def __post_init__(self) -> None:
+        if self.law not in LAWS:
+            raise ValueError(f"unknown law {self.law!r}; use one of {', '.join(LAWS)}")
+        if self.flux not in FLUX_SOURCES:
+            raise ValueError(f"unknown flux source {self.flux!r}; use {' or '.join(FLUX_SOURCES)}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"unknown estimator {self.estimator!r}; use {' or '.join(ESTIMATORS)}")
+        if not self.period > 0.0:
+            raise ValueError(f"period {self.period!r} s must be > 0")
+        if self.delay not in (0, 1):
+            raise ValueError(f"delay {self.delay!r} must be 0 or 1 periods")
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """What the drive reports at t_k.
+
+    i_s_ab: stator currents sampled at t_k, A (complex a + jb).
+    u_s_ab: average applied stator voltage over (t_{k−1}, t_k], V.
+    psi_r_ab: true rotor flux at t_k, Wb, or None (only needed with ``flux="true"``).
+    """
+
+    i_s_ab: complex
+    u_s_ab: complex
+    psi_r_ab: complex | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """The controller's output at t_k and its internal signals.
+
+    i_s_dq_ref, u_s_dq_ref: setpoints in the (d, q) frame, A and V.
+    eps_0: frame angle at the start of the interval they act on, rad, in [−π, π).
+    w_0: frame speed, rad/s.
+    i_s_ab_ref, u_s_ab_ref: the same setpoints in the (a, b) frame, rotated with the angle
+        of the interval's midpoint, for drives that hold (a, b) setpoints.
+    w_hat: speed estimate ω̂ at t_k, rad/s.
+    psi_r_dq: rotor flux the law used (estimated or true) in the frame at t_k, Wb.
+    i_limited: the current limit clipped i_sq*.
+    """
+
+    i_s_dq_ref: complex
+    u_s_dq_ref: complex
+    eps_0: float
+    w_0: float
+    i_s_ab_ref: complex
+    u_s_ab_ref: complex
+    w_hat: float
+    psi_r_dq: complex
+    i_limited: bool
+
+
+def wrap_angle(x: float) -> float:
+    """Angle wrapped to [−π, π), rad."""
+    return (x + math.pi) % TWO_PI - math.pi
+
+
+class Controller:
+    """The sampled Marino–Tomei–Verrelli controller (current-fed or full-order)."""
+
+    def __init__(
+        self,
+        motor: Motor,
+        config: ControllerConfig | None = None,
+        eps_0: float = 0.0,
+        w_hat: float = 0.0,
+    ) -> None:
+        self.motor = motor
+        self.config = config or ControllerConfig()
+        self._T = self.config.period
+        self._delay = self.config.delay
+        self._full = self.config.law == "full-order"
+        self._true_flux = self.config.flux == "true"
+        self._gains = self.config.gains
+        if self.config.estimator == "drift-free":
+            self.estimator: OpenLoopFluxEstimator = DriftFreeFluxEstimator(motor, self.config.w_c)
+        else:
+            self.estimator = OpenLoopFluxEstimator(motor)
+        self.eps_0 = wrap_angle(eps_0)
+        self.w_hat = w_hat
+        # Currents acting on the motor over the present period, per the delay: a queue of
+        # the commands in flight (the drive holds zero before it receives anything).
+        self._in_flight: deque[tuple[float, float]] = deque([(0.0, 0.0)] * self._delay)
+
+    def step(self, refs: Refs, sample: Sample) -> Command:
+        """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
+        T = self._T
+        eps_0 = self.eps_0
+        if self._true_flux:
+            if sample.psi_r_ab is None:
+                raise ValueError("flux='true' needs the true rotor flux in the sample")
+            psi_r_ab = sample.psi_r_ab
+        else:
+            psi_r_ab = self.estimator.update(
+                sample.i_s_ab, sample.u_s_ab, T, eps_0, refs.psi_ref
+            )
+        to_dq = cmath.exp(-1j * eps_0)
+        psi_r_dq = psi_r_ab * to_dq
+        if self._full:
+            i_s_dq = sample.i_s_ab * to_dq
+            out = full_order(
+                refs, self.w_hat, psi_r_dq.real, psi_r_dq.imag, i_s_dq.real, i_s_dq.imag,
+                self.motor, self._gains,
+            )
+        else:
+            applied = None
+            if self._delay:
+                self._in_flight.append((0.0, 0.0))  # placeholder, replaced below
+                applied = self._in_flight.popleft()
+            out = current_fed(
+                refs, self.w_hat, psi_r_dq.real, psi_r_dq.imag, self.motor, self._gains, applied
+            )
+            if self._delay:
+                self._in_flight[-1] = (out.i_sd_ref, out.i_sq_ref)
+        w_0 = out.w_0
+        eps_app = wrap_angle(eps_0 + self._delay * T * w_0)
+        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        i_s_dq_ref = complex(out.i_sd_ref, out.i_sq_ref)
+        u_s_dq_ref = complex(out.u_sd_ref, out.u_sq_ref)
+        cmd = Command(
+            i_s_dq_ref=i_s_dq_ref,
+            u_s_dq_ref=u_s_dq_ref,
+            eps_0=eps_app,
+            w_0=w_0,
+            i_s_ab_ref=i_s_dq_ref * to_ab,
+            u_s_ab_ref=u_s_dq_ref * to_ab,
+            w_hat=self.w_hat,
+            psi_r_dq=psi_r_dq,
+            i_limited=out.i_limited,
+        )
+        self.w_hat += T * out.dw_hat  # (16)/(27), forward Euler
+        self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0
+        return cmd
