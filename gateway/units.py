@@ -1,0 +1,35 @@
+"""Parsing of quantities given on the command line."""
+
+from __future__ import annotations
+
+import re
+
+from gateway.errors import UserError
+
+_DURATION = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(s|ms|us|µs|ns)?\s*$")
+_SCALE = {None: 1.0, "s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9}
+
+
+def parse_duration(text: str, what: str = "duration") -> float:
+    """'1ms', '250us', '250µs', '0.5 s', '1e-3' → seconds (float > 0).
+
+    Raises :class:`UserError` naming ``what`` for anything else.
+    """
+    m = _DURATION.match(text)
+    if not m:
+        raise UserError(
+            f"{what} {text!r} is not a duration: write a number with a unit, "
+            "e.g. 1ms, 250us or 0.5s (a bare number is seconds)"
+        )
+    value = float(m.group(1)) * _SCALE[m.group(2)]
+    if not value > 0.0:
+        raise UserError(f"{what} {text!r} must be greater than zero")
+    return value
+
+
+def format_duration(seconds: float) -> str:
+    """0.001 → '1ms', 0.00025 → '250us', 2.5 → '2.5s'."""
+    for unit, scale in (("s", 1.0), ("ms", 1e-3), ("us", 1e-6)):
+        if seconds >= scale:
+            return f"{seconds / scale:g}{unit}"
+    return f"{seconds / 1e-9:g}ns"

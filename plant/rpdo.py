@@ -1,0 +1,30 @@
+"""From decoded RPDO signal values to the drive's setpoints (pure; shared by the emulated
+device and the sampled simulation so both build exactly the same :class:`Setpoints`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from plant.drive import Setpoints
+
+
+def setpoints_from_rpdos(rpdo1: Mapping[str, float], rpdo2: Mapping[str, float]) -> Setpoints:
+    """Setpoints from RPDO1 (controlword, eps_0, w_0) and RPDO2 in either mapping.
+
+    RPDO2 with i_sd_ref/i_sq_ref/u_sd_ref/u_sq_ref: the (d, q) frame, which the drive turns
+    from eps_0 at w_0. With i_sa_ref/i_sb_ref/u_sa_ref/u_sb_ref: the fixed (a, b) frame, held.
+    Missing signals count as zero (a remapped PDO may carry only some of them).
+    """
+    if "i_sa_ref" in rpdo2 or "u_sa_ref" in rpdo2:
+        return Setpoints(
+            frame="ab",
+            i_s_ref=complex(rpdo2.get("i_sa_ref", 0.0), rpdo2.get("i_sb_ref", 0.0)),
+            u_s_ref=complex(rpdo2.get("u_sa_ref", 0.0), rpdo2.get("u_sb_ref", 0.0)),
+        )
+    return Setpoints(
+        frame="dq",
+        i_s_ref=complex(rpdo2.get("i_sd_ref", 0.0), rpdo2.get("i_sq_ref", 0.0)),
+        u_s_ref=complex(rpdo2.get("u_sd_ref", 0.0), rpdo2.get("u_sq_ref", 0.0)),
+        eps_0=float(rpdo1.get("eps_0", 0.0)),
+        w_0=float(rpdo1.get("w_0", 0.0)),
+    )
