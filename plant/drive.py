@@ -1,0 +1,426 @@
+"""The emulated drive: inverter + motor model (1), pure (no I/O, no clock, no global state).
+
+:class:`Drive` follows docs/ARCHITECTURE.md ("plant.drive.Drive"). Each :meth:`Drive.advance`
+call simulates one period T as ``n = T·f_pwm`` internal steps of ``h = 1/f_pwm`` and returns
+the :class:`Measurement` sampled at its end.
+
+Setpoint frames (ERRATA 8, 9): (d, q) setpoints are turned by the drive itself,
+ε(t) = eps_0 + w_0·(t − t_app), where t_app is the start of the first period the setpoints
+act on (the frame keeps turning if no new setpoints arrive); (a, b) setpoints are held.
+
+Modes (:class:`plant.params.DriveParams`):
+
+* ``ideal``: i_s equals the setpoint, turning continuously with ε(t); rows 1–3 of (1) are
+  integrated with RK4, which samples i_s(t) exactly at each stage. The reported voltage is
+  the exact period average u = Δψ_s/T + R_s·mean(i_s), with ψ_s = σi_s + (M/L_r)ψ_r (ERRATA 1)
+  and the analytic mean of the turning current vector. A setpoint change makes i_s jump at
+  the start of the period: the jump is counted in Δψ_s (ψ_s at the start is taken before
+  the jump), so Σ u·T reproduces the true stator flux at the samples — what the estimator
+  (24) integrates.
+* ``current-loop``: a discrete PI current controller in the setpoint frame, once per
+  internal step from the true current at the step start (sensor errors are applied to the
+  reported currents only), with the voltage feedforward u_s_ref added:
+  u = u_s_ref + K_p·e + x, x ← x + K_i·h·e. Gains (:func:`pi_gains`): K_p = σ(1 − e^{−ω_bw·h})/h
+  puts the discrete closed-loop pole at e^{−ω_bw·h} (the current follows a step as
+  1 − e^{−ω_bw·t} at the steps; K_p → σ·ω_bw as h → 0), K_i = K_p·R_eff/σ with
+  R_eff = R_s + R_r(M/L_r)² cancels the stator's electrical pole (1). The voltage vector is
+  limited to |u| ≤ u_lim = u_dc/√3 (circular, direction kept); anti-windup by conditional
+  integration: while the limit clips, the integrator only integrates if that reduces |u|.
+  The voltage is held over the step (ZOH, the PWM average) and rotated to (a, b) with the
+  angle of the step's midpoint (the usual PWM-delay angle compensation).
+* ``voltage``: u_s_ref applied (rotated with the step's midpoint angle, held over the step),
+  limited as above.
+
+In ``current-loop`` and ``voltage`` the full model (1) is integrated with RK4, voltage held.
+
+Disabled power stage (``enable(False)``, or an over-current trip |i_s| > i_trip): no voltage
+is applied. The freewheeling diodes apply −u_lim·i_s/|i_s| while current flows; the step in
+which the current would reverse is cut at the (linearly interpolated) zero crossing, after
+which the stator is open (i_s = 0): the rotor flux decays as e^{−αt} while turning with the
+rotor, which coasts under T_L — solved exactly. The reported voltage is the terminal voltage
+(open stator: dψ_s/dt = (M/L_r)dψ_r/dt, the back-EMF). Assumes the back-EMF stays below
+u_lim (no uncontrolled rectification into the DC link). In ``ideal`` mode disabled means
+i_s = 0 at once. The PI integrator is reset while disabled.
+
+Units: SI (A, V, Wb, rad, rad/s, N·m, s).
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+import random
+from dataclasses import dataclass
+from typing import Literal
+
+from plant.motor import coeffs, rk4_step_current_fed, rk4_step_full
+from plant.params import DriveParams, MotorParams
+
+SetpointFrame = Literal["dq", "ab"]
+
+
+@dataclass(frozen=True, slots=True)
+class Setpoints:
+    """Setpoints of one interval (docs/ARCHITECTURE.md).
+
+    frame: "dq" (turned by the drive) or "ab" (held).
+    i_s_ref: stator-current setpoint in that frame, A (d + jq or a + jb).
+    u_s_ref: stator-voltage setpoint in that frame, V (feedforward in ``current-loop``,
+        the applied voltage in ``voltage``, unused in ``ideal``).
+    eps_0: frame angle at the start of the interval, rad; w_0: frame speed, rad/s
+        (both ignored for "ab").
+    """
+
+    frame: SetpointFrame = "dq"
+    i_s_ref: complex = 0j
+    u_s_ref: complex = 0j
+    eps_0: float = 0.0
+    w_0: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.frame not in ("dq", "ab"):
+            raise ValueError(f"Setpoints.frame = {self.frame!r}: use 'dq' or 'ab'")
+        for name in ("i_s_ref", "u_s_ref", "eps_0", "w_0"):
+            if not cmath.isfinite(complex(getattr(self, name))):
+                raise ValueError(f"Setpoints.{name} = {getattr(self, name)!r} is not finite")
+
+
+@dataclass(frozen=True, slots=True)
+class Measurement:
+    """One sample at the end of a period.
+
+    i_s_ab: stator current with sensor errors, A.  u_s_ab: average applied (terminal)
+    voltage over the period, V.  u_dc: DC-link voltage, V.  Truth for diagnostics:
+    w_m (rad/s), psi_r_ab (Wb), T_e (N·m) at the sample instant.
+    limit_active: the voltage limit clipped during the period.
+    """
+
+    i_s_ab: complex
+    u_s_ab: complex
+    u_dc: float
+    w_m: float
+    psi_r_ab: complex
+    T_e: float
+    limit_active: bool
+
+
+@dataclass(frozen=True, slots=True)
+class MotorState:
+    """The state of model (1): ω (rad/s), ψ_r (Wb), i_s (A), fixed frame."""
+
+    w_m: float = 0.0
+    psi_r_ab: complex = 0j
+    i_s_ab: complex = 0j
+
+
+def pi_gains(motor: MotorParams, params: DriveParams) -> tuple[float, float]:
+    """(K_p in V/A, K_i in V/(A·s)) of the current controller (see the module docstring)."""
+    h = params.h
+    K_p = motor.sigma * -math.expm1(-params.current_loop_bw * h) / h
+    return K_p, K_p * motor.R_eff / motor.sigma
+
+
+def _mean_turning(w_0_T: float) -> complex:
+    """(e^{jx} − 1)/(jx) for x = ω0·T: the mean of e^{jω0·t} over [0, T]."""
+    if abs(w_0_T) < 1e-4:
+        return complex(1.0 - w_0_T * w_0_T / 6.0, 0.5 * w_0_T)
+    return (cmath.exp(1j * w_0_T) - 1.0) / (1j * w_0_T)
+
+
+class Drive:
+    """Inverter + induction motor, advanced one period at a time (docs/ARCHITECTURE.md).
+
+    ``Drive(motor, params, state=None)``; :meth:`set_setpoints`, :meth:`enable`,
+    :meth:`advance`, :attr:`state`, :meth:`reset`, :attr:`t`. The power stage starts
+    disabled with zero setpoints; the sensor-noise generator is seeded with
+    ``params.seed`` (and re-seeded by :meth:`reset`).
+    """
+
+    def __init__(
+        self,
+        motor: MotorParams | None = None,
+        params: DriveParams | None = None,
+        state: MotorState | None = None,
+    ) -> None:
+        self.motor = motor if motor is not None else MotorParams()
+        self.params = params if params is not None else DriveParams()
+        self._c = coeffs(self.motor)
+        self._h = self.params.h
+        self._K_p, self._K_i = pi_gains(self.motor, self.params)
+        self.reset(state)
+
+    # ---- commands ---------------------------------------------------------------------------
+    def reset(self, state: MotorState | None = None) -> None:
+        """Back to t = 0 with ``state`` (zero if None), disabled, zero setpoints, no trip."""
+        s = state if state is not None else MotorState()
+        self._w = float(s.w_m)
+        self._psi = complex(s.psi_r_ab)
+        self._i = complex(s.i_s_ab)
+        self._n = 0
+        self._sp = Setpoints()
+        self._n_app: int | None = None
+        self._enabled = False
+        self._tripped = False
+        self._x_ab = 0j
+        self._rng = random.Random(self.params.seed)
+
+    def set_setpoints(self, sp: Setpoints) -> None:
+        """Make ``sp`` active from the next :meth:`advance` on (its start is t_app)."""
+        self._sp = sp
+        self._n_app = None
+
+    def enable(self, on: bool) -> None:
+        """Power stage on/off. Switching on clears an over-current trip."""
+        if on and not self._enabled:
+            self._x_ab = 0j
+            self._tripped = False
+        self._enabled = bool(on)
+        if not on:
+            self._x_ab = 0j
+
+    # ---- queries ----------------------------------------------------------------------------
+    @property
+    def state(self) -> MotorState:
+        """The true motor state now."""
+        return MotorState(self._w, self._psi, self._i)
+
+    @property
+    def t(self) -> float:
+        """Simulated time, s (whole internal steps since :meth:`reset`)."""
+        return self._n * self._h
+
+    @property
+    def enabled(self) -> bool:
+        """The power stage is on (False after an over-current trip)."""
+        return self._enabled
+
+    @property
+    def tripped(self) -> bool:
+        """An over-current trip (|i_s| > i_trip) switched the power stage off."""
+        return self._tripped
+
+    @property
+    def setpoints(self) -> Setpoints:
+        """The active setpoints."""
+        return self._sp
+
+    # ---- simulation -------------------------------------------------------------------------
+    def _whole_steps(self, T: float) -> int:
+        n = round(T * self.params.f_pwm)
+        if not (T > 0.0) or n < 1 or abs(n * self._h - T) > 1e-9 * T:
+            raise ValueError(
+                f"advance: T = {T!r} s is not a whole number of internal steps "
+                f"h = 1/f_pwm = {self._h!r} s; use a positive multiple of h"
+            )
+        return n
+
+    def _frame(self, n: int) -> tuple[complex, complex, complex]:
+        """(e^{jε} at the present step, e^{jω0·h}, e^{jω0·h/2}) for the active setpoints."""
+        sp = self._sp
+        if sp.frame == "ab":
+            return 1 + 0j, 1 + 0j, 1 + 0j
+        if self._n_app is None:
+            self._n_app = self._n
+        w_0h = sp.w_0 * self._h
+        rot = cmath.exp(1j * (sp.eps_0 + w_0h * (self._n - self._n_app)))
+        return rot, cmath.exp(1j * w_0h), cmath.exp(0.5j * w_0h)
+
+    def advance(self, T: float, T_L: float) -> Measurement:
+        """Simulate the period (t, t + T] with the active setpoints and load torque T_L (N·m).
+
+        T must be a whole number of internal steps (else ValueError). Returns the
+        measurement at t + T: currents (with sensor errors), the period's average voltage
+        and the truth.
+        """
+        n = self._whole_steps(T)
+        T_L = float(T_L)
+        if self._sp.frame == "dq" and self._n_app is None:
+            self._n_app = self._n
+        if self.params.mode == "ideal":
+            u_avg, limited = self._advance_ideal(n, T_L), False
+        else:
+            u_avg, limited = self._advance_inverter(n, T_L)
+        self._n += n
+        return self._measure(u_avg, limited)
+
+    def _trip(self) -> None:
+        self._enabled = False
+        self._tripped = True
+        self._x_ab = 0j
+
+    def _advance_ideal(self, n: int, T_L: float) -> complex:
+        """Current-fed model; returns the exact average voltage Δψ_s/T + R_s·mean(i_s)."""
+        c = self._c
+        h = self._h
+        psi_s_start = c.sigma * self._i + c.M_over_L_r * self._psi
+        sp = self._sp
+        if self._enabled and abs(sp.i_s_ref) > self.params.i_trip:
+            self._trip()
+        if self._enabled:
+            rot, step, half = self._frame(n)
+            i_ref = sp.i_s_ref
+            mean_i = i_ref * rot * (_mean_turning(sp.w_0 * n * h) if sp.frame == "dq" else 1.0)
+            w, psi = self._w, self._psi
+            i0 = i_ref * rot
+            for _ in range(n):
+                i1 = i0 * step
+                w, psi = rk4_step_current_fed(c, w, psi, i0, i0 * half, i1, T_L, h)
+                i0 = i1
+            self._w, self._psi, self._i = w, psi, i0
+        else:
+            mean_i = 0j
+            self._i = 0j
+            self._open_circuit(n * h, T_L)
+        psi_s_end = c.sigma * self._i + c.M_over_L_r * self._psi
+        return (psi_s_end - psi_s_start) / (n * h) + c.R_s * mean_i
+
+    def _advance_inverter(self, n: int, T_L: float) -> tuple[complex, bool]:
+        """current-loop / voltage modes; returns (average voltage, limit clipped)."""
+        done, u_sum, limited = 0, 0j, False
+        if self._enabled:
+            if self.params.mode == "current-loop":
+                done, u_sum, limited = self._run_current_loop(n, T_L)
+            else:
+                done, u_sum, limited = self._run_voltage(n, T_L)
+        if done < n:
+            u_sum += self._run_disabled(n - done, T_L)
+        return u_sum / n, limited
+
+    def _run_current_loop(self, n: int, T_L: float) -> tuple[int, complex, bool]:
+        """PI + feedforward + circular limit + conditional integration, RK4 with ZOH.
+
+        Returns (steps done before a trip or n, sum of the applied step voltages, clipped).
+        """
+        c = self._c
+        h = self._h
+        rot, step, half = self._frame(n)
+        sp = self._sp
+        i_ref = sp.i_s_ref
+        u_ff = sp.u_s_ref
+        K_p = self._K_p
+        K_i_h = self._K_i * h
+        u_lim = self.params.u_lim
+        u_lim2 = u_lim * u_lim
+        trip2 = self.params.i_trip**2
+        rk4 = rk4_step_full
+        sqrt = math.sqrt
+        w, psi, i = self._w, self._psi, self._i
+        x = self._x_ab * rot.conjugate()  # integrator in the setpoint frame
+        u_sum = 0j
+        limited = False
+        done = n
+        for k in range(n):
+            e = i_ref - i * rot.conjugate()
+            u = u_ff + K_p * e + x
+            m2 = u.real * u.real + u.imag * u.imag
+            if m2 > u_lim2:
+                limited = True
+                if u.real * e.real + u.imag * e.imag < 0.0:  # integrating reduces |u|
+                    x += K_i_h * e
+                u *= u_lim / sqrt(m2)
+            else:
+                x += K_i_h * e
+            u_ab = u * (rot * half)
+            u_sum += u_ab
+            w, psi, i = rk4(c, w, psi, i, u_ab, T_L, h)
+            rot *= step
+            if i.real * i.real + i.imag * i.imag > trip2:
+                done = k + 1
+                break
+        self._w, self._psi, self._i = w, psi, i
+        self._x_ab = x * rot
+        if done < n:
+            self._trip()
+        return done, u_sum, limited
+
+    def _run_voltage(self, n: int, T_L: float) -> tuple[int, complex, bool]:
+        """u_s_ref applied, circularly limited, RK4 with ZOH; returns like the current loop."""
+        c = self._c
+        h = self._h
+        rot, step, half = self._frame(n)
+        u = self._sp.u_s_ref
+        u_lim = self.params.u_lim
+        limited = abs(u) > u_lim
+        if limited:
+            u *= u_lim / abs(u)
+        trip2 = self.params.i_trip**2
+        rk4 = rk4_step_full
+        w, psi, i = self._w, self._psi, self._i
+        u_rot = u * rot * half
+        u_sum = 0j
+        done = n
+        for k in range(n):
+            u_sum += u_rot
+            w, psi, i = rk4(c, w, psi, i, u_rot, T_L, h)
+            u_rot *= step
+            if i.real * i.real + i.imag * i.imag > trip2:
+                done = k + 1
+                break
+        self._w, self._psi, self._i = w, psi, i
+        if done < n:
+            self._trip()
+        return done, u_sum, limited
+
+    def _run_disabled(self, n: int, T_L: float) -> complex:
+        """Freewheeling diodes until i_s = 0, then open stator; returns Σ u_step (V)."""
+        c = self._c
+        h = self._h
+        u_lim = self.params.u_lim
+        self._x_ab = 0j
+        w, psi, i = self._w, self._psi, self._i
+        u_sum = 0j
+        left = n
+        while left > 0 and i != 0j:
+            mag = abs(i)
+            u = -u_lim / mag * i
+            w1, psi1, i1 = rk4_step_full(c, w, psi, i, u, T_L, h)
+            left -= 1
+            along = (i1.real * i.real + i1.imag * i.imag) / mag  # i1 projected on i
+            if along > 0.0:
+                w, psi, i = w1, psi1, i1
+                u_sum += u
+                continue
+            # the current reaches zero within this step: cut it there, then open stator
+            f = mag / (mag - along)
+            w, psi, _ = rk4_step_full(c, w, psi, i, u, T_L, f * h)
+            i = 0j
+            u_sum += f * u
+            self._w, self._psi, self._i = w, psi, i
+            u_sum += self._open_circuit((1.0 - f) * h, T_L) / h
+            w, psi = self._w, self._psi
+        self._w, self._psi, self._i = w, psi, i
+        if left > 0:
+            u_sum += self._open_circuit(left * h, T_L) / h
+        return u_sum
+
+    def _open_circuit(self, tau: float, T_L: float) -> complex:
+        """i_s = 0 for tau (s), solved exactly; returns ∫u dt = (M/L_r)·Δψ_r (V·s).
+
+        dω/dt = −T_L/J and dψ_r/dt = (−α + jω)ψ_r (rows 1–3 of (1) with i_s = 0).
+        """
+        c = self._c
+        w, psi = self._w, self._psi
+        dw = T_L * c.inv_J
+        psi_end = psi * cmath.exp(complex(-c.alpha * tau, w * tau - 0.5 * dw * tau * tau))
+        self._w = w - dw * tau
+        self._psi = psi_end
+        return c.M_over_L_r * (psi_end - psi)
+
+    def _measure(self, u_avg: complex, limited: bool) -> Measurement:
+        p = self.params
+        i = self._i
+        psi = self._psi
+        i_meas = (1.0 + p.i_gain_error) * i + p.i_offset_ab
+        if p.i_noise_rms > 0.0:
+            g = self._rng.gauss
+            i_meas += complex(g(0.0, p.i_noise_rms), g(0.0, p.i_noise_rms))
+        T_e = self._c.M_over_L_r * (psi.real * i.imag - psi.imag * i.real)
+        return Measurement(
+            i_s_ab=i_meas,
+            u_s_ab=u_avg,
+            u_dc=p.u_dc,
+            w_m=self._w,
+            psi_r_ab=psi,
+            T_e=T_e,
+            limit_active=limited,
+        )
