@@ -32,7 +32,7 @@ from gateway.control.profiles import Profile
 from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos
 from gateway.errors import UserError
 from gateway.report import BASE_COLUMNS, Record
-from plant.drive import Drive, Measurement
+from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams, MotorParams
 from plant.rpdo import setpoints_from_rpdos
@@ -62,6 +62,8 @@ class SimConfig:
     setpoint_frame: "dq" (the drive turns the frame) or "ab" (held in the fixed frame).
     quantize: pass the PDO signals through the INT16 codec of dbc/drive.dbc.
     record_step: sampling of the continuous-time record, s.
+    initial: the motor's state at t = 0 (the paper: all zero).
+    w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
     """
 
     law: str = "current-fed"
@@ -77,6 +79,9 @@ class SimConfig:
     w_c: float = 2.0
     record_step: float = 1e-3
     duration: float | None = None
+    initial: MotorState = field(default_factory=MotorState)
+    w_hat_0: float = 0.0
+    eps_0: float = 0.0
 
     def __post_init__(self) -> None:
         checks = (("law", LAWS), ("flux", FLUX_SOURCES), ("estimator", ESTIMATORS),
@@ -109,6 +114,8 @@ class SimConfig:
         """A JSON-able description (for summary.json)."""
         d = asdict(self)
         d["period"] = "continuous" if self.period is None else self.period
+        d["initial"] = {k: (str(v) if isinstance(v, complex) else v)
+                        for k, v in asdict(self.initial).items()}
         d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
                              for k, v in asdict(self.drive_params).items()}
         return d
@@ -152,6 +159,14 @@ class PdoLink:
         return tpdo1, tpdo2, tpdo3
 
 
+def drive_params_for_period(params: DriveParams, T: float, mode: str) -> DriveParams:
+    """The drive's parameters with its internal rate raised, if needed, to a whole number
+    of steps per period (250 µs at 10 kHz: 3 steps, 12 kHz)."""
+    n = max(1, math.ceil(T * params.f_pwm - 1e-9))
+    f_pwm = params.f_pwm if abs(n - T * params.f_pwm) < 1e-9 else n / T
+    return replace(params, mode=mode, f_pwm=f_pwm)
+
+
 def _identity(name: str, values: dict) -> dict:
     return dict(values)
 
@@ -163,9 +178,9 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     assert T is not None
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / T)
-    drive = Drive(motor, replace(cfg.drive_params, mode=cfg.drive))
+    drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive), cfg.initial)
     drive.enable(True)
-    ctl = Controller(motor, cfg.controller_config())
+    ctl = Controller(motor, cfg.controller_config(), eps_0=cfg.eps_0, w_hat=cfg.w_hat_0)
     link = PdoLink(cfg.quantize)
     rec = Record(COLUMNS)
     delay = cfg.delay
@@ -270,6 +285,15 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         return [*rhs_current_fed(t, x[:3], m, i, r.T_L), out.w_0, out.dw_hat]
 
     x0 = np.zeros((9 if estimated else 7) if full else 5)
+    s0 = cfg.initial
+    x0[:3] = (s0.w_m, s0.psi_r_ab.real, s0.psi_r_ab.imag)
+    if full:
+        x0[3:7] = (s0.i_s_ab.real, s0.i_s_ab.imag, cfg.eps_0, cfg.w_hat_0)
+        if estimated:  # the integrator starts from the true stator flux
+            psi_s0 = m.sigma * s0.i_s_ab + k_r * s0.psi_r_ab
+            x0[7:9] = (psi_s0.real, psi_s0.imag)
+    else:
+        x0[3:5] = (cfg.eps_0, cfg.w_hat_0)
     sol = solve_ivp(rhs, (0.0, t_eval[-1]), x0, method="LSODA", t_eval=t_eval,
                     rtol=1e-9, atol=1e-10, max_step=h)
     if not sol.success:

@@ -1,0 +1,333 @@
+"""`hil-gateway`: the command line of the gateway.
+
+Every subcommand returns an exit status; bad input ends in one paragraph on stderr
+(what failed, where, how to fix) and exit status 2, never a traceback unless --debug.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Callable, Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from gateway.errors import UserError
+from gateway.units import format_duration, parse_duration
+
+PROG = "hil-gateway"
+
+EPILOG = """\
+examples:
+  hil-gateway sim                                   the loop over CANopen against the emulated
+                                                    drive, in one process (no hardware)
+  hil-gateway simulate --period continuous --flux true
+                                                    the paper's section 6, continuous time
+  hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
+  hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
+  hil-gateway profile check profiles/paper.toml
+"""
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _out_dir(arg: str | None, kind: str) -> Path:
+    """The run directory: the given one, or runs/<timestamp>-<kind>; created, writable."""
+    path = Path(arg) if arg else Path("runs") / f"{datetime.now():%Y%m%d-%H%M%S}-{kind}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(
+            f"cannot write the run directory {str(path)!r}: {exc.strerror or exc}. "
+            "Choose a writable place with --out DIR."
+        ) from exc
+    return path
+
+
+def _load_profile(path: str | None):
+    from gateway.control.profiles import ProfileError, load_profile, paper_profile
+
+    try:
+        return paper_profile() if path is None else load_profile(path)
+    except ProfileError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def _load_motor(path: str | None):
+    from plant.params import MotorParams, ParamsError
+
+    if path is None:
+        return MotorParams.paper()
+    try:
+        return MotorParams.from_toml(path)
+    except ParamsError as exc:
+        raise UserError(str(exc)) from exc
+
+
+class Progress:
+    """A one-line progress bar on stderr (only on a terminal, or when forced)."""
+
+    def __init__(self, label: str, enabled: bool | None = None) -> None:
+        self.label = label
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self._t0 = time.perf_counter()
+        self._last = -1.0
+
+    def __call__(self, fraction: float) -> None:
+        if not self.enabled or (fraction - self._last < 0.01 and fraction < 1.0):
+            return
+        self._last = fraction
+        width = 30
+        filled = round(width * fraction)
+        elapsed = time.perf_counter() - self._t0
+        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] "
+                         f"{100 * fraction:5.1f}%  {elapsed:5.1f}s")
+        sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.enabled:
+            self(1.0)
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def _add_control_options(p: argparse.ArgumentParser) -> None:
+    from gateway.control.controller import ESTIMATORS, FLUX_SOURCES, LAWS
+    from gateway.control.laws import Gains
+
+    g = Gains()
+    p.add_argument("--profile", metavar="FILE",
+                   help="reference profile (TOML); default: the paper's section 6 scenario")
+    p.add_argument("--law", choices=LAWS, default="current-fed",
+                   help="control law: current-fed (15),(16),(20) or full-order (25)-(27),(32)")
+    p.add_argument("--flux", choices=FLUX_SOURCES, default="estimated",
+                   help="rotor flux for the law: estimated by (24) (sensorless, default) or the "
+                        "true flux (the paper's 'flux measurements available' comparison)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default="open-loop",
+                   help="flux estimator: the paper's open-loop integrator or the drift-free one")
+    p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
+                   "paper's 0.6 kW motor")
+    p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
+    p.add_argument("--gamma-1", type=float, default=g.gamma_1,
+                   help="observer gain γ1 of (20) (%(default)s)")
+    p.add_argument("--gamma-2", type=float, default=g.gamma_2,
+                   help="observer gain γ2 of (32), full-order law (%(default)s)")
+    p.add_argument("--k-e", type=float, default=g.k_e,
+                   help="current-error gain ke of (32), 1/s (%(default)s)")
+    p.add_argument("--i-max", type=float, default=g.i_max,
+                   help="current-vector limit of the setpoints, A (%(default)s)")
+
+
+def _gains(args: argparse.Namespace):
+    from gateway.control.laws import Gains
+
+    try:
+        return Gains(k_w=args.k_w, gamma_1=args.gamma_1, gamma_2=args.gamma_2, k_e=args.k_e,
+                     i_max=args.i_max)
+    except ValueError as exc:
+        raise UserError(f"{exc}; all gains must be positive numbers") from exc
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """`hil-gateway simulate`: the closed loop without CAN."""
+    from gateway import report
+    from gateway.simulate import DEFAULT_DRIVE, SimConfig, run
+    from plant.params import DriveParams
+
+    profile = _load_profile(args.profile)
+    motor = _load_motor(args.motor)
+    period = None if args.period == "continuous" else parse_duration(args.period, "--period")
+    drive = args.drive or DEFAULT_DRIVE[args.law]
+    cfg = SimConfig(
+        law=args.law, flux=args.flux, estimator=args.estimator, drive=drive, period=period,
+        delay=args.delay, setpoint_frame=args.setpoint_frame, quantize=not args.no_quantize,
+        gains=_gains(args), drive_params=DriveParams(mode=drive),
+        duration=args.duration and parse_duration(args.duration, "--duration"),
+    )
+    out = _out_dir(args.out, f"simulate-{args.law}")
+    label = "continuous" if period is None else format_duration(period)
+    progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
+    t0 = time.perf_counter()
+    try:
+        rec = run(profile, motor, cfg, progress)
+    except ValueError as exc:
+        raise UserError(f"the simulation could not run: {exc}") from exc
+    progress.done()
+    wall = time.perf_counter() - t0
+    sig = rec.arrays()
+    summary: dict[str, Any] = report.metrics(sig)
+    summary["configuration"] = {"command": "simulate", "profile": profile.source,
+                                **cfg.describe()}
+    summary["wall_time_s"] = wall
+    report.write_summary(out / "summary.json", summary)
+    rec.write_csv(out / "signals.csv")
+    figures = report.plot_figures(sig, out, f"({args.law}, {label})")
+    print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
+          f"period {label}" + ("" if period is None else
+                              f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
+                              f"{args.setpoint_frame[1]})"))
+    print(report.summary_table(summary))
+    print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
+          + (", " + ", ".join(p.name for p in figures) if figures else
+             " (install matplotlib for the figures)"))
+    return 0
+
+
+# ---------------------------------------------------------------------------- profile
+
+
+def cmd_profile_check(args: argparse.Namespace) -> int:
+    """`hil-gateway profile check FILE`: validate and show the set points and demands."""
+    from gateway.control.profiles import demand
+
+    profile = _load_profile(args.file)
+    motor = _load_motor(args.motor)
+    print(f"{args.file}: profile {profile.name!r} is valid, duration {profile.duration:g} s")
+    for line in profile.set_points():
+        print(f"  {line}")
+    d = demand(profile, motor)
+    print("demand on the motor under perfect tracking (open-loop references (9)-(11)):")
+    for key, value in _demand_lines(d):
+        print(f"  {key}: {value}")
+    return 0
+
+
+def _demand_lines(d: Any) -> list[tuple[str, str]]:
+    fields = getattr(d, "__dataclass_fields__", None)
+    items = {k: getattr(d, k) for k in fields} if fields else dict(vars(d))
+    return [(k.replace("_", " "), f"{v:.4g}" if isinstance(v, float) else str(v))
+            for k, v in items.items()]
+
+
+def cmd_profile_plot(args: argparse.Namespace) -> int:
+    """`hil-gateway profile plot FILE`: references and derivatives as PNG."""
+    import numpy as np
+
+    profile = _load_profile(args.file)
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise UserError("profile plot needs matplotlib: pip install 'can-drive-hil[plot]'") from exc
+    out = Path(args.output) if args.output else Path(Path(args.file).stem + ".png")
+    t = np.linspace(0.0, profile.duration, 2001)
+    s = profile.sample(t)
+    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(7, 7), layout="constrained")
+    ax[0].plot(t, s["w_ref"], label="ω* [rad/s]")
+    ax[0].plot(t, s["dw_ref"] / 10, ":", label="dω*/dt / 10 [rad/s²]")
+    ax[1].plot(t, s["psi_ref"], label="ψ* [Wb]")
+    ax[1].plot(t, s["dpsi_ref"] / 10, ":", label="dψ*/dt / 10 [Wb/s]")
+    ax[2].plot(t, s["T_L"], color="C3", label="T_L [N·m]")
+    ax[2].set_xlabel("time [s]")
+    for a in ax:
+        a.grid(True, alpha=0.3)
+        a.legend(loc="best", fontsize="small")
+    fig.suptitle(f"profile {profile.name}")
+    try:
+        fig.savefig(out, dpi=110)
+    except OSError as exc:
+        raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
+                        "file with -o") from exc
+    finally:
+        plt.close(fig)
+    print(f"wrote {out}")
+    return 0
+
+
+# ------------------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of `hil-gateway` (all subcommands)."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="CANopen hardware-in-the-loop gateway: the sensorless speed and flux "
+                    "controller of Marino, Tomei & Verrelli (2002) against a CiA 402 drive, "
+                    "real or emulated, or simulated without CAN.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--debug", action="store_true",
+                        help="show tracebacks and debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser(
+        "simulate", help="the closed loop without CAN (continuous or sampled)",
+        description="Run the closed loop without CAN: continuous time with scipy, or sampled "
+                    "exactly as over the bus (zero-order hold, optional one-period SYNC delay, "
+                    "INT16 PDO quantisation). Writes summary.json, signals.csv and the figures.")
+    _add_control_options(p)
+    p.add_argument("--drive", choices=("ideal", "current-loop", "voltage"),
+                   help="drive model: ideal current source, PI current loop at 10 kHz, or "
+                        "voltage-fed (default: ideal for current-fed, voltage for full-order)")
+    p.add_argument("--period", default="1ms",
+                   help="sampling period (1ms, 250us, ...) or 'continuous' (default 1ms)")
+    p.add_argument("--setpoint-frame", choices=("dq", "ab"), default="dq",
+                   help="dq: the drive turns the frame itself (ERRATA 9); ab: setpoints held "
+                        "in the fixed frame over the period")
+    p.add_argument("--delay", type=int, choices=(0, 1), default=1,
+                   help="periods between a sample and its setpoints acting (1 = CANopen SYNC)")
+    p.add_argument("--no-quantize", action="store_true",
+                   help="skip the INT16 quantisation of the PDO signals")
+    p.add_argument("--duration", help="simulate this long instead of the profile's duration")
+    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<time>-simulate-*)")
+    p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("profile", help="check or plot a reference profile",
+                       description="Validate or plot a reference profile (TOML).")
+    psub = p.add_subparsers(dest="profile_command", metavar="ACTION")
+    pc = psub.add_parser("check", help="validate; print the set points and peak demands",
+                         description="Validate a profile, print its set points and the peak "
+                                     "current and voltage it demands from the motor.")
+    pc.add_argument("file", metavar="FILE")
+    pc.add_argument("--motor", metavar="FILE", help="motor parameters (TOML)")
+    pc.set_defaults(func=cmd_profile_check)
+    pp = psub.add_parser("plot", help="plot the references as PNG",
+                         description="Plot ω*, ψ*, T_L and derivatives of a profile as PNG.")
+    pp.add_argument("file", metavar="FILE")
+    pp.add_argument("-o", "--output", metavar="PNG", help="output file (default FILE's stem.png)")
+    pp.set_defaults(func=cmd_profile_plot)
+    p.set_defaults(func=lambda a: _usage(p))
+    return parser
+
+
+def _usage(p: argparse.ArgumentParser) -> int:
+    p.print_help(sys.stderr)
+    return 2
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of `hil-gateway`; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
+    if func is None:
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return func(args)
+    except UserError as exc:
+        if args.debug:
+            raise
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
