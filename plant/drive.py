@@ -24,8 +24,12 @@ Modes (:class:`plant.params.DriveParams`):
   puts the discrete closed-loop pole at e^{−ω_bw·h} (the current follows a step as
   1 − e^{−ω_bw·t} at the steps; K_p → σ·ω_bw as h → 0), K_i = K_p·R_eff/σ with
   R_eff = R_s + R_r(M/L_r)² cancels the stator's electrical pole (1). The voltage vector is
-  limited to |u| ≤ u_lim = u_dc/√3 (circular, direction kept); anti-windup by conditional
-  integration: while the limit clips, the integrator only integrates if that reduces |u|.
+  limited to |u| ≤ u_lim = u_dc/√3 (circular, direction kept). Anti-windup by
+  back-calculation with the tracking time T_t = T_i = K_p/K_i = σ/R_eff: while the limit
+  clips, x ← x + (h/T_i)·(u_applied − u_s_ref − x), i.e. the integrator low-passes the
+  voltage actually applied (and the update equals K_i·h·e when not clipping). So |x| never
+  exceeds the limit, and after a long saturation x holds about the voltage the new
+  operating point needs (resistive drop + back-EMF): no overshoot and no slow creep.
   The voltage is held over the step (ZOH, the PWM average) and rotated to (a, b) with the
   angle of the step's midpoint (the usual PWM-delay angle compensation).
 * ``voltage``: u_s_ref applied (rotated with the step's midpoint angle, held over the step),
@@ -299,6 +303,7 @@ class Drive:
         u_ff = sp.u_s_ref
         K_p = self._K_p
         K_i_h = self._K_i * h
+        h_over_T_i = K_i_h / K_p
         u_lim = self.params.u_lim
         u_lim2 = u_lim * u_lim
         trip2 = self.params.i_trip**2
@@ -315,9 +320,8 @@ class Drive:
             m2 = u.real * u.real + u.imag * u.imag
             if m2 > u_lim2:
                 limited = True
-                if u.real * e.real + u.imag * e.imag < 0.0:  # integrating reduces |u|
-                    x += K_i_h * e
                 u *= u_lim / sqrt(m2)
+                x += h_over_T_i * (u - u_ff - x)  # back-calculation, T_t = T_i
             else:
                 x += K_i_h * e
             u_ab = u * (rot * half)
