@@ -96,7 +96,8 @@ class Measurement:
     i_s_ab: stator current with sensor errors, A.  u_s_ab: average applied (terminal)
     voltage over the period, V.  u_dc: DC-link voltage, V.  Truth for diagnostics:
     w_m (rad/s), psi_r_ab (Wb), T_e (N·m) at the sample instant.
-    limit_active: the voltage limit clipped during the period.
+    limit_active: the voltage limit clipped during the period (never in ``ideal`` mode,
+    which has no voltage limit: its reported voltage may exceed u_lim).
     """
 
     i_s_ab: complex
@@ -291,7 +292,7 @@ class Drive:
         return u_sum / n, limited
 
     def _run_current_loop(self, n: int, T_L: float) -> tuple[int, complex, bool]:
-        """PI + feedforward + circular limit + conditional integration, RK4 with ZOH.
+        """PI + feedforward + circular limit + back-calculation anti-windup, RK4 with ZOH.
 
         Returns (steps done before a trip or n, sum of the applied step voltages, clipped).
         """
