@@ -181,7 +181,7 @@ class Signal:
     # Segment table for evaluation: segment 0 is a dummy "transition" at −∞ holding the
     # initial value, so that bisect always finds a segment for finite t.
     _starts: list[float] = field(init=False, repr=False)
-    _segs: list[tuple[float, float, float, float, float, float, float]] = field(
+    _segs: list[tuple[float, float, float, float, float, float, float, float]] = field(
         init=False, repr=False
     )
 
@@ -203,14 +203,14 @@ class Signal:
         object.__setattr__(self, "initial", initial)
         object.__setattr__(self, "steps", steps)
         starts = [-math.inf]
-        # (t0, 1/ramp, v0, dv, dv/ramp, dv/ramp², end value)
-        segs = [(-math.inf, 1.0, initial, 0.0, 0.0, 0.0, initial)]
+        # (t0, 1/ramp, v0, dv, dv/ramp, dv/ramp², end value, end time)
+        segs = [(-math.inf, 1.0, initial, 0.0, 0.0, 0.0, initial, -math.inf)]
         v = initial
         for s in steps:
             dv = s.value - v
             inv = 1.0 / s.ramp
             starts.append(s.t)
-            segs.append((s.t, inv, v, dv, dv * inv, dv * inv * inv, float(s.value)))
+            segs.append((s.t, inv, v, dv, dv * inv, dv * inv * inv, float(s.value), s.end))
             v = float(s.value)
         object.__setattr__(self, "_starts", starts)
         object.__setattr__(self, "_segs", segs)
@@ -234,10 +234,10 @@ class Signal:
 
     def at(self, t: float) -> tuple[float, float, float]:
         """(x, ẋ, ẍ) at time t (s): exact values of the quintic smoothstep."""
-        t0, inv, v0, dv, k1, k2, v1 = self._segs[bisect_right(self._starts, t) - 1]
-        s = (t - t0) * inv
-        if s >= 1.0:
+        t0, inv, v0, dv, k1, k2, v1, t1 = self._segs[bisect_right(self._starts, t) - 1]
+        if t >= t1:
             return v1, 0.0, 0.0
+        s = (t - t0) * inv
         s2 = s * s
         u = 1.0 - s
         return (
