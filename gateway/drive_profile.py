@@ -1,0 +1,161 @@
+"""Drive profiles: what the gateway must know about a CANopen drive, in a TOML file.
+
+A real CiA 402 inverter is described without code: its EDS, node id, which DBC messages
+carry which signals, the modes of operation, and timing. The emulator's profile is built in
+(``gateway/drives/emulator.toml``). Example::
+
+    [drive]
+    name = "can-drive-hil emulated drive"
+    eds = "builtin:drive.eds"        # or a path, relative to this file
+    dbc = "builtin:drive.dbc"
+    node = 1
+    device_type = 0x00010192         # 0x1000 expected (CiA 402, frequency converter)
+
+    [modes]                          # 0x6060 values
+    current = -1                     # current vector (current-fed law)
+    voltage = -2                     # voltage vector (full-order law)
+
+    [pdo]                            # DBC messages (ids for node 1; offset by node id)
+    control = "RPDO1"                # controlword, eps_0, w_0
+    setpoints = "RPDO2"              # dq setpoints; "RPDO2_AB" for drives that hold (a, b)
+    load = "RPDO3"                   # emulated dynamometer (emulator only)
+    currents = "TPDO1"               # statusword, i_sa, i_sb, sync_counter
+    voltages = "TPDO2"               # u_sa, u_sb, u_dc
+    truth = "TPDO3"                  # w_m, psi_ra, psi_rb, T_e (emulator only)
+    remap = true                     # write the PDO mappings by SDO from the DBC layout
+
+    [timing]
+    heartbeat_ms = 50                # the drive's heartbeat (0x1017)
+    heartbeat_timeout_ms = 300       # the gateway's heartbeat as seen by the drive (0x1016)
+    rpdo_timeout_ms = 300            # RPDO deadline monitoring (0x1400.5)
+    boot_timeout_s = 2.0
+    sdo_timeout_s = 0.5
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from gateway.errors import UserError
+
+_SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
+    "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
+              "emulator": bool},
+    "modes": {"current": int, "voltage": int},
+    "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
+            "truth": str, "remap": bool},
+    "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
+               "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
+}
+_REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "setpoints"),
+             ("pdo", "currents"), ("pdo", "voltages"))
+
+
+@dataclass(frozen=True)
+class DriveProfile:
+    """A drive as the gateway sees it (see the module docstring for the TOML form)."""
+
+    name: str
+    source: str
+    eds: Path
+    dbc: Path
+    node: int = 1
+    device_type: int | None = 0x00010192
+    emulator: bool = False
+    mode_current: int = -1
+    mode_voltage: int = -2
+    control: str = "RPDO1"
+    setpoints: str = "RPDO2"
+    load: str | None = None
+    currents: str = "TPDO1"
+    voltages: str = "TPDO2"
+    truth: str | None = None
+    remap: bool = True
+    heartbeat_ms: int = 50
+    heartbeat_timeout_ms: int = 300
+    rpdo_timeout_ms: int = 300
+    boot_timeout_s: float = 2.0
+    sdo_timeout_s: float = 0.5
+
+    @property
+    def setpoint_frame(self) -> str:
+        """'ab' when the setpoint message is the (a, b) mapping, else 'dq'."""
+        return "ab" if self.setpoints.upper().endswith("_AB") else "dq"
+
+
+def _builtin(name: str) -> Path:
+    return Path(str(resources.files("dbc").joinpath(name)))
+
+
+def _resolve(value: str, base: Path) -> Path:
+    if value.startswith("builtin:"):
+        return _builtin(value.removeprefix("builtin:"))
+    p = Path(value)
+    return p if p.is_absolute() else base / p
+
+
+def load_drive_profile(path: str | Path | None = None) -> DriveProfile:
+    """Read a drive profile; None gives the built-in emulator profile."""
+    if path is None:
+        src = resources.files("gateway").joinpath("drives/emulator.toml")
+        text, source, base = src.read_text(), "<emulator>", Path(".")
+    else:
+        p = Path(path)
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise UserError(f"cannot read the drive profile {str(p)!r}: {exc.strerror or exc}; "
+                            "give an existing TOML file with --drive") from exc
+        source, base = str(p), p.parent
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{source}: not valid TOML: {exc}; fix the syntax") from exc
+    return _from_mapping(data, source, base)
+
+
+def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile:
+    for section, value in data.items():
+        if section not in _SECTIONS:
+            raise UserError(f"{source}: unknown section [{section}]; the sections are "
+                            f"{', '.join('[' + s + ']' for s in _SECTIONS)}")
+        if not isinstance(value, dict):
+            raise UserError(f"{source}: [{section}] must be a table")
+        for key, v in value.items():
+            types = _SECTIONS[section].get(key)
+            if types is None:
+                raise UserError(f"{source}: unknown key [{section}].{key}; the keys of "
+                                f"[{section}] are {', '.join(_SECTIONS[section])}")
+            if not isinstance(v, types) or (isinstance(v, bool) and types is not bool):
+                raise UserError(f"{source}: [{section}].{key} = {v!r} has the wrong type")
+    for section, key in _REQUIRED:
+        if key not in data.get(section, {}):
+            raise UserError(f"{source}: [{section}].{key} is missing; add it (see "
+                            "gateway/drives/emulator.toml for an example)")
+    d, m, p, t = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing"))
+    node = d.get("node", 1)
+    if not 1 <= node <= 127:
+        raise UserError(f"{source}: [drive].node = {node}: a CANopen node id is 1..127")
+    prof = DriveProfile(
+        name=d.get("name", Path(source).stem), source=source,
+        eds=_resolve(d["eds"], base), dbc=_resolve(d["dbc"], base), node=node,
+        device_type=d.get("device_type"), emulator=d.get("emulator", False),
+        mode_current=m.get("current", -1), mode_voltage=m.get("voltage", -2),
+        control=p["control"], setpoints=p["setpoints"], load=p.get("load"),
+        currents=p["currents"], voltages=p["voltages"], truth=p.get("truth"),
+        remap=p.get("remap", True),
+        heartbeat_ms=t.get("heartbeat_ms", 50),
+        heartbeat_timeout_ms=t.get("heartbeat_timeout_ms", 300),
+        rpdo_timeout_ms=t.get("rpdo_timeout_ms", 300),
+        boot_timeout_s=float(t.get("boot_timeout_s", 2.0)),
+        sdo_timeout_s=float(t.get("sdo_timeout_s", 0.5)),
+    )
+    for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
+        if not path.is_file():
+            raise UserError(f"{source}: [drive].{what} = {str(path)!r} does not exist; give the "
+                            f"path of the drive's {what.upper()} file, relative to the profile")
+    return prof
