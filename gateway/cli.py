@@ -183,6 +183,144 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------- run / sim
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    _add_control_options(p)
+    p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
+                   "profile's, 1)")
+    p.add_argument("--period", default="1ms", help="cycle period (SYNC), e.g. 1ms (default)")
+    p.add_argument("--timing", choices=("lockstep", "realtime"), default="lockstep",
+                   help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
+                        "faster than real time against the emulator); realtime: SYNC on an "
+                        "absolute schedule")
+    p.add_argument("--drive-mode", choices=("ideal", "current-loop", "voltage"),
+                   help="what the drive does with the setpoints: ideal current source or PI "
+                        "current loop (CiA 402 current vector mode; 'ideal' only on the "
+                        "emulator), or voltage-fed (voltage vector mode); default: ideal for "
+                        "the current-fed law, voltage for the full-order law")
+    p.add_argument("--delay", type=int, choices=(0, 1), default=1,
+                   help="1: the drive applies RPDOs at the next SYNC (CiA 301); 0: on receipt "
+                        "(emulator option)")
+    p.add_argument("--duration", help="run this long instead of the profile's duration")
+    p.add_argument("--max-missed", type=int, default=5,
+                   help="consecutive missed cycles that stop the loop (default 5)")
+    p.add_argument("--log", default="bus.blf", metavar="NAME",
+                   help="raw bus log in the run directory; .blf (default), .asc, .csv, .log "
+                        "(candump) or .trc by suffix")
+    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<time>-<command>)")
+    p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+
+
+def _run_config(args: argparse.Namespace):
+    from gateway.runner import RunConfig
+    from gateway.simulate import DEFAULT_DRIVE
+
+    return RunConfig(
+        law=args.law, flux=args.flux, estimator=args.estimator,
+        drive_mode=args.drive_mode or DEFAULT_DRIVE[args.law],
+        period=parse_duration(args.period, "--period"), timing=args.timing, delay=args.delay,
+        gains=_gains(args), bus_log=args.log, max_missed=args.max_missed,
+        duration=args.duration and parse_duration(args.duration, "--duration"),
+    )
+
+
+def _print_run(kind: str, summary: dict[str, Any], out: Path, profile: Any) -> None:
+    from gateway import report
+    from gateway.runner import timing_table
+
+    if "speed_error" in summary:
+        print(report.summary_table(summary))
+    print(timing_table(summary))
+    print(f"wrote {out}/ (summary.json, signals.csv, {summary['run']['bus_log']}"
+          + (", figures" if (out / "fig2_errors.png").exists() else "") + ")")
+
+
+def _finish_run(summary: dict[str, Any]) -> int:
+    """Exit status: 0 when the profile ran to its end, 1 otherwise (fault, lost, stopped)."""
+    reason = summary["run"]["stop_reason"]
+    if reason == "end of the profile":
+        return 0
+    print(f"{PROG}: the run stopped early: {reason}", file=sys.stderr)
+    return 1 if summary.get("faults") or "cycles" in reason else 130
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """`hil-gateway run`: the loop against a drive on a CAN bus."""
+    from gateway.bus import bus_config, open_bus
+    from gateway.drive_profile import load_drive_profile
+    from gateway.runner import StopSignals, run_gateway
+
+    profile = _load_profile(args.profile)
+    motor = _load_motor(args.motor)
+    drive = load_drive_profile(args.drive)
+    cfg = _run_config(args)
+    if args.node is not None and not 1 <= args.node <= 127:
+        raise UserError(f"--node {args.node}: a CANopen node id is 1..127")
+    bus_cfg = bus_config(args)
+    out = _out_dir(args.out, "run")
+    signals = StopSignals()
+    with signals.installed():
+        bus = open_bus(bus_cfg)
+        try:
+            progress = Progress(f"run {bus_cfg.label()}", True if args.progress else None)
+            summary = run_gateway(bus, drive, profile, motor, cfg, out, node=args.node,
+                                  own_echo=bus_cfg.interface in ("socketcan", "virtual"),
+                                  progress=progress, signals=signals, bus_label=bus_cfg.label())
+            progress.done()
+        finally:
+            bus.shutdown()
+    print(f"{PROG} run: {profile.name} on {bus_cfg.label()} node {args.node or drive.node}, "
+          f"{cfg.law}, {cfg.timing}, period {format_duration(cfg.period)}")
+    _print_run("run", summary, out, profile)
+    return _finish_run(summary)
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    """`hil-gateway sim`: the same loop against the emulator, in process, on a virtual bus."""
+    import os
+
+    import can
+
+    from gateway.drive_profile import load_drive_profile
+    from gateway.runner import StopSignals, run_gateway
+    from plant.device import DriveDevice
+    from plant.params import DriveParams
+
+    profile = _load_profile(args.profile)
+    motor = _load_motor(args.motor)
+    drive = load_drive_profile(None)
+    cfg = _run_config(args)
+    node = args.node or drive.node
+    if not 1 <= node <= 127:
+        raise UserError(f"--node {node}: a CANopen node id is 1..127")
+    out = _out_dir(args.out, "sim")
+    channel = f"hil-sim-{os.getpid()}"
+    signals = StopSignals()
+    with signals.installed():
+        bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
+        bus_dev = can.Bus(interface="virtual", channel=channel)
+        device = DriveDevice(bus_dev, node_id=node, motor=motor,
+                             drive_params=DriveParams(mode=cfg.drive_mode))
+        try:
+            device.start()
+            progress = Progress("sim", True if args.progress else None)
+            summary = run_gateway(bus_gw, drive, profile, motor, cfg, out, node=node,
+                                  own_echo=True, progress=progress, signals=signals,
+                                  bus_label=f"virtual:{channel}")
+            progress.done()
+        finally:
+            device.stop()
+            bus_gw.shutdown()
+            bus_dev.shutdown()
+    print(f"{PROG} sim: {profile.name}, emulated drive ({cfg.drive_mode}) on python-can's "
+          f"virtual bus, {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
+          f"{format_duration(cfg.period)}, delay {cfg.delay}")
+    _print_run("sim", summary, out, profile)
+    return _finish_run(summary)
+
+
 # ---------------------------------------------------------------------------- profile
 
 
@@ -283,6 +421,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="run directory (default runs/<time>-simulate-*)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser(
+        "sim", help="the loop over CANopen against the emulated drive, in one process",
+        description="Run the sensorless loop over CANopen against the emulated CiA 402 drive "
+                    "started in the same process on python-can's virtual bus: no hardware, no "
+                    "setup. Writes the run directory like `run`.")
+    _add_run_options(p)
+    p.set_defaults(func=cmd_sim)
+
+    from gateway.bus import add_bus_options
+
+    p = sub.add_parser(
+        "run", help="the loop against a drive on a CAN bus (real, or `hil-plant run`)",
+        description="Bring the drive up (NMT, SDO configuration, CiA 402 enable), run the "
+                    "sensorless loop over PDOs for the profile, bring it down safely, and write "
+                    "the run directory: raw bus log, signals.csv, summary.json, figures.")
+    add_bus_options(p)
+    _add_run_options(p)
+    p.add_argument("--drive", metavar="PROFILE", help="drive profile (TOML); default: the "
+                   "emulator (gateway/drives/emulator.toml)")
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("profile", help="check or plot a reference profile",
                        description="Validate or plot a reference profile (TOML).")

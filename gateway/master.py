@@ -111,10 +111,13 @@ class DriveMaster:
 
     # ------------------------------------------------------------------ connection
 
-    def connect(self) -> None:
-        """Start the notifier, subscribe to heartbeat and EMCY, reset and await boot-up."""
+    def connect(self, listeners: list[can.Listener] | None = None) -> None:
+        """Start the notifier (with extra ``listeners``, e.g. the bus log), subscribe to
+        heartbeat and EMCY, reset communication and await the boot-up."""
         self.network.connect()
         self._connected = True
+        for listener in listeners or []:
+            self.network.notifier.add_listener(listener)
         hb_id = 0x700 + self.node_id
         self.network.subscribe(hb_id, self._on_heartbeat)
         self.network.subscribe(0x80 + self.node_id, self._on_emcy)
@@ -201,8 +204,8 @@ class DriveMaster:
     # ------------------------------------------------------------------ configuration
 
     def configure(self, period: float, pdo_map: dict[str, list[tuple[int, int, int]]],
-                  cob_ids: dict[str, int], mode: int, emulator_objects: dict[str, int | float]
-                  ) -> None:
+                  cob_ids: dict[str, int], mode: int, emulator_objects: dict[str, int | float],
+                  sync_overflow: int = 0) -> None:
         """PRE-OPERATIONAL configuration by SDO (see the module docstring).
 
         pdo_map: for each PDO ('RPDO1', 'TPDO2', ...), the mapped (index, sub, bits).
@@ -211,6 +214,11 @@ class DriveMaster:
         """
         self.node.nmt.state = "PRE-OPERATIONAL"
         p = self.profile
+        for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
+            self.write_by_name(name, value)
+        if sync_overflow and 0x1019 in self.node.object_dictionary:
+            self.sdo_write(0x1006, 0, 0, "cycle period 0 while 0x1019 changes (CiA 301)")
+            self.sdo_write(0x1019, 0, sync_overflow, "SYNC counter overflow value")
         self.sdo_write(0x1006, 0, round(period * 1e6), "communication cycle period, µs")
         self.sdo_write(0x1007, 0, 0, "synchronous window length, µs (0 = off)")
         self.sdo_write(0x1017, 0, p.heartbeat_ms, "producer heartbeat time, ms")
@@ -219,8 +227,6 @@ class DriveMaster:
         for name, entries in pdo_map.items():
             self._map_pdo(name, entries, cob_ids[name])
         self.sdo_write(0x6060, 0, mode, "modes of operation")
-        for name, value in emulator_objects.items():
-            self.write_by_name(name, value)
 
     def _map_pdo(self, name: str, entries: list[tuple[int, int, int]], cob_id: int) -> None:
         """Write one PDO's communication and mapping parameters (CiA 301 procedure)."""

@@ -142,6 +142,7 @@ class Controller:
         # Currents acting on the motor over the present period, per the delay: a queue of
         # the commands in flight (the drive holds zero before it receives anything).
         self._in_flight: deque[tuple[float, float]] = deque([(0.0, 0.0)] * self._delay)
+        self._last = (0.0, 0.0)  # (ω0, dω̂/dt) of the last step, for coast()
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
@@ -191,4 +192,21 @@ class Controller:
         )
         self.w_hat += T * out.dw_hat  # (16)/(27), forward Euler
         self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0
+        self._last = (w_0, out.dw_hat)
         return cmd
+
+    def coast(self) -> None:
+        """A period without measurements (a missed cycle on the bus).
+
+        The drive holds the last setpoints and keeps turning their frame at ω0, so the
+        controller's frame angle advances with the same ω0 and ω̂ is extrapolated with the last
+        dω̂/dt; the flux estimator cannot integrate the missing voltage and is left as it is.
+        With a delay, the command in flight is repeated (the drive holds it).
+        """
+        w_0, dw_hat = self._last
+        T = self._T
+        self.w_hat += T * dw_hat
+        self.eps_0 = wrap_angle(self.eps_0 + T * w_0)
+        if self._delay and self._in_flight:
+            self._in_flight.append(self._in_flight[-1])
+            self._in_flight.popleft()
