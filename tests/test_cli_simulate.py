@@ -1,0 +1,109 @@
+"""`hil-gateway simulate` and `profile`: outputs, the summary's content, and bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway.cli import main
+from gateway.report import read_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """The CLI in a subprocess (to see exit status, stdout and stderr as a user does)."""
+    return subprocess.run([sys.executable, "-m", "gateway", *args], capture_output=True,
+                          text=True, cwd=ROOT, timeout=300)
+
+
+def test_simulate_continuous_reproduces_section_6(tmp_path):
+    out = tmp_path / "cont"
+    assert main(["simulate", "--period", "continuous", "--flux", "true", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("speed_error", "flux_error", "estimation_error"):
+        assert set(summary[key]) >= {"max", "rms", "final", "windows"}
+        assert [w["from"] for w in summary[key]["windows"]] == [0.0, 0.5, 1.5]
+    assert summary["speed_error"]["max"] < 5e-3  # mrad/s range
+    assert abs(summary["speed_error"]["final"]) < 1e-4
+    assert abs(summary["estimation_error"]["final"]) < 1e-4
+    assert 7.0 < summary["peak_current"] < 10.0
+    assert summary["configuration"]["period"] == "continuous"
+    sig = read_csv(out / "signals.csv")
+    assert sig["t"][-1] == pytest.approx(2.5)
+    assert np.max(np.abs(sig["w_m"] - sig["w_ref"])) == pytest.approx(summary["speed_error"]["max"])
+    pngs = {p.name for p in out.glob("*.png")}
+    assert {"fig1_references.png", "fig2_errors.png"} <= pngs
+
+
+def test_simulate_sampled_summary_shows_delay(tmp_path):
+    rms = {}
+    for delay in ("0", "1"):
+        out = tmp_path / f"d{delay}"
+        assert main(["simulate", "--period", "1ms", "--delay", delay, "--flux", "true",
+                     "--out", str(out)]) == 0
+        s = json.loads((out / "summary.json").read_text())
+        assert s["configuration"]["delay"] == int(delay)
+        rms[delay] = s["speed_error"]["rms"]
+    assert rms["0"] < rms["1"]
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["simulate", "--profile", "nope.toml"], "nope.toml"),
+        (["simulate", "--period", "1 parsec"], "--period '1 parsec' is not a duration"),
+        (["simulate", "--law", "full-order", "--drive", "ideal"],
+         "--drive voltage or current-loop"),
+        (["simulate", "--period", "continuous", "--drive", "current-loop"], "continuous time"),
+        (["simulate", "--out", "/proc/forbidden/run"], "cannot write the run directory"),
+        (["simulate", "--k-w", "-3"], "must be > 0"),
+        (["profile", "check", "README.md"], "README.md"),
+    ],
+)
+def test_bad_input_gives_one_paragraph_and_status_2(args, needle):
+    r = run_cli(*args)
+    assert r.returncode == 2, r.stderr
+    assert needle in r.stderr
+    assert "Traceback" not in r.stderr
+    assert r.stderr.startswith("hil-gateway: error: ")
+
+
+def test_bad_profile_names_file_and_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text((ROOT / "profiles" / "paper.toml").read_text().replace(
+        "initial = 0.001", "initial = -0.2"))
+    r = run_cli("simulate", "--profile", str(bad))
+    assert r.returncode == 2
+    assert str(bad) in r.stderr and "[flux]" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_profile_check_prints_set_points_and_demand():
+    r = run_cli("profile", "check", "profiles/paper.toml")
+    assert r.returncode == 0, r.stderr
+    assert "valid" in r.stdout
+    assert "1.16" in r.stdout and "200" in r.stdout
+    assert "peak" in r.stdout.lower()
+
+
+def test_profile_plot_writes_png(tmp_path):
+    out = tmp_path / "paper.png"
+    r = run_cli("profile", "plot", "profiles/paper.toml", "-o", str(out))
+    assert r.returncode == 0, r.stderr
+    assert out.stat().st_size > 10_000
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_help_explains_every_command():
+    r = run_cli("--help")
+    assert r.returncode == 0
+    for cmd in ("simulate", "sim", "run", "profile"):
+        assert cmd in r.stdout
+    r = run_cli("simulate", "--help")
+    assert "--setpoint-frame" in r.stdout and "continuous" in r.stdout
