@@ -334,17 +334,22 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
     for line in profile.set_points():
         print(f"  {line}")
     d = demand(profile, motor)
+    from plant.params import DriveParams
+
+    drive = DriveParams()
     print("demand on the motor under perfect tracking (open-loop references (9)-(11)):")
-    for key, value in _demand_lines(d):
-        print(f"  {key}: {value}")
+    print(f"  peak current |i_s|   {d.i_s_peak:8.3g} A    at {d.t_i_s_peak:.3g} s "
+          f"(i_sd up to {d.i_sd_peak:.3g} A, i_sq up to {d.i_sq_peak:.3g} A)")
+    print(f"  peak voltage |u_s|   {d.u_s_peak:8.3g} V    at {d.t_u_s_peak:.3g} s")
+    print(f"  peak torque  |T_e|   {d.T_e_peak:8.3g} N·m  at {d.t_T_e_peak:.3g} s")
+    print(f"  peak speed   |ω*|    {d.w_peak:8.4g} rad/s, frame speed |ω0| up to "
+          f"{d.w_0_peak:.4g} rad/s")
+    if d.i_s_peak > drive.i_trip:
+        print(f"  warning: beyond the default drive's over-current trip ({drive.i_trip:g} A)")
+    if d.u_s_peak > drive.u_lim:
+        print(f"  warning: beyond the default drive's voltage limit ({drive.u_lim:.0f} V = "
+              f"u_dc/√3): expect the limit to act")
     return 0
-
-
-def _demand_lines(d: Any) -> list[tuple[str, str]]:
-    fields = getattr(d, "__dataclass_fields__", None)
-    items = {k: getattr(d, k) for k in fields} if fields else dict(vars(d))
-    return [(k.replace("_", " "), f"{v:.4g}" if isinstance(v, float) else str(v))
-            for k, v in items.items()]
 
 
 def cmd_profile_plot(args: argparse.Namespace) -> int:
