@@ -264,3 +264,16 @@ def test_controller_config_rejects_bad_values():
     ctl = Controller(MOTOR, ControllerConfig(flux="true"))
     with pytest.raises(ValueError, match="true rotor flux"):
         ctl.step(ConstRefs(), Sample(0j, 0j, None))
+
+
+def test_full_order_sampled_needs_larger_gamma_2():
+    """ERRATA 10: γ2 = γ1 works in continuous time but not sampled at 1 ms with a delay."""
+    from gateway.control.profiles import paper_profile
+
+    base = dict(law="full-order", drive="voltage", period=1e-3, delay=1)
+    bad = run(paper_profile(), MOTOR, SimConfig(**base, gains=Gains(gamma_2=0.0008))).arrays()
+    good = run(paper_profile(), MOTOR, SimConfig(**base)).arrays()
+    e_bad = np.max(np.abs(bad["w_m"] - bad["w_ref"]))
+    e_good = np.max(np.abs(good["w_m"] - good["w_ref"]))
+    assert e_good < 2.0
+    assert e_bad > 10.0 * e_good
