@@ -1,0 +1,525 @@
+"""`hil-gateway log`: record the bus to a file, optionally decode the drive's PDOs.
+
+The raw log goes through python-can's writers, chosen by the file suffix
+(:data:`LOG_SUFFIXES`). With ``--decode`` the PDOs of one node are decoded with the DBC
+(SI units) and shown live, at most 10 times a second; with ``--csv FILE`` every decoded
+frame becomes one CSV row (time, message name, signals).
+
+Frames are received by a :class:`can.Notifier` thread; on every exit path (duration over,
+Ctrl-C, SIGTERM, bus error) the notifier is stopped first and the files are closed after
+it, so everything received is written.
+
+The same decoding serves recorded logs: ``decode_frames(read_log("run.blf"), node_id=1)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import functools
+import logging
+import os
+import signal
+import struct
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import can
+
+from gateway.bus import add_bus_options, bus_config, open_bus
+from gateway.errors import UserError
+
+#: Raw log formats (python-can writers/readers), by file suffix.
+LOG_SUFFIXES: dict[str, str] = {
+    ".blf": "Vector binary logging format (compact; CANalyzer, CANoe, python-can)",
+    ".asc": "Vector ASCII",
+    ".csv": "python-can CSV",
+    ".log": "can-utils candump -l format (canplayer)",
+    ".trc": "PEAK PCAN-View trace",
+}
+
+#: The live display refreshes at most this often (s); a pipe gets one line per message/s.
+DISPLAY_PERIOD = 0.1
+PIPE_PERIOD = 1.0
+
+# CANopen pre-defined connection set: function code (COB-ID & 0x780) → name.
+_FUNCTION = {0x180: "TPDO1", 0x200: "RPDO1", 0x280: "TPDO2", 0x300: "RPDO2", 0x380: "TPDO3",
+             0x400: "RPDO3", 0x480: "TPDO4", 0x500: "RPDO4", 0x580: "SDO tx", 0x600: "SDO rx",
+             0x700: "heartbeat", 0x080: "EMCY"}
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def check_log_path(path: str | Path, option: str = "-o") -> Path:
+    """Validate a log file name: known suffix, existing writable directory; UserError if not."""
+    p = Path(path)
+    known = ", ".join(f"{s} ({what})" for s, what in LOG_SUFFIXES.items())
+    suffix = p.suffix.lower()
+    if not suffix:
+        raise UserError(f"{option} {str(path)!r} has no suffix, so the log format is unknown: "
+                        f"name the file with one of {known}, e.g. {p.name}.blf")
+    if suffix not in LOG_SUFFIXES:
+        raise UserError(f"{option} {str(path)!r}: unknown log format {suffix!r}; use one of "
+                        f"{known}")
+    _check_writable(p, option)
+    return p
+
+
+def _check_writable(p: Path, option: str) -> None:
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise UserError(f"{option} {str(p)!r} is a directory; give a file name")
+    if not parent.is_dir():
+        raise UserError(f"{option} {str(p)!r}: the directory {str(parent)!r} does not exist; "
+                        "create it or choose another place")
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise UserError(f"{option} {str(p)!r} is not writable (permission denied); choose "
+                        "another place")
+
+
+def read_log(path: str | Path) -> list[can.Message]:
+    """All frames of a log written by `hil-gateway log` (or any python-can-readable log)."""
+    p = Path(path)
+    if p.suffix.lower() not in LOG_SUFFIXES:
+        raise UserError(f"{str(path)!r}: unknown log format {p.suffix!r}; python-can reads "
+                        f"{', '.join(LOG_SUFFIXES)}")
+    try:
+        with can.LogReader(p) as reader:
+            return list(reader)
+    except OSError as exc:
+        raise UserError(f"cannot read the log {str(p)!r}: {exc.strerror or exc}") from exc
+    except (ValueError, struct.error) as exc:
+        raise UserError(f"{str(p)!r} is not a valid {p.suffix} log: {exc}") from exc
+
+
+# -------------------------------------------------------------------------- decoding
+
+
+def _codec(node_id: int) -> Any:
+    from dbc import load_codec
+
+    try:
+        return load_codec(node_id)
+    except ValueError as exc:
+        raise UserError(f"--node {node_id}: {exc}; a CANopen node id is 1..127") from exc
+
+
+def _decoders(node_id: int, prefer: Iterable[str] = ()) -> dict[int, tuple[str, Any]]:
+    """COB-ID → (message name, decode(data) → {signal: value}) for the node's PDOs.
+
+    ``prefer`` names alternative layouts that share a COB-ID (``RPDO2_AB``) to use instead
+    of the default one.
+    """
+    codec = _codec(node_id)
+    table = {fid: (name, codec.messages[name].decode) for fid, name in codec.by_frame_id.items()}
+    for name in prefer:
+        if name not in codec.messages:
+            raise UserError(f"{name!r} is not a message of the DBC; known: "
+                            f"{', '.join(codec.names)}")
+        c = codec.messages[name]
+        table[c.frame_id] = (name, c.decode)
+    return table
+
+
+def _iter_decoded(messages: Iterable[can.Message],
+                  table: dict[int, tuple[str, Any]]) -> Iterator[dict[str, Any]]:
+    for m in messages:
+        if m.is_extended_id or m.is_remote_frame or m.is_error_frame:
+            continue
+        entry = table.get(m.arbitration_id)
+        if entry is None:
+            continue
+        name, decode = entry
+        try:
+            values = decode(bytes(m.data))
+        except struct.error:  # wrong length: not this layout
+            continue
+        yield {"t": m.timestamp, "name": name, **values}
+
+
+def decode_frames(messages: Iterable[can.Message], node_id: int = 1,
+                  prefer: Iterable[str] = ()) -> list[dict[str, Any]]:
+    """Decode the PDOs of ``node_id`` among ``messages`` with the DBC, in order.
+
+    Each row is ``{'t': timestamp, 'name': 'TPDO1', <signal>: <physical value>, ...}`` (SI
+    units; controlword, statusword and sync_counter as int). Frames that are not one of the
+    node's PDOs, or have the wrong length for it, are skipped. ``prefer=("RPDO2_AB",)``
+    decodes COB-ID 0x300 + node with the (a, b) setpoint layout instead of (d, q).
+    """
+    return list(_iter_decoded(messages, _decoders(node_id, prefer)))
+
+
+def csv_columns(node_id: int = 1, prefer: Iterable[str] = ()) -> list[str]:
+    """The header of the decoded CSV: t, name and every signal of the decoded messages."""
+    cols = ["t", "name"]
+    codec = _codec(node_id)
+    for name, _ in sorted(_decoders(node_id, prefer).values(), key=lambda e: e[0]):
+        cols += [s for s in codec.messages[name].names if s not in cols]
+    return cols
+
+
+@functools.cache
+def _units() -> dict[str, str]:
+    """Signal name → unit, from the DBC (for the live display)."""
+    import cantools
+
+    from dbc import DBC_PATH
+
+    quiet = _DropDuplicateIdWarning()
+    cantools_log = logging.getLogger("cantools.database.can.database")
+    cantools_log.addFilter(quiet)
+    try:
+        db = cantools.database.load_file(str(DBC_PATH))
+    finally:
+        cantools_log.removeFilter(quiet)
+    return {s.name: (s.unit or "") for m in db.messages for s in m.signals}
+
+
+class _DropDuplicateIdWarning(logging.Filter):
+    """RPDO2 and RPDO2_AB share a frame id on purpose."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "identical masked frame ids" not in record.getMessage()
+
+
+def _fmt(name: str, value: Any) -> str:
+    if name in ("controlword", "statusword"):
+        return f"{name}=0x{int(value):04X}"
+    if isinstance(value, int):
+        return f"{name}={value}"
+    unit = _units().get(name, "")
+    return f"{name}={value:.4g}" + (f" {unit}" if unit else "")
+
+
+def classify(msg: can.Message, node_id: int, pdo_names: dict[int, str]) -> str:
+    """A short label for the per-message account: the node's PDO name or the CANopen service."""
+    if msg.is_error_frame:
+        return "error frame"
+    if msg.is_extended_id:
+        return "extended id"
+    cob = msg.arbitration_id
+    if cob in pdo_names:
+        return pdo_names[cob]
+    if cob == 0x000:
+        return "NMT"
+    if cob == 0x080:
+        return "SYNC"
+    if cob == 0x100:
+        return "TIME"
+    if cob in (0x7E4, 0x7E5):
+        return "LSS"
+    func, node = cob & 0x780, cob & 0x7F
+    if func in _FUNCTION and node:
+        kind = _FUNCTION[func]
+        if func == 0x700 and msg.dlc >= 1 and msg.data[0] == 0:
+            kind = "boot-up"
+        return f"{kind} node {node}"
+    return f"0x{cob:03X}"
+
+
+# ---------------------------------------------------------------------------- record
+
+
+@dataclass
+class LogResult:
+    """What a logging run did (the account printed at the end)."""
+
+    path: Path
+    frames: int = 0
+    decoded: int = 0
+    duration: float = 0.0
+    counts: Counter[str] = field(default_factory=Counter)
+    csv_path: Path | None = None
+    error: BaseException | None = None
+
+    def account(self) -> str:
+        """Frames logged, per-message counts and duration, a few lines."""
+        rate = self.frames / self.duration if self.duration > 0 else 0.0
+        lines = [f"logged {self.frames} frames in {self.duration:.2f} s ({rate:.0f}/s) to "
+                 f"{self.path}"]
+        if self.csv_path is not None:
+            lines[0] += f"; {self.decoded} decoded rows to {self.csv_path}"
+        if self.counts:
+            items = [f"{k} {v}" for k, v in sorted(self.counts.items(),
+                                                    key=lambda kv: (-kv[1], kv[0]))]
+            lines.append("  " + ", ".join(items))
+        return "\n".join(lines)
+
+
+class _Recorder(can.Listener):
+    """Writes every frame to the raw log; decodes the node's PDOs for the display and CSV.
+
+    Runs in the notifier thread; :meth:`close` (idempotent, also called by the notifier's
+    ``stop``) flushes and closes the files; frames arriving after it are dropped.
+    """
+
+    def __init__(self, writer: can.Listener, node_id: int, decode: bool,
+                 csv_file: TextIO | None, prefer: Iterable[str] = ()) -> None:
+        self.writer = writer
+        self.node_id = node_id
+        self.table = _decoders(node_id, prefer)
+        self.pdo_names = {fid: name for fid, (name, _) in self.table.items()}
+        self.decode = decode or csv_file is not None
+        self.lock = threading.Lock()
+        self.frames = 0
+        self.decoded = 0
+        self.counts: Counter[str] = Counter()
+        self.latest: dict[str, dict[str, Any]] = {}
+        self.fresh: set[str] = set()
+        self.error: BaseException | None = None
+        self.closed = False
+        self.csv_file = csv_file
+        self.csv: csv.DictWriter | None = None
+        if csv_file is not None:
+            self.csv = csv.DictWriter(csv_file, csv_columns(node_id, prefer), restval="",
+                                      lineterminator="\n")
+            self.csv.writeheader()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.lock:
+            if self.closed:
+                return
+            self.writer.on_message_received(msg)
+            self.frames += 1
+            self.counts[classify(msg, self.node_id, self.pdo_names)] += 1
+            if not self.decode:
+                return
+            for row in _iter_decoded((msg,), self.table):
+                self.decoded += 1
+                self.latest[row["name"]] = row
+                self.fresh.add(row["name"])
+                if self.csv is not None:
+                    self.csv.writerow(row)
+
+    def on_error(self, exc: Exception) -> None:
+        """A receive error ends the run (the notifier thread stops after this)."""
+        self.error = exc
+
+    def flush(self) -> None:
+        """Push the decoded CSV to the OS (called from the main thread about once a second)."""
+        with self.lock:
+            if not self.closed and self.csv_file is not None:
+                self.csv_file.flush()
+
+    def close(self) -> None:
+        """Flush and close the raw log and the CSV, once."""
+        with self.lock:
+            if self.closed:
+                return
+            self.closed = True
+            try:
+                self.writer.stop()
+            finally:
+                if self.csv_file is not None:
+                    self.csv_file.close()
+
+    def stop(self) -> None:
+        """Called by :meth:`can.Notifier.stop`."""
+        self.close()
+
+
+class _Display:
+    """The live view: a refreshing table on a terminal, one line per message/s on a pipe."""
+
+    def __init__(self, out: TextIO, rec: _Recorder, decode: bool, tty: bool | None) -> None:
+        self.out = out
+        self.rec = rec
+        self.decode = decode
+        self.tty = out.isatty() if tty is None else tty
+        self.period = DISPLAY_PERIOD if self.tty else PIPE_PERIOD
+        self._next = time.monotonic() + self.period
+        self._lines = 0
+        self._t0 = time.monotonic()
+
+    def tick(self, final: bool = False) -> None:
+        now = time.monotonic()
+        if now < self._next and not final:
+            return
+        self._next = now + self.period
+        with self.rec.lock:
+            latest = {k: dict(v) for k, v in self.rec.latest.items()}
+            fresh, self.rec.fresh = self.rec.fresh, set()
+            frames = self.rec.frames
+        if self.tty:
+            self._redraw(latest, frames, now - self._t0)
+        elif self.decode:
+            for name in sorted(fresh):
+                self.out.write(self._line(latest[name]) + "\n")
+            self.out.flush()
+
+    def _line(self, row: dict[str, Any]) -> str:
+        sigs = " ".join(_fmt(k, v) for k, v in row.items() if k not in ("t", "name"))
+        return f"{row['t']:.3f} {row['name']:<8} {sigs}"
+
+    def _redraw(self, latest: dict[str, dict[str, Any]], frames: int, elapsed: float) -> None:
+        lines = [f"{frames} frames, {elapsed:.1f} s"]
+        if self.decode:
+            lines += [self._line(latest[name]) for name in sorted(latest)]
+        text = ""
+        if self._lines:
+            text += f"\x1b[{self._lines}F"  # cursor up to the first line of the table
+        text += "".join(f"\x1b[2K{line}\n" for line in lines)
+        self._lines = len(lines)
+        self.out.write(text)
+        self.out.flush()
+
+
+def run_log(bus: can.BusABC, path: str | Path, *, node_id: int = 1, decode: bool = False,
+            csv_path: str | Path | None = None, duration: float | None = None,
+            stop: threading.Event | None = None, quiet: bool = False,
+            out: TextIO | None = None, tty: bool | None = None,
+            prefer: Iterable[str] = ()) -> LogResult:
+    """Log ``bus`` to ``path`` until ``duration`` (s) elapsed, ``stop`` is set or a bus error.
+
+    The caller owns the bus (opens and shuts it down). Returns the account; a bus error is
+    in :attr:`LogResult.error` (the files are complete up to it). Raises UserError for a bad
+    path or node before anything is received.
+    """
+    out = sys.stdout if out is None else out
+    stop = threading.Event() if stop is None else stop
+    p = check_log_path(path)
+    cp = None
+    if csv_path is not None:
+        cp = Path(csv_path)
+        _check_writable(cp, "--csv")
+        if cp.resolve() == p.resolve():
+            raise UserError(f"--csv {str(cp)!r} is the raw log file itself; give another name")
+    _decoders(node_id, prefer)  # bad node id or message name → UserError before any file
+    try:
+        writer = can.Logger(p)
+    except ValueError as exc:
+        raise UserError(f"-o {str(p)!r}: {exc}") from exc
+    except OSError as exc:
+        raise UserError(f"cannot write the log {str(p)!r}: {exc.strerror or exc}") from exc
+    csv_file = None
+    try:
+        if cp is not None:
+            try:
+                csv_file = open(cp, "w", newline="", encoding="utf-8")  # noqa: SIM115
+            except OSError as exc:
+                raise UserError(f"cannot write --csv {str(cp)!r}: {exc.strerror or exc}") from exc
+        rec = _Recorder(writer, node_id, decode, csv_file, prefer)
+    except BaseException:
+        writer.stop()
+        if csv_file is not None:
+            csv_file.close()
+        raise
+    display = None if quiet else _Display(out, rec, decode, tty)
+    if display is not None and not display.tty and not decode:
+        display = None  # nothing useful to print on a pipe without decoding
+    result = LogResult(path=p, csv_path=cp)
+    t0 = time.monotonic()
+    notifier = None
+    try:
+        notifier = can.Notifier(bus, [rec], timeout=0.1)
+        last_flush = t0
+        while True:
+            now = time.monotonic()
+            if duration is not None and now - t0 >= duration:
+                break
+            if rec.error is not None:
+                break
+            wait = DISPLAY_PERIOD if duration is None else min(DISPLAY_PERIOD,
+                                                                duration - (now - t0))
+            if stop.wait(max(wait, 0.0)):
+                break
+            if display is not None:
+                display.tick()
+            if now - last_flush >= 1.0:
+                rec.flush()
+                last_flush = now
+    finally:
+        if notifier is not None:
+            notifier.stop(timeout=2.0)  # joins the receive thread, then rec.stop()
+        rec.close()
+        result.duration = time.monotonic() - t0
+        if display is not None:
+            with contextlib.suppress(Exception):
+                display.tick(final=True)
+    result.frames, result.decoded = rec.frames, rec.decoded
+    result.counts = Counter(rec.counts)
+    result.error = rec.error
+    return result
+
+
+# ------------------------------------------------------------------------------- CLI
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """SIGINT and SIGTERM set ``stop`` (main thread only); the old handlers come back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def cmd_log(args: argparse.Namespace) -> int:
+    """`hil-gateway log`: record the bus; decode the drive's PDOs; print the account."""
+    from gateway.units import format_duration, parse_duration
+
+    path = check_log_path(args.output)
+    if args.csv is not None:
+        _check_writable(Path(args.csv), "--csv")
+    duration = None if args.duration is None else parse_duration(args.duration, "--duration")
+    _decoders(args.node)
+    cfg = bus_config(args)
+    bus = open_bus(cfg, receive_own_messages=False)
+    stop = threading.Event()
+    try:
+        if not args.quiet:
+            until = f"for {format_duration(duration)}" if duration else "until Ctrl-C"
+            what = f", decoding node {args.node}" if args.decode or args.csv else ""
+            print(f"logging {cfg.label()} to {path}{what} {until}", flush=True)
+        with _stop_on_signals(stop):
+            result = run_log(bus, path, node_id=args.node, decode=args.decode,
+                             csv_path=args.csv, duration=duration, stop=stop, quiet=args.quiet)
+    finally:
+        bus.shutdown()
+    print(result.account())
+    if result.error is not None:
+        raise UserError(f"receiving from {cfg.label()} failed: {result.error}. The log {path} "
+                        f"is complete up to that point ({result.frames} frames).")
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    """Register `log` on the subcommand parsers of `hil-gateway`."""
+    formats = "; ".join(f"{s} {what}" for s, what in LOG_SUFFIXES.items())
+    p = sub.add_parser(
+        "log", help="record the CAN bus to a file (.blf/.asc/.csv/.log/.trc), decode the PDOs",
+        description="Record every frame on the bus to a log file through python-can's writers; "
+                    "the format follows the suffix of -o: " + formats + ". With --decode the "
+                    "drive's PDOs are decoded with the DBC (SI units) and shown live; with "
+                    "--csv each decoded frame is one CSV row. Stops after --duration or on "
+                    "Ctrl-C/SIGTERM; the files are always complete. Read a log back in "
+                    "Python with gateway.buslog.read_log() and decode_frames().")
+    p.add_argument("-o", "--output", required=True, metavar="FILE",
+                   help="raw log file; its suffix picks the format (.blf, .asc, .csv, .log, .trc)")
+    p.add_argument("--decode", action="store_true",
+                   help="decode the drive's PDOs and show the latest values live (≤ 10 Hz)")
+    p.add_argument("--csv", metavar="FILE",
+                   help="write one row per decoded PDO (t, name, signals in SI units)")
+    p.add_argument("--duration", metavar="S",
+                   help="stop after this long (10, 2.5s, 500ms); default: until Ctrl-C")
+    p.add_argument("--node", type=int, default=1, metavar="N",
+                   help="node id of the drive whose PDOs are decoded (default 1)")
+    p.add_argument("--quiet", action="store_true",
+                   help="no live output; only the account at the end")
+    add_bus_options(p)
+    p.set_defaults(func=cmd_log)
