@@ -21,8 +21,10 @@ the gateway's reaction time from the last TPDO's arrival to the RPDOs sent.
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -120,7 +122,9 @@ class CycleLoop:
         # the frames the controller needs, in the order the drive sends them
         self._expected = [names.currents, names.voltages] + ([names.truth] if names.truth else [])
         self._ids = {codec.frame_id(n): n for n in self._expected}
+        self._first_name = self._expected[0]
         self._last_name = self._expected[-1]
+        self._stale = False
         self._frames: dict[str, bytes] = {}
         self._tpdo_time = 0.0
         self._k = 0  # cycles opened (SYNCs seen)
@@ -150,8 +154,13 @@ class CycleLoop:
 
     # ------------------------------------------------------------------- frames in
 
+    @staticmethod
+    def _counter(k: int) -> int:
+        """The SYNC counter of cycle k: 1..SYNC_OVERFLOW, then 1 again (CiA 301)."""
+        return ((k - 1) % SYNC_OVERFLOW) + 1
+
     def _sync_message(self, k: int) -> can.Message:
-        data = [((k - 1) % SYNC_OVERFLOW) + 1] if self.cfg.sync_counter else []
+        data = [self._counter(k)] if self.cfg.sync_counter else []
         return can.Message(arbitration_id=SYNC_ID, data=data, is_extended_id=False)
 
     def _on_own_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -168,6 +177,7 @@ class CycleLoop:
         self._k += 1
         self._sync_prev, self._sync_time = self._sync_time, timestamp
         self._frames.clear()
+        self._stale = False
 
     def _miss(self) -> None:
         """Cycle self._k had no complete TPDO set: coast and count (lock held)."""
@@ -187,6 +197,11 @@ class CycleLoop:
         with self._lock:
             if self._k <= self._k_done:
                 return  # a TPDO outside an open cycle (late, or before the first SYNC)
+            if name == self._first_name and self.cfg.sync_counter:
+                counter = self.codec.decode(name, data).get("sync_counter")
+                self._stale = counter is not None and counter != self._counter(self._k)
+            if self._stale:
+                return  # the answer to an earlier SYNC, arriving in this cycle: not ours
             self._frames[name] = bytes(data)
             if name != self._last_name or len(self._frames) < len(self._expected):
                 return
@@ -270,6 +285,18 @@ class CycleLoop:
         """Run until the profile ends, a stop is requested, the drive faults or is lost."""
         t0 = time.perf_counter()
         self._progress_at = time.monotonic()
+        # No cyclic-garbage collector pauses inside the loop (a full collection over the
+        # growing record costs tens of ms): everything alive now is frozen out of the
+        # collector's sight, and collection resumes after the run.
+        gc_was_enabled = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        # Real time: a thread that wakes for SYNC or a TPDO must get the interpreter lock
+        # within ~0.1 ms, not after the default 5 ms switch interval.
+        switch_interval = sys.getswitchinterval()
+        if self.cfg.timing == "realtime":
+            sys.setswitchinterval(1e-4)
         try:
             if self.cfg.timing == "lockstep":
                 with self._lock:
@@ -288,6 +315,10 @@ class CycleLoop:
             self._stop.set()
             self._stop_sync_producer()
             self.stats.wall_time = time.perf_counter() - t0
+            sys.setswitchinterval(switch_interval)
+            gc.unfreeze()
+            if gc_was_enabled:
+                gc.enable()
         if progress is not None:
             progress(self._k_done / self.cfg.n_cycles)
         if self._error is not None:
@@ -323,7 +354,11 @@ class CycleLoop:
         self._sync_thread.start()
 
     def _sync_thread_main(self) -> None:
-        """SYNC on an absolute schedule: sleep until 1 ms before, then spin."""
+        """SYNC on an absolute schedule: sleep until 0.3 ms before, then spin.
+
+        The spin yields the interpreter lock every turn (``sleep(0)``): a plain busy loop
+        would hold it for the whole switch interval and starve the receive threads.
+        """
         T = self._T
         t0 = time.perf_counter() + 0.01
         k = 0
@@ -331,10 +366,10 @@ class CycleLoop:
             k += 1
             target = t0 + (k - 1) * T
             remaining = target - time.perf_counter()
-            if remaining > 0.0015:
-                time.sleep(remaining - 0.001)
+            if remaining > 0.0005:
+                time.sleep(remaining - 0.0003)
             while time.perf_counter() < target:
-                pass
+                time.sleep(0)
             if self._stop.is_set():
                 break
             if not self.own_echo:

@@ -217,8 +217,11 @@ class DriveMaster:
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
             self.write_by_name(name, value)
         if sync_overflow and 0x1019 in self.node.object_dictionary:
-            self.sdo_write(0x1006, 0, 0, "cycle period 0 while 0x1019 changes (CiA 301)")
-            self.sdo_write(0x1019, 0, sync_overflow, "SYNC counter overflow value")
+            try:
+                self._entry(0x1019, 0).raw = sync_overflow
+            except SdoAbortedError:  # CiA 301: 0x1019 may only change while 0x1006 = 0
+                self.sdo_write(0x1006, 0, 0, "cycle period 0 while 0x1019 changes")
+                self.sdo_write(0x1019, 0, sync_overflow, "SYNC counter overflow value")
         self.sdo_write(0x1006, 0, round(period * 1e6), "communication cycle period, µs")
         self.sdo_write(0x1007, 0, 0, "synchronous window length, µs (0 = off)")
         self.sdo_write(0x1017, 0, p.heartbeat_ms, "producer heartbeat time, ms")
@@ -319,8 +322,10 @@ class DriveMaster:
             self.disable()
             try:
                 self.node.nmt.state = "PRE-OPERATIONAL"
+                # the gateway's heartbeat is about to stop: the drive no longer watches it
+                self._entry(0x1016, 1).raw = 0
             except Exception as exc:
-                log.warning("NMT pre-operational failed: %s", exc)
+                log.warning("NMT pre-operational / heartbeat consumer off failed: %s", exc)
         if self._heartbeat_task is not None:
             try:
                 self._heartbeat_task.stop()

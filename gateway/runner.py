@@ -267,7 +267,7 @@ def _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id,
         loop.record.write_csv(out / "signals.csv")
         if drive.truth:
             summary.update(report.metrics(sig))
-        summary["timing"] = timing_stats(sig, cfg.period)
+        summary["timing"] = timing_stats(sig, cfg.period, cfg.timing == "realtime")
         report.plot_figures(sig, out, f"(over CAN, {cfg.timing})") if drive.truth else None
     stop_reason = (stats.stop_reason if stats else "") or interrupt_reason or "start-up stopped"
     summary["run"] = {
@@ -290,8 +290,9 @@ def _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id,
     return summary
 
 
-def timing_stats(sig: dict[str, np.ndarray], period: float) -> dict[str, Any]:
-    """Medians, p99 and maxima of the per-cycle timing columns, in seconds."""
+def timing_stats(sig: dict[str, np.ndarray], period: float, realtime: bool) -> dict[str, Any]:
+    """Medians, p99 and maxima of the per-cycle timing columns, in seconds; the SYNC jitter
+    (|SYNC period − T|) only for real-time timing, where SYNC has a schedule."""
     out: dict[str, Any] = {}
     for key in ("sync_period", "sync_to_tpdo", "reaction"):
         x = sig[key]
@@ -300,7 +301,7 @@ def timing_stats(sig: dict[str, np.ndarray], period: float) -> dict[str, Any]:
             continue
         out[key] = {"median": float(np.median(x)), "p99": float(np.percentile(x, 99)),
                     "max": float(np.max(x)), "min": float(np.min(x))}
-    if "sync_period" in out:
+    if realtime and "sync_period" in out:
         jitter = np.abs(sig["sync_period"][np.isfinite(sig["sync_period"])] - period)
         out["sync_jitter"] = {"median": float(np.median(jitter)),
                               "p99": float(np.percentile(jitter, 99)),
