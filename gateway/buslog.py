@@ -38,11 +38,11 @@ from gateway.errors import UserError
 
 #: Raw log formats (python-can writers/readers), by file suffix.
 LOG_SUFFIXES: dict[str, str] = {
-    ".blf": "Vector binary logging format (compact; CANalyzer, CANoe, python-can)",
+    ".blf": "Vector BLF, compact binary",
     ".asc": "Vector ASCII",
     ".csv": "python-can CSV",
-    ".log": "can-utils candump -l format (canplayer)",
-    ".trc": "PEAK PCAN-View trace",
+    ".log": "candump -l, for canplayer",
+    ".trc": "PEAK trace",
 }
 
 #: The live display refreshes at most this often (s); a pipe gets one line per message/s.
@@ -275,6 +275,7 @@ class _Recorder(can.Listener):
         self.latest: dict[str, dict[str, Any]] = {}
         self.fresh: set[str] = set()
         self.error: BaseException | None = None
+        self.t_first: float | None = None  # timestamp of the first frame
         self.closed = False
         self.csv_file = csv_file
         self.csv: csv.DictWriter | None = None
@@ -288,6 +289,8 @@ class _Recorder(can.Listener):
             if self.closed:
                 return
             self.writer.on_message_received(msg)
+            if self.t_first is None:
+                self.t_first = msg.timestamp
             self.frames += 1
             self.counts[classify(msg, self.node_id, self.pdo_names)] += 1
             if not self.decode:
@@ -357,7 +360,8 @@ class _Display:
 
     def _line(self, row: dict[str, Any]) -> str:
         sigs = " ".join(_fmt(k, v) for k, v in row.items() if k not in ("t", "name"))
-        return f"{row['t']:.3f} {row['name']:<8} {sigs}"
+        t = row["t"] - (self.rec.t_first or 0.0)  # since the first frame logged
+        return f"{t:8.3f} {row['name']:<8} {sigs}"
 
     def _redraw(self, latest: dict[str, dict[str, Any]], frames: int, elapsed: float) -> None:
         lines = [f"{frames} frames, {elapsed:.1f} s"]
