@@ -51,18 +51,21 @@ def bus_config(args: argparse.Namespace) -> BusConfig:
         given["channel"] = args.channel
     if args.bitrate:
         given["bitrate"] = args.bitrate
+    no_interface = UserError(
+        "no CAN interface given: use -i/--interface and -c/--channel (e.g. -i socketcan "
+        "-c vcan0), or set CAN_INTERFACE and CAN_CHANNEL, or write them in python-can's "
+        "config file (~/can.conf). To try without hardware, run `hil-gateway sim`.")
     try:
         cfg = can.util.load_config(config=given)
     except (can.CanInterfaceNotImplementedError, ValueError) as exc:
+        if "interface" not in given and '"None"' in str(exc):
+            raise no_interface from exc
         raise UserError(f"CAN interface: {exc}. Give a python-can interface with -i "
                         f"(socketcan, pcan, kvaser, vector, virtual, ...).") from exc
     interface = cfg.get("interface")
     channel = cfg.get("channel")
     if not interface:
-        raise UserError(
-            "no CAN interface given: use -i/--interface and -c/--channel (e.g. -i socketcan "
-            "-c vcan0), or set CAN_INTERFACE and CAN_CHANNEL, or write them in python-can's "
-            "config file (~/can.conf). To try without hardware, run `hil-gateway sim`.")
+        raise no_interface
     if channel is None or channel == "":
         raise UserError(f"no CAN channel given for interface {interface!r}: use -c/--channel "
                         "(e.g. vcan0, can0, PCAN_USBBUS1) or set CAN_CHANNEL.")

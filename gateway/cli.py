@@ -448,6 +448,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "emulator (gateway/drives/emulator.toml)")
     p.set_defaults(func=cmd_run)
 
+    from gateway import buslog, scan
+
+    buslog.add_parser(sub)
+    scan.add_parser(sub)
+
     p = sub.add_parser("profile", help="check or plot a reference profile",
                        description="Validate or plot a reference profile (TOML).")
     psub = p.add_subparsers(dest="profile_command", metavar="ACTION")

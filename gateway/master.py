@@ -182,10 +182,15 @@ class DriveMaster:
 
     def sdo_write(self, index: int, sub: int, value: int | float, what: str = "") -> None:
         """Write one object; an abort becomes a :class:`UserError` saying what was configured."""
+        label = f" ({what})" if what else ""
         try:
             self._entry(index, sub).raw = value
+        except ValueError as exc:
+            raise UserError(
+                f"configuring node {self.node_id}: {value!r} does not fit object "
+                f"0x{index:04X}.{sub}{label} of the EDS ({exc}); check the drive profile "
+                f"({self.profile.source})") from exc
         except (SdoAbortedError, SdoCommunicationError, KeyError) as exc:
-            label = f" ({what})" if what else ""
             raise UserError(
                 f"configuring node {self.node_id} failed: SDO write of {value!r} to "
                 f"0x{index:04X}.{sub}{label} was refused: {exc}. Check the drive profile "

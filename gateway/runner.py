@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import logging
 import signal
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -99,8 +100,16 @@ class BusRecorder(can.Listener):
 
     def _drain(self) -> None:
         q = self._queue
+        write = self._writer.on_message_received
         while q:
-            self._writer.on_message_received(q.popleft())
+            msg = q.popleft()
+            try:
+                write(msg)
+            except struct.error:
+                # BLF stores the channel as a small integer; a channel name with a long
+                # number in it (virtual buses) does not fit: log it as channel 1
+                msg.channel = None
+                write(msg)
             self.count += 1
 
     def _drain_loop(self) -> None:
