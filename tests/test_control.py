@@ -198,7 +198,7 @@ def test_sampled_approaches_continuous_as_period_shrinks():
 def test_sampled_paper_run_shows_delay_and_frame_effects():
     from gateway.control.profiles import paper_profile
 
-    base = dict(flux="true", drive="ideal", period=1e-3)
+    base = dict(flux="estimated", drive="ideal", period=1e-3)
     rms = {}
     for key, kw in {"dq0": dict(delay=0), "dq1": dict(delay=1),
                     "ab1": dict(delay=1, setpoint_frame="ab")}.items():
@@ -206,7 +206,8 @@ def test_sampled_paper_run_shows_delay_and_frame_effects():
         e = s["w_m"] - s["w_ref"]
         rms[key] = float(np.sqrt(np.mean(e * e)))
         assert abs(e[-1]) < 0.5  # converges in every case
-    assert rms["dq0"] < rms["dq1"] < rms["ab1"]
+    assert rms["dq0"] < 0.8 * rms["dq1"]  # the SYNC delay costs accuracy
+    assert rms["dq1"] < 0.8 * rms["ab1"]  # so does holding (a, b) setpoints (ERRATA 9)
 
 
 # ------------------------------------------------------------------------- estimator
