@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
@@ -158,14 +159,25 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     label = "continuous" if period is None else format_duration(period)
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     t0 = time.perf_counter()
-    try:
-        rec = run(profile, motor, cfg, progress)
-    except ValueError as exc:
-        raise UserError(f"the simulation could not run: {exc}") from exc
+    from gateway.runner import StopSignals
+
+    signals = StopSignals()
+    stop = threading.Event()
+    signals.on_stop = lambda reason: stop.set()
+    with signals.installed():
+        try:
+            rec = run(profile, motor, cfg, progress, stop)
+        except ValueError as exc:
+            raise UserError(f"the simulation could not run: {exc}") from exc
     progress.done()
     wall = time.perf_counter() - t0
+    if not len(rec):
+        raise UserError(f"the simulation stopped before its first period ({signals.reason})",
+                        exit_code=130)
     sig = rec.arrays()
     summary: dict[str, Any] = report.metrics(sig)
+    if stop.is_set():
+        summary["stopped_early"] = f"{signals.reason} at t = {sig['t'][-1]:.3f} s"
     summary["configuration"] = {"command": "simulate", "profile": profile.source,
                                 **cfg.describe()}
     summary["wall_time_s"] = wall
@@ -180,6 +192,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
           + (", " + ", ".join(p.name for p in figures) if figures else
              " (install matplotlib for the figures)"))
+    if stop.is_set():
+        print(f"{PROG}: stopped early ({summary['stopped_early']}); the files hold the run so "
+              "far", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import cmath
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -125,11 +126,15 @@ Progress = Callable[[float], None]
 
 
 def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
-        progress: Progress | None = None) -> Record:
-    """Simulate the profile; the record holds one row per period (or record step)."""
+        progress: Progress | None = None, stop: threading.Event | None = None) -> Record:
+    """Simulate the profile; the record holds one row per period (or record step).
+
+    ``stop`` (sampled runs): when set, the run ends after the current cycle and the record
+    holds what was simulated so far.
+    """
     if cfg.period is None:
         return run_continuous(profile, motor, cfg, progress)
-    return run_sampled(profile, motor, cfg, progress)
+    return run_sampled(profile, motor, cfg, progress, stop)
 
 
 # --------------------------------------------------------------------------- sampled
@@ -172,7 +177,8 @@ def _identity(name: str, values: dict) -> dict:
 
 
 def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
-                progress: Progress | None = None) -> Record:
+                progress: Progress | None = None, stop: threading.Event | None = None
+                ) -> Record:
     """The sampled loop, cycle by cycle exactly as on the bus (docs/ARCHITECTURE.md)."""
     T = cfg.period
     assert T is not None
@@ -215,8 +221,11 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
             cmd.eps_0, cmd.w_0,
             psi_hat.real, psi_hat.imag, meas.T_e, float(cmd.i_limited), float(meas.limit_active),
         ))
-        if progress is not None and k % step_progress == 0:
-            progress(k / n_cycles)
+        if k % step_progress == 0:
+            if progress is not None:
+                progress(k / n_cycles)
+            if stop is not None and stop.is_set():
+                break
     return rec
 
 

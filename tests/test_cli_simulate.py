@@ -107,3 +107,29 @@ def test_help_explains_every_command():
         assert cmd in r.stdout
     r = run_cli("simulate", "--help")
     assert "--setpoint-frame" in r.stdout and "continuous" in r.stdout
+
+
+def test_sigterm_keeps_what_was_simulated(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "long"
+    proc = subprocess.Popen([sys.executable, "-m", "gateway", "simulate", "--duration", "600s",
+                             "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not out.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "stopped early" in stderr and "Traceback" not in stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stopped_early"].startswith("SIGTERM received")
+    sig = read_csv(out / "signals.csv")
+    assert 0.5 < sig["t"][-1] < 600.0
+    assert len(sig["t"]) == round(sig["t"][-1] / 1e-3)
