@@ -123,7 +123,7 @@ def test_sigterm_keeps_what_was_simulated(tmp_path):
             time.sleep(0.1)
         time.sleep(2.0)
         proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=60)
+        _stdout, stderr = proc.communicate(timeout=60)
     finally:
         proc.kill()
     assert proc.returncode == 130, stderr
