@@ -306,3 +306,42 @@ def test_sim_command_is_the_quick_start(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "speed error" in out and "TPDO → RPDO" in out
     assert (tmp_path / "bus.blf").stat().st_size > 0
+
+
+def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
+    """A real SIGINT (and a second one during shutdown) to `hil-gateway sim`."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "sigint"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "sim", "--timing", "realtime", "--duration", "60s",
+         "--max-missed", "100000", "--out", str(out)],
+        cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "bus.blf").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert "Traceback" not in stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["run"]["stop_reason"] == "SIGINT received"
+    assert proc.returncode == 130
+    assert 300 < s["run"]["cycles"] < 60000
+    frames = list(can.LogReader(str(out / "bus.blf")))
+    assert len(frames) == s["run"]["bus_frames_logged"]
+    # the last things on the bus: controlword "disable voltage" by SDO, then NMT pre-op
+    sdo_writes = [m for m in frames if m.arbitration_id == 0x601 and m.data[0] == 0x2B
+                  and m.data[1:3] == b"\x40\x60"]
+    assert sdo_writes and sdo_writes[-1].data[4:6] == b"\x00\x00"
+    nmt = [m for m in frames if m.arbitration_id == 0x000]
+    assert nmt[-1].data[0] == 0x80  # enter PRE-OPERATIONAL
+    assert "stopped early" in stderr or "SIGINT" in stderr
