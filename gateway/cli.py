@@ -262,59 +262,72 @@ def _finish_run(summary: dict[str, Any]) -> int:
     return 1 if summary.get("faults") or "cycles" in reason else 130
 
 
-def cmd_run(args: argparse.Namespace) -> int:
-    """`hil-gateway run`: the loop against a drive on a CAN bus."""
-    from gateway.bus import bus_config, open_bus
-    from gateway.drive_profile import load_drive_profile
+def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
+                     open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]]) -> int:
+    """What `run` and `sim` share: inputs, signals, the run, the report, the exit status.
+
+    ``open_buses(cfg)`` → (gateway bus, bus label, close): opens whatever the command needs
+    (for `sim` also the emulated drive) and returns how to close it all.
+    """
     from gateway.runner import StopSignals, run_gateway
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    drive = load_drive_profile(args.drive)
     cfg = _run_config(args)
-    if args.node is not None and not 1 <= args.node <= 127:
-        raise UserError(f"--node {args.node}: a CANopen node id is 1..127")
-    bus_cfg = bus_config(args)
-    out = _out_dir(args.out, "run")
+    node = args.node or drive.node
+    if not 1 <= node <= 127:
+        raise UserError(f"--node {node}: a CANopen node id is 1..127")
+    out = _out_dir(args.out, kind)
     signals = StopSignals()
     with signals.installed():
-        bus = open_bus(bus_cfg)
+        bus, label, close = open_buses((cfg, motor, node))
         try:
-            progress = Progress(f"run {bus_cfg.label()}", True if args.progress else None)
-            summary = run_gateway(bus, drive, profile, motor, cfg, out, node=args.node,
-                                  own_echo=bus_cfg.interface in ("socketcan", "virtual"),
-                                  progress=progress, signals=signals, bus_label=bus_cfg.label())
+            progress = Progress(f"{kind} {label}", True if args.progress else None)
+            summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
+                                  own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
+                                  progress=progress, signals=signals, bus_label=label)
             progress.done()
         finally:
-            bus.shutdown()
-    print(f"{PROG} run: {profile.name} on {bus_cfg.label()} node {args.node or drive.node}, "
-          f"{cfg.law}, {cfg.timing}, period {format_duration(cfg.period)}")
-    _print_run("run", summary, out, profile)
+            close()
+    print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
+          f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
+          f"{format_duration(cfg.period)}, delay {cfg.delay}")
+    _print_run(kind, summary, out, profile)
     return _finish_run(summary)
 
 
+#: Interfaces that deliver this process's own frames back when asked (receive_own_messages).
+OWN_ECHO_INTERFACES = ("socketcan", "virtual", "inprocess")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """`hil-gateway run`: the loop against a drive on a CAN bus."""
+    from gateway.bus import bus_config, open_bus
+    from gateway.drive_profile import load_drive_profile
+
+    drive = load_drive_profile(args.drive)
+    bus_cfg = bus_config(args)
+
+    def open_buses(_: Any) -> tuple[Any, str, Callable[[], None]]:
+        bus = open_bus(bus_cfg)
+        return bus, bus_cfg.label(), bus.shutdown
+
+    return _gateway_session(args, "run", drive, open_buses)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
-    """`hil-gateway sim`: the same loop against the emulator, in process, on a virtual bus."""
+    """`hil-gateway sim`: the same loop against the emulator started in this process."""
     import os
 
     import can
 
     from gateway.drive_profile import load_drive_profile
-    from gateway.runner import StopSignals, run_gateway
     from gateway.transport import InProcessChannel
     from plant.device import DriveDevice
     from plant.params import DriveParams
 
-    profile = _load_profile(args.profile)
-    motor = _load_motor(args.motor)
-    drive = load_drive_profile(None)
-    cfg = _run_config(args)
-    node = args.node or drive.node
-    if not 1 <= node <= 127:
-        raise UserError(f"--node {node}: a CANopen node id is 1..127")
-    out = _out_dir(args.out, "sim")
-    signals = StopSignals()
-    with signals.installed():
+    def open_buses(ctx: Any) -> tuple[Any, str, Callable[[], None]]:
+        cfg, motor, node = ctx
         if args.transport == "virtual":
             channel = f"hil-sim-{os.getpid()}"
             bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
@@ -325,22 +338,20 @@ def cmd_sim(args: argparse.Namespace) -> int:
             bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
         device = DriveDevice(bus_dev, node_id=node, motor=motor,
                              drive_params=DriveParams(mode=cfg.drive_mode))
-        try:
-            device.start()
-            progress = Progress("sim", True if args.progress else None)
-            summary = run_gateway(bus_gw, drive, profile, motor, cfg, out, node=node,
-                                  own_echo=True, progress=progress, signals=signals,
-                                  bus_label=f"{args.transport}:{channel}")
-            progress.done()
-        finally:
+
+        def close() -> None:
             device.stop()
             bus_gw.shutdown()
             bus_dev.shutdown()
-    print(f"{PROG} sim: {profile.name}, emulated drive ({cfg.drive_mode}) on the "
-          f"{args.transport} bus, {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
-          f"{format_duration(cfg.period)}, delay {cfg.delay}")
-    _print_run("sim", summary, out, profile)
-    return _finish_run(summary)
+
+        try:
+            device.start()
+        except BaseException:
+            close()
+            raise
+        return bus_gw, f"{args.transport}:{channel}", close
+
+    return _gateway_session(args, "sim", load_drive_profile(None), open_buses)
 
 
 # ---------------------------------------------------------------------------- profile

@@ -154,7 +154,7 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path):
     run_ = s["run"]
     assert run_["cycles"] + run_["missed_cycles"] >= 2990
     assert run_["missed_cycles"] < 0.2 * 3000  # best effort in one process (see BENCHMARKS.md)
-    assert 2.9 < run_["wall_time_s"] < 4.0  # paced by the clock, not as fast as possible
+    assert 2.9 < run_["wall_time_s"] < 6.0  # paced by the clock, not as fast as possible
     t = s["timing"]
     assert t["sync_period"]["median"] == pytest.approx(1e-3, rel=0.05)
     assert {"sync_jitter", "sync_to_tpdo", "reaction"} <= set(t)
