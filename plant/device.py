@@ -1,0 +1,607 @@
+"""The drive emulator as a CANopen CiA 402 device on any python-can bus (issue 3).
+
+:class:`DriveDevice` wraps a pure :class:`plant.drive.Drive` in a CiA 301 slave:
+
+* NMT slave: boot-up (0x700+n, 0x00), PRE-OPERATIONAL / OPERATIONAL / STOPPED, reset node
+  (dictionary back to its defaults, emulated motor at rest, boot-up) and reset
+  communication (0x1000..0x1FFF back to defaults, boot-up). PDOs only in OPERATIONAL, SDO
+  not in STOPPED. Heartbeat producer (0x1017, ms).
+* SDO server: python-canopen's ``LocalNode``/``SdoServer`` with the dictionary of
+  ``dbc/drive.eds`` and the access rules of :mod:`plant.od` (standard abort codes).
+* CiA 402 power state machine (:mod:`plant.cia402`), controlword 0x6040 by SDO (at once) or
+  by RPDO (applied with the other RPDO data), statusword 0x6041. The power stage
+  (``Drive.enable``) is on only in "Operation enabled".
+* Sampled timing (docs/ARCHITECTURE.md): on each SYNC in OPERATIONAL the drive (1) with
+  RPDO apply = on receipt (0x2203 = 1) makes the data received since the last SYNC active,
+  (2) advances the simulation by exactly the cycle period 0x1006, (3) samples and sends
+  TPDO1..3 (those valid, every n-th SYNC for transmission type n), (4) with RPDO apply = at
+  the next SYNC (default, CiA 301 synchronous) makes the received data active. The
+  simulation advances only on SYNC: lockstep, deterministic.
+* Safe reactions, each with an EMCY (0x80+n: code, error register 0x1001, 5 zero bytes), a
+  0x1003 entry, 0x603F and the CiA 402 Fault state (power stage off; the model lets the
+  currents decay): master heartbeat lost (0x1016, wall clock) 0x8130; RPDO deadline
+  (0x14xx sub 5 event timer, counted in SYNC periods of simulated time) 0x8250; RPDO of
+  wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310. The DC-link
+  voltage limit sets statusword bit 11 while it clips (no fault). Fault reset (rising
+  edge of controlword bit 7) sends EMCY 0x0000.
+
+Two threads: the receiver (``bus.recv``; every frame handled under one lock, malformed
+frames ignored, any handler exception counted, never fatal) and the timer (heartbeat
+producer and consumer). :meth:`DriveDevice.stop` joins both; the caller owns the bus.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Any
+
+import can
+from canopen import LocalNode
+
+from dbc import MessageCodec, message_codec, scaling
+from plant import od as odm
+from plant.cia402 import PowerStateMachine, State
+from plant.drive import Drive, Measurement, Setpoints
+from plant.params import DriveParams, MotorParams
+from plant.rpdo import setpoints_from_rpdos
+
+log = logging.getLogger(__name__)
+
+EMCY_NO_ERROR = 0x0000
+EMCY_OVERCURRENT = 0x2310
+EMCY_HEARTBEAT = 0x8130
+EMCY_PDO_LENGTH = 0x8210
+EMCY_RPDO_TIMEOUT = 0x8250
+#: Error register 0x1001 bits per EMCY code class: generic | current or communication.
+_ERROR_REGISTER = {0x2: 0x03, 0x8: 0x11}
+
+FAULT_LOG = 100  #: faults kept in the account
+NMT_HEARTBEAT = {"PRE-OPERATIONAL": 0x7F, "OPERATIONAL": 0x05, "STOPPED": 0x04}
+DQ_NAMES = ("i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref")
+AB_NAMES = ("i_sa_ref", "i_sb_ref", "u_sa_ref", "u_sb_ref")
+TX_NAMES = ("statusword", "i_sa", "i_sb", "sync_counter", "u_sa", "u_sb", "u_dc", "w_m",
+            "psi_ra", "psi_rb", "T_e")
+
+
+class _SdoNode(LocalNode):
+    """python-canopen's LocalNode with the device's dictionary rules for SDO access."""
+
+    def __init__(self, device: DriveDevice, store: odm.ObjectStore) -> None:
+        super().__init__(store.node_id, store.od)
+        self._device = device
+        self.sdo._index = 0  # an abort before any request must still encode
+        self.sdo._subindex = 0
+
+    def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
+        return self._device._sdo_read(index, subindex)
+
+    def set_data(self, index: int, subindex: int, data: bytes,
+                 check_writable: bool = False) -> None:
+        self._device._sdo_write(index, subindex, bytes(data))
+
+
+class _Sender:
+    """What python-canopen's SDO server needs of a network: ``send_message``."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self._bus = bus
+
+    def send_message(self, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
+        self._bus.send(can.Message(arbitration_id=can_id, data=bytes(data),
+                                   is_extended_id=False))
+
+
+@dataclass
+class _Rpdo:
+    """A valid RPDO while OPERATIONAL."""
+
+    config: odm.PdoConfig
+    codec: MessageCodec
+    timeout: float  #: s, deadline (0 = off)
+    last: int | None = None  #: cycles completed when last received
+    controlword: bool = False
+    setpoints: bool = False
+    load: bool = False
+
+
+@dataclass
+class _Tpdo:
+    config: odm.PdoConfig
+    codec: MessageCodec
+
+
+class DriveDevice:
+    """The emulated drive as a CANopen CiA 402 device (see the module docstring).
+
+    ``DriveDevice(bus, node_id=1, motor=None, drive_params=None)``: ``motor`` and
+    ``drive_params`` (default: the paper's motor, the default current-loop inverter) are the
+    device's defaults, to which reset node returns; ``drive_params.mode`` sets the defaults
+    of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1).
+    """
+
+    def __init__(self, bus: can.BusABC, node_id: int = 1, motor: MotorParams | None = None,
+                 drive_params: DriveParams | None = None) -> None:
+        if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
+            raise ValueError(f"node id {node_id!r} is outside 1..127")
+        self.bus = bus
+        self.node_id = node_id
+        self._motor0 = motor if motor is not None else MotorParams()
+        self._params0 = drive_params if drive_params is not None else DriveParams()
+        self._store = odm.ObjectStore(node_id, self._overrides())
+        self._values = self._store.values
+        self._node = _SdoNode(self, self._store)
+        self._send = _Sender(bus)
+        self._node.sdo.network = self._send  # type: ignore[assignment]
+        self._lock = threading.RLock()
+        self._stop_event = threading.Event()
+        self._wake = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._nmt = "INITIALISING"
+        self._sm = PowerStateMachine()
+        self._tx_codec = message_codec("TX", 0, TX_NAMES)
+        self._tx_keys = tuple(self._store.by_name[n] for n in TX_NAMES)
+        self._factor = {n: scaling(n)[0] for n in self._store.by_name}
+        self._k = {n: self._store.by_name[n] for n in self._store.by_name}
+        # account (cumulative since construction)
+        self._cycles_total = 0
+        self._sync_gaps = 0
+        self._faults: deque[tuple[int, float]] = deque(maxlen=FAULT_LOG)
+        self._fault_count = 0
+        self._internal_errors = 0
+        self._reset_application()
+        self._reset_communication_state()
+
+    # ---- public API -------------------------------------------------------------------------
+    def start(self) -> None:
+        """Boot: boot-up message, PRE-OPERATIONAL, heartbeat producer, receiver running."""
+        with self._lock:
+            if self._threads:
+                raise RuntimeError("DriveDevice already started")
+            self._stop_event.clear()
+            self._sm.boot()
+            self._boot()
+        for target, name in ((self._rx_loop, "rx"), (self._timer_loop, "timer")):
+            t = threading.Thread(target=target, name=f"hil-plant-{name}-{self.node_id}",
+                                 daemon=True)
+            self._threads.append(t)
+            t.start()
+
+    def stop(self) -> None:
+        """Power stage off, heartbeat stopped, silent on the bus (the bus stays open)."""
+        self._stop_event.set()
+        self._wake.set()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+        with self._lock:
+            self._drive.enable(False)
+            self._nmt = "STOPPED"
+            self._runtime_clear()
+
+    def __enter__(self) -> DriveDevice:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def account(self) -> dict[str, Any]:
+        """cycles, sync_gaps, faults [(EMCY code, time.time()), the last 100], fault_count,
+        state (CiA 402), nmt, internal_errors (handler exceptions: always 0 unless a bug)."""
+        with self._lock:
+            return {
+                "cycles": self._cycles_total,
+                "sync_gaps": self._sync_gaps,
+                "faults": list(self._faults),
+                "fault_count": self._fault_count,
+                "state": self._sm.state.name,
+                "nmt": self._nmt,
+                "internal_errors": self._internal_errors,
+            }
+
+    @property
+    def nmt_state(self) -> str:
+        """NMT state name as python-canopen spells it."""
+        return self._nmt
+
+    @property
+    def cia402_state(self) -> State:
+        """The CiA 402 state."""
+        return self._sm.state
+
+    @property
+    def drive(self) -> Drive:
+        """The wrapped model (read its ``state``/``setpoints`` for diagnostics only)."""
+        return self._drive
+
+    # ---- defaults and resets ----------------------------------------------------------------
+    def _overrides(self) -> dict[odm.Key, Any]:
+        m, p = self._motor0, self._params0
+        o: dict[odm.Key, Any] = {(odm.MOTOR, k): float(getattr(m, n))
+                                 for k, n in enumerate(odm.MOTOR_SUBS, 1)}
+        o.update({
+            (odm.DRIVE, 1): float(p.u_dc), (odm.DRIVE, 2): float(p.i_trip),
+            (odm.DRIVE, 3): float(p.current_loop_bw),
+            (odm.DRIVE, 4): float(complex(p.i_offset_ab).real),
+            (odm.DRIVE, 5): float(complex(p.i_offset_ab).imag),
+            (odm.DRIVE, 6): float(p.i_gain_error), (odm.DRIVE, 7): float(p.i_noise_rms),
+            (odm.DRIVE, 8): round(p.f_pwm), (odm.SEED, 0): p.seed & 0xFFFFFFFF,
+            (0x6060, 0): -2 if p.mode == "voltage" else -1,
+            (0x6061, 0): -2 if p.mode == "voltage" else -1,
+            (odm.MODEL, 0): 0 if p.mode == "ideal" else 1,
+            (0x6079, 0): min(round(p.u_dc * 1000), 0xFFFFFFFF),
+        })
+        return o
+
+    def _drive_params(self) -> tuple[MotorParams, DriveParams]:
+        v = self._values
+        motor = MotorParams.from_mapping(
+            {n: v[(odm.MOTOR, k)] for k, n in enumerate(odm.MOTOR_SUBS, 1)}, "0x2200")
+        mode = "voltage" if v[(0x6060, 0)] == -2 else (
+            "ideal" if v[(odm.MODEL, 0)] == 0 else "current-loop")
+        f_pwm = v[(odm.DRIVE, 8)]
+        params = replace(
+            self._params0, mode=mode, u_dc=v[(odm.DRIVE, 1)], i_trip=v[(odm.DRIVE, 2)],
+            current_loop_bw=v[(odm.DRIVE, 3)],
+            i_offset_ab=complex(v[(odm.DRIVE, 4)], v[(odm.DRIVE, 5)]),
+            i_gain_error=v[(odm.DRIVE, 6)], i_noise_rms=v[(odm.DRIVE, 7)],
+            f_pwm=self._params0.f_pwm if f_pwm == round(self._params0.f_pwm) else float(f_pwm),
+            seed=v[(odm.SEED, 0)])
+        return motor, params
+
+    def _reset_application(self) -> None:
+        """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
+        self._store.reset()
+        motor, params = self._drive_params()
+        self._drive = Drive(motor, params)
+        self._params_dirty = False
+        self._T_L = 0.0
+        self._sp_fresh = self._cw_fresh = self._tl_fresh = False
+        self._limit = False
+        self._error_register = 0
+        self._sm = PowerStateMachine()
+
+    def _reset_communication_state(self) -> None:
+        self._store.reset(communication_only=True)
+        self._values[(0x1001, 0)] = self._error_register
+        self._runtime_clear()
+        self._hb_period = 0.0
+        self._hb_next = 0.0
+        self._hb_consumer: tuple[int, float] | None = None
+        self._hb_deadline: float | None = None
+        self._configure_heartbeats()
+
+    def _runtime_clear(self) -> None:
+        self._sync_id = self._values[(0x1005, 0)] & 0x7FF
+        self._rpdos: dict[int, _Rpdo] = {}
+        self._tpdos: list[_Tpdo] = []
+        self._last_counter: int | None = None
+
+    def _boot(self) -> None:
+        """Boot-up message, then PRE-OPERATIONAL (CiA 301)."""
+        self._send.send_message(0x700 + self.node_id, b"\x00")
+        self._nmt = "PRE-OPERATIONAL"
+        self._hb_next = time.monotonic() + self._hb_period
+        self._wake.set()
+
+    def _configure_heartbeats(self) -> None:
+        self._hb_period = self._values[(0x1017, 0)] / 1000.0
+        self._hb_next = time.monotonic() + self._hb_period
+        entry = self._values[(0x1016, 1)]
+        node, ms = (entry >> 16) & 0xFF, entry & 0xFFFF
+        self._hb_consumer = (0x700 + node, ms / 1000.0) if node and ms else None
+        self._hb_deadline = None  # armed by the next heartbeat received
+        self._wake.set()
+
+    # ---- NMT --------------------------------------------------------------------------------
+    def _on_nmt(self, data: bytes) -> None:
+        if len(data) != 2 or data[1] not in (0, self.node_id):
+            return
+        cmd = data[0]
+        if cmd == 0x01:
+            if self._nmt != "OPERATIONAL":
+                self._enter_operational()
+        elif cmd == 0x02:
+            self._nmt = "STOPPED"
+            self._runtime_clear()
+        elif cmd == 0x80:
+            self._nmt = "PRE-OPERATIONAL"
+            self._runtime_clear()
+        elif cmd == 0x81:
+            log.info("node %d: reset node", self.node_id)
+            self._reset_application()
+            self._reset_communication_state()
+            self._sm.boot()
+            self._boot()
+        elif cmd == 0x82:
+            log.info("node %d: reset communication", self.node_id)
+            self._reset_communication_state()
+            self._boot()
+
+    def _enter_operational(self) -> None:
+        """Build the PDO runtime from the present dictionary (mappings, COB-IDs, codecs)."""
+        if self._params_dirty:
+            self._rebuild_drive()
+        self._runtime_clear()
+        T = self._values[(0x1006, 0)] / 1e6
+        self._T = T
+        self._apply_on_receipt = self._values[(odm.RPDO_APPLY, 0)] == 1
+        frame_ab = False
+        for comm in odm.RPDO_COMM:
+            cfg = self._store.pdo(comm)
+            if not cfg.valid:
+                continue
+            names = set(cfg.names)
+            frame_ab |= bool(names & set(AB_NAMES))
+            self._rpdos[cfg.cob_id] = _Rpdo(
+                cfg, message_codec(f"RPDO{cfg.number}", cfg.cob_id, cfg.names),
+                timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
+                setpoints=bool(names & {"eps_0", "w_0", *DQ_NAMES, *AB_NAMES}),
+                load="T_L" in names)
+        self._frame_names = AB_NAMES if frame_ab else DQ_NAMES
+        for comm in odm.TPDO_COMM:
+            cfg = self._store.pdo(comm)
+            if cfg.valid and cfg.entries:
+                self._tpdos.append(_Tpdo(cfg, message_codec(f"TPDO{cfg.number}", cfg.cob_id,
+                                                            cfg.names)))
+        self._nmt = "OPERATIONAL"
+
+    def _rebuild_drive(self) -> None:
+        try:
+            motor, params = self._drive_params()
+            old = self._drive
+            new = Drive(motor, params, state=old.state)
+        except ValueError as exc:  # guarded by the SDO checks; keep the old model
+            log.error("node %d: parameters rejected, model unchanged: %s", self.node_id, exc)
+            return
+        new.set_setpoints(old.setpoints)
+        new.enable(self._sm.power)
+        self._drive = new
+        self._params_dirty = False
+
+    # ---- SDO --------------------------------------------------------------------------------
+    def _sdo_read(self, index: int, subindex: int) -> bytes:
+        v = self._values
+        if index == 0x6041:
+            v[(0x6041, 0)] = self._sm.statusword(self._limit)
+        elif index == odm.ACCOUNT:
+            v[(odm.ACCOUNT, 1)] = self._cycles_total & 0xFFFFFFFF
+            v[(odm.ACCOUNT, 2)] = self._sync_gaps & 0xFFFFFFFF
+            v[(odm.ACCOUNT, 3)] = self._fault_count & 0xFFFFFFFF
+        return self._store.read(index, subindex)
+
+    def _sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        value = self._store.check_write(index, subindex, data, self._nmt)
+        key = (index, subindex)
+        self._values[key] = value
+        if index in odm.PARAMETER_OBJECTS:
+            self._params_dirty = True
+            if index == 0x6060:
+                self._values[(0x6061, 0)] = value
+            elif index == odm.DRIVE and subindex == 1:
+                self._values[(0x6079, 0)] = round(value * 1000)
+        if index == 0x6040:
+            self._controlword(value)
+        elif index in (0x1016, 0x1017):
+            self._configure_heartbeats()
+        elif index == 0x1005:
+            self._sync_id = value & 0x7FF
+        elif index == 0x1003:
+            for k in range(1, 9):
+                self._values[(0x1003, k)] = 0
+        elif index == odm.ACCOUNT_CLEAR:
+            self._cycles_total = self._sync_gaps = self._fault_count = 0
+            self._faults.clear()
+        elif 0x2000 <= index < 0x2100:  # RPDO signal objects written by SDO
+            if index == self._k["T_L"][0]:
+                self._tl_fresh = True
+            else:
+                self._sp_fresh = True
+
+    # ---- CiA 402 ----------------------------------------------------------------------------
+    def _controlword(self, cw: int) -> None:
+        before = self._sm.state
+        after = self._sm.command(cw)
+        if before is State.FAULT and after is not State.FAULT:
+            self._clear_errors()
+        if after is not before:
+            log.debug("node %d: %s -> %s", self.node_id, before.name, after.name)
+            self._drive.enable(self._sm.power)
+
+    def _fault(self, code: int) -> None:
+        """Safe reaction: EMCY, error register, 0x1003, 0x603F, Fault, power stage off."""
+        log.warning("node %d: fault, EMCY 0x%04X", self.node_id, code)
+        self._faults.append((code, time.time()))
+        self._fault_count += 1
+        self._sm.fault()
+        self._drive.enable(False)
+        self._drive.set_setpoints(Setpoints())  # re-enabling needs fresh setpoints
+        self._error_register |= _ERROR_REGISTER.get(code >> 12, 0x01)
+        v = self._values
+        v[(0x1001, 0)] = self._error_register
+        v[(0x603F, 0)] = code
+        for k in range(8, 1, -1):
+            v[(0x1003, k)] = v[(0x1003, k - 1)]
+        v[(0x1003, 1)] = code
+        v[(0x1003, 0)] = min(v[(0x1003, 0)] + 1, 8)
+        self._emcy(code)
+
+    def _clear_errors(self) -> None:
+        self._error_register = 0
+        self._values[(0x1001, 0)] = 0
+        self._values[(0x603F, 0)] = 0
+        self._emcy(EMCY_NO_ERROR)
+
+    def _emcy(self, code: int) -> None:
+        cob = self._values[(0x1014, 0)]
+        if self._nmt in ("PRE-OPERATIONAL", "OPERATIONAL") and not cob & odm.COB_INVALID:
+            self._send.send_message(cob & 0x7FF, struct.pack("<HB5x", code,
+                                                             self._error_register))
+
+    # ---- PDOs and the cycle -----------------------------------------------------------------
+    def _on_rpdo(self, r: _Rpdo, data: bytes) -> None:
+        if len(data) != r.codec.length:
+            self._fault(EMCY_PDO_LENGTH)
+            return
+        v = self._values
+        for key, raw in zip(r.config.entries, r.codec.decode_raw(data), strict=True):
+            v[key] = raw
+        r.last = self._cycles
+        self._cw_fresh |= r.controlword
+        self._sp_fresh |= r.setpoints
+        self._tl_fresh |= r.load
+
+    def _latch(self) -> None:
+        """Make the data received since the last latch active (controlword, setpoints, T_L)."""
+        v, k, f = self._values, self._k, self._factor
+        if self._cw_fresh:
+            self._cw_fresh = False
+            self._controlword(v[(0x6040, 0)])
+        if self._tl_fresh:
+            self._tl_fresh = False
+            self._T_L = v[k["T_L"]] * f["T_L"]
+        if self._sp_fresh:
+            self._sp_fresh = False
+            rpdo1 = {"eps_0": v[k["eps_0"]] * f["eps_0"], "w_0": v[k["w_0"]] * f["w_0"]}
+            rpdo2 = {n: v[k[n]] * f[n] for n in self._frame_names}
+            sp = setpoints_from_rpdos(rpdo1, rpdo2)
+            self._drive.set_setpoints(sp)
+            if (self._sm.power and self._drive.params.mode != "voltage"
+                    and abs(sp.i_s_ref) > self._drive.params.i_trip):
+                self._fault(EMCY_OVERCURRENT)
+
+    def _on_sync(self, data: bytes) -> None:
+        n = len(data)
+        if n > 1:
+            return  # not a SYNC (CiA 301: 0 or 1 data bytes)
+        counter = data[0] if n else 0
+        if n:
+            last = self._last_counter
+            if last is not None:
+                ov = self._values[(0x1019, 0)]
+                expected = 1 if ov >= 2 and last >= ov else last + 1
+                if counter != expected and not (ov < 2 and counter == 1):
+                    self._sync_gaps += 1
+            self._last_counter = counter
+        self._cycle(counter)
+
+    @property
+    def _cycles(self) -> int:
+        return self._cycles_total
+
+    def _cycle(self, counter: int) -> None:
+        """One SYNC: (latch) → advance T → sample → TPDOs → (latch)."""
+        T = self._T
+        m = self._cycles_total + 1
+        for r in self._rpdos.values():
+            if r.timeout and r.last is not None and (m - r.last) * T > r.timeout + 1e-12:
+                r.last = None  # re-armed by the next reception
+                self._fault(EMCY_RPDO_TIMEOUT)
+        if self._apply_on_receipt:
+            self._latch()
+        drive = self._drive
+        was_on = drive.enabled
+        meas: Measurement = drive.advance(T, self._T_L)
+        self._cycles_total = m
+        if was_on and drive.tripped:
+            self._fault(EMCY_OVERCURRENT)
+        self._limit = meas.limit_active
+        i, u, psi = meas.i_s_ab, meas.u_s_ab, meas.psi_r_ab
+        sw = self._sm.statusword(meas.limit_active)
+        raws = self._tx_codec.raw({
+            "statusword": sw, "i_sa": i.real, "i_sb": i.imag, "sync_counter": counter,
+            "u_sa": u.real, "u_sb": u.imag, "u_dc": meas.u_dc, "w_m": meas.w_m,
+            "psi_ra": psi.real, "psi_rb": psi.imag, "T_e": meas.T_e,
+        })
+        v = self._values
+        for key, raw in zip(self._tx_keys, raws, strict=True):
+            v[key] = raw
+        send = self.bus.send
+        for t in self._tpdos:
+            tt = t.config.trans_type
+            if tt == 1 or m % tt == 0:
+                data = t.codec.pack(*[v[e] for e in t.config.entries])
+                send(can.Message(arbitration_id=t.config.cob_id, data=data,
+                                 is_extended_id=False))
+        if not self._apply_on_receipt:
+            self._latch()
+
+    # ---- threads ----------------------------------------------------------------------------
+    def _dispatch(self, can_id: int, data: bytes) -> None:
+        nmt = self._nmt
+        if can_id == 0:
+            self._on_nmt(data)
+        elif nmt == "OPERATIONAL" and can_id == self._sync_id:
+            self._on_sync(data)
+        elif nmt == "OPERATIONAL" and can_id in self._rpdos:
+            self._on_rpdo(self._rpdos[can_id], data)
+        elif can_id == 0x600 + self.node_id:
+            if nmt != "STOPPED" and len(data) == 8:
+                self._node.sdo.on_request(can_id, data, 0.0)
+        elif (self._hb_consumer is not None and can_id == self._hb_consumer[0]
+              and len(data) >= 1):
+            self._hb_deadline = time.monotonic() + self._hb_consumer[1]
+            self._wake.set()
+
+    def _rx_loop(self) -> None:
+        recv, stop = self.bus.recv, self._stop_event
+        while not stop.is_set():
+            try:
+                msg = recv(0.02)
+            except Exception as exc:  # bus closed under us or a driver error
+                if stop.is_set():
+                    break
+                log.error("node %d: receive failed: %s", self.node_id, exc)
+                stop.wait(0.1)
+                continue
+            if msg is None or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+                continue
+            with self._lock:
+                if stop.is_set():
+                    break
+                try:
+                    self._dispatch(msg.arbitration_id, bytes(msg.data))
+                except Exception:
+                    self._internal_errors += 1
+                    log.exception("node %d: frame 0x%03X %s not handled", self.node_id,
+                                  msg.arbitration_id, bytes(msg.data).hex())
+
+    def _timer_loop(self) -> None:
+        stop = self._stop_event
+        while not stop.is_set():
+            wait = 0.5
+            with self._lock:
+                if stop.is_set():
+                    break
+                now = time.monotonic()
+                try:
+                    wait = self._timers(now)
+                except Exception:
+                    self._internal_errors += 1
+                    log.exception("node %d: timer failed", self.node_id)
+            self._wake.wait(max(wait, 0.0005))
+            self._wake.clear()
+
+    def _timers(self, now: float) -> float:
+        """Heartbeat producer and consumer; returns the time to the next deadline, s."""
+        wait = 0.5
+        if self._hb_period > 0 and self._nmt in NMT_HEARTBEAT:
+            if now >= self._hb_next:
+                self._send.send_message(0x700 + self.node_id, bytes([NMT_HEARTBEAT[self._nmt]]))
+                self._hb_next += self._hb_period
+                if self._hb_next <= now:
+                    self._hb_next = now + self._hb_period
+            wait = min(wait, self._hb_next - now)
+        if self._hb_deadline is not None:
+            if now >= self._hb_deadline:
+                self._hb_deadline = None
+                self._fault(EMCY_HEARTBEAT)
+            else:
+                wait = min(wait, self._hb_deadline - now)
+        return wait
+

@@ -1,0 +1,281 @@
+"""The emulated drive's object dictionary: values, SDO access rules, PDO layouts.
+
+The dictionary is ``dbc/drive.eds`` (loaded with ``canopen.import_od``). :class:`ObjectStore`
+holds the present value of every sub-object as a Python value (int, float, str; PDO signal
+objects as their raw integers) and checks SDO writes: access type, length, NMT state
+(parameters and PDO configuration only in PRE-OPERATIONAL), value range from the EDS
+LowLimit/HighLimit and the object-specific rules of CiA 301 (PDO COB-ID/mapping
+procedure) and of the emulator (consistent motor and drive parameters). Writes that
+break a rule raise :class:`canopen.SdoAbortedError` with the standard abort code.
+
+REAL32 parameters keep the exact value given to :class:`plant.device.DriveDevice` until an
+SDO write replaces them with a 32-bit float, so a default emulator equals the pure model
+bit for bit.
+"""
+
+from __future__ import annotations
+
+import configparser
+import math
+import re
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import canopen
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
+from canopen.sdo import SdoAbortedError
+
+from dbc import EDS_PATH
+
+Key = tuple[int, int]
+
+# ---- SDO abort codes (CiA 301) ------------------------------------------------------------
+ABORT_UNSUPPORTED = 0x06010000
+ABORT_WRITE_ONLY = 0x06010001
+ABORT_READ_ONLY = 0x06010002
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_LENGTH = 0x06040042
+ABORT_INCOMPATIBLE = 0x06040043
+ABORT_LENGTH = 0x06070010
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_RANGE = 0x06090030
+ABORT_TOO_HIGH = 0x06090031
+ABORT_TOO_LOW = 0x06090032
+ABORT_STATE = 0x08000022
+
+# ---- objects ------------------------------------------------------------------------------
+MOTOR = 0x2200  #: REAL32 J, R_s, R_r, L_s, L_r, M (sub-indices 1..6)
+DRIVE = 0x2201  #: u_dc, i_trip, current_loop_bw, i_offset_a/b, i_gain_error, i_noise_rms, f_pwm
+MODEL = 0x2202  #: 0 ideal current source, 1 PI current loop
+RPDO_APPLY = 0x2203  #: 0 at the next SYNC (delay 1), 1 on receipt (delay 0)
+SEED = 0x2204
+ACCOUNT = 0x2300
+ACCOUNT_CLEAR = 0x2301
+MOTOR_SUBS = ("J", "R_s", "R_r", "L_s", "L_r", "M")
+DRIVE_SUBS = ("u_dc", "i_trip", "current_loop_bw", "i_offset_a", "i_offset_b", "i_gain_error",
+              "i_noise_rms", "f_pwm")
+#: Written only in PRE-OPERATIONAL (emulator parameters and communication setup).
+PREOP_ONLY = frozenset({0x1005, 0x1006, 0x1014, 0x1019, MOTOR, DRIVE, MODEL, RPDO_APPLY, SEED,
+                        0x6060, *range(0x1400, 0x1403), *range(0x1600, 0x1603),
+                        *range(0x1800, 0x1803), *range(0x1A00, 0x1A03)})
+#: Whose change requires rebuilding the drive model.
+PARAMETER_OBJECTS = frozenset({MOTOR, DRIVE, MODEL, SEED, 0x6060, 0x1006})
+RPDO_COMM = (0x1400, 0x1401, 0x1402)
+RPDO_MAP = (0x1600, 0x1601, 0x1602)
+TPDO_COMM = (0x1800, 0x1801, 0x1802)
+TPDO_MAP = (0x1A00, 0x1A01, 0x1A02)
+COB_INVALID = 0x80000000
+
+
+def load_od(node_id: int) -> canopen.ObjectDictionary:
+    """``dbc/drive.eds`` for ``node_id``."""
+    return canopen.import_od(str(EDS_PATH), node_id)
+
+
+def _eds_limits() -> dict[Key, tuple[float | None, float | None]]:
+    """LowLimit/HighLimit of every sub-object (python-canopen skips REAL32 limits)."""
+    cp = configparser.RawConfigParser()
+    cp.optionxform = str  # type: ignore[assignment,method-assign]
+    cp.read(EDS_PATH, encoding="ascii")
+    out: dict[Key, tuple[float | None, float | None]] = {}
+    for section in cp.sections():
+        m = re.fullmatch(r"([0-9A-F]{4})(?:sub([0-9A-F]+))?", section)
+        if not m:
+            continue
+        key = (int(m.group(1), 16), int(m.group(2) or "0", 16))
+        lo, hi = cp.get(section, "LowLimit", fallback=None), cp.get(section, "HighLimit",
+                                                                     fallback=None)
+        if lo is not None or hi is not None:
+            out[key] = (None if lo is None else float(int(lo, 0) if "x" in lo else float(lo)),
+                        None if hi is None else float(int(hi, 0) if "x" in hi else float(hi)))
+    return out
+
+
+def iter_vars(od: canopen.ObjectDictionary) -> Iterator[tuple[Key, ODVariable]]:
+    """Every sub-object as ((index, subindex), variable)."""
+    for obj in od.values():
+        if isinstance(obj, ODVariable):
+            yield (obj.index, 0), obj
+        elif isinstance(obj, ODRecord | ODArray):
+            for sub in obj.values():
+                yield (obj.index, sub.subindex), sub
+
+
+@dataclass(frozen=True)
+class PdoConfig:
+    """One PDO as configured in the dictionary (CiA 301 0x14xx/0x16xx, 0x18xx/0x1Axx)."""
+
+    number: int  #: 1..3
+    cob_id: int  #: 11-bit identifier
+    valid: bool  #: COB-ID bit 31 clear
+    trans_type: int  #: sub 2
+    event_timer_ms: int  #: sub 5 (RPDO: deadline monitoring; 0 = off)
+    entries: tuple[Key, ...]  #: mapped objects in order
+    names: tuple[str, ...]  #: their ParameterNames (= DBC signal names)
+
+
+class ObjectStore:
+    """Values of the dictionary with the SDO write rules (see the module docstring)."""
+
+    def __init__(self, node_id: int, overrides: Mapping[Key, Any] | None = None) -> None:
+        self.node_id = node_id
+        self.od = load_od(node_id)
+        self.vars: dict[Key, ODVariable] = dict(iter_vars(self.od))
+        self.limits = _eds_limits()
+        self.defaults: dict[Key, Any] = {}
+        for key, var in self.vars.items():
+            value = var.default
+            if value is None:
+                value = "" if var.data_type == datatypes.VISIBLE_STRING else 0
+            self.defaults[key] = value
+        self.defaults.update(overrides or {})
+        self.values: dict[Key, Any] = dict(self.defaults)
+        self.by_name: dict[str, Key] = {
+            v.name: k for k, v in self.vars.items() if v.pdo_mappable
+        }
+
+    # ---- plain access -----------------------------------------------------------------------
+    def reset(self, communication_only: bool = False) -> None:
+        """Restore the defaults (all, or the communication area 0x1000..0x1FFF)."""
+        for key, value in self.defaults.items():
+            if not communication_only or 0x1000 <= key[0] < 0x2000:
+                self.values[key] = value
+
+    def var(self, index: int, subindex: int) -> ODVariable:
+        """The sub-object, or SdoAbortedError 0x06020000 / 0x06090011."""
+        if index not in self.od:
+            raise SdoAbortedError(ABORT_NO_OBJECT)
+        obj = self.od[index]
+        if isinstance(obj, ODVariable):
+            if subindex != 0:
+                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+            return obj
+        if subindex not in obj:
+            raise SdoAbortedError(ABORT_NO_SUBINDEX)
+        return obj[subindex]
+
+    def read(self, index: int, subindex: int) -> bytes:
+        """SDO upload: the encoded value (0x06010001 for write-only objects)."""
+        var = self.var(index, subindex)
+        if not var.readable:
+            raise SdoAbortedError(ABORT_WRITE_ONLY)
+        return var.encode_raw(self.values[(index, subindex)])
+
+    # ---- SDO download rules -----------------------------------------------------------------
+    def check_write(self, index: int, subindex: int, data: bytes, nmt: str) -> Any:
+        """Decode and validate an SDO download; returns the value (does not store it)."""
+        var = self.var(index, subindex)
+        if not var.writable:
+            raise SdoAbortedError(ABORT_READ_ONLY)
+        if var.data_type in datatypes.NUMBER_TYPES and 8 * len(data) != len(var):
+            raise SdoAbortedError(ABORT_LENGTH)
+        try:
+            value = var.decode_raw(bytes(data))
+        except Exception:
+            raise SdoAbortedError(ABORT_RANGE) from None
+        if index in PREOP_ONLY and nmt != "PRE-OPERATIONAL":
+            raise SdoAbortedError(ABORT_STATE)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SdoAbortedError(ABORT_RANGE)
+        lo, hi = self.limits.get((index, subindex), (None, None))
+        if hi is not None and value > hi:
+            raise SdoAbortedError(ABORT_TOO_HIGH)
+        if lo is not None and value < lo:
+            raise SdoAbortedError(ABORT_TOO_LOW)
+        self._check_specific(index, subindex, value)
+        return value
+
+    def _check_specific(self, index: int, subindex: int, value: Any) -> None:
+        v = self.values
+        if (index in (0x1005, 0x1014) and value & 0x7FFFF800) or (index == 0x1019
+                                                                    and value == 1):
+            raise SdoAbortedError(ABORT_RANGE)  # 29-bit ids, SYNC production, counter 1
+        elif index == 0x1016 and subindex == 1:
+            node = (value >> 16) & 0xFF
+            if value >> 24 or (value & 0xFFFF and not 1 <= node <= 127):
+                raise SdoAbortedError(ABORT_RANGE)
+        elif index == 0x1006:
+            f_pwm = v[(DRIVE, 8)]
+            steps = value * f_pwm / 1e6
+            if abs(steps - round(steps)) > 1e-9 or round(steps) < 1:
+                raise SdoAbortedError(ABORT_RANGE)
+        elif index == DRIVE and subindex == 8:
+            steps = v[(0x1006, 0)] * value / 1e6
+            if abs(steps - round(steps)) > 1e-9 or v[(DRIVE, 3)] >= math.pi * value:
+                raise SdoAbortedError(ABORT_RANGE)
+        elif index == DRIVE and subindex == 3 and value >= math.pi * v[(DRIVE, 8)]:
+            raise SdoAbortedError(ABORT_TOO_HIGH)
+        elif index == MOTOR:
+            m = {name: v[(MOTOR, k)] for k, name in enumerate(MOTOR_SUBS, 1)}
+            m[MOTOR_SUBS[subindex - 1]] = value
+            if m["M"] ** 2 >= m["L_s"] * m["L_r"]:
+                raise SdoAbortedError(ABORT_RANGE)  # not a physical motor (σ ≤ 0)
+        elif index == 0x1003 and subindex == 0 and value != 0:
+            raise SdoAbortedError(ABORT_RANGE)
+        elif index in RPDO_COMM or index in TPDO_COMM:
+            self._check_pdo_comm(index, subindex, value)
+        elif index in RPDO_MAP or index in TPDO_MAP:
+            self._check_pdo_map(index, subindex, value)
+
+    def _check_pdo_comm(self, index: int, subindex: int, value: int) -> None:
+        if subindex == 1:
+            if value & 0x1FFFF800 or value & 0x7FF == 0:
+                raise SdoAbortedError(ABORT_RANGE)  # 29-bit / reserved id
+            old = self.values[(index, 1)]
+            if not old & COB_INVALID and not value & COB_INVALID and (old ^ value) & 0x7FF:
+                raise SdoAbortedError(ABORT_RANGE)  # CiA 301: invalidate before changing
+        elif subindex == 2 and index in RPDO_COMM and 240 < value < 254:
+            raise SdoAbortedError(ABORT_RANGE)
+
+    def _check_pdo_map(self, index: int, subindex: int, value: int) -> None:
+        comm = index - 0x200
+        if not self.values[(comm, 1)] & COB_INVALID:
+            raise SdoAbortedError(ABORT_STATE)  # CiA 301: the PDO must be invalid
+        rx = index in RPDO_MAP
+        if subindex == 0:
+            if value > 8:
+                raise SdoAbortedError(ABORT_TOO_HIGH)
+            bits = 0
+            for k in range(1, value + 1):
+                entry = self.values[(index, k)]
+                self._mappable(entry, rx)
+                bits += entry & 0xFF
+            if bits > 64:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+            return
+        if self.values[(index, 0)] != 0:
+            raise SdoAbortedError(ABORT_STATE)  # CiA 301: disable the mapping first
+        if value:
+            self._mappable(value, rx)
+
+    def _mappable(self, entry: int, rx: bool) -> ODVariable:
+        index, sub, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+        try:
+            var = self.var(index, sub)
+        except SdoAbortedError:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE) from None
+        if not var.pdo_mappable or (rx and not var.writable) or bits != len(var):
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        return var
+
+    # ---- PDO configuration ------------------------------------------------------------------
+    def pdo(self, comm: int) -> PdoConfig:
+        """The PDO whose communication record is ``comm`` (0x1400.. or 0x1800..)."""
+        v = self.values
+        mapping = comm + 0x200
+        entries = []
+        for k in range(1, v[(mapping, 0)] + 1):
+            e = v[(mapping, k)]
+            entries.append((e >> 16, (e >> 8) & 0xFF))
+        cob = v[(comm, 1)]
+        return PdoConfig(
+            number=(comm & 0xFF) + 1,
+            cob_id=cob & 0x7FF,
+            valid=not cob & COB_INVALID,
+            trans_type=v[(comm, 2)],
+            event_timer_ms=v[(comm, 5)],
+            entries=tuple(entries),
+            names=tuple(self.vars[e].name for e in entries),
+        )
