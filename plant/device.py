@@ -484,8 +484,11 @@ class DriveDevice:
             last = self._last_counter
             if last is not None:
                 ov = self._values[(0x1019, 0)]
-                expected = 1 if ov >= 2 and last >= ov else last + 1
-                if counter != expected and not (ov < 2 and counter == 1):
+                if ov >= 2:
+                    gap = counter != (1 if last >= ov else last + 1)
+                else:  # overflow unknown here: accept a wrap to 1 (CiA 301) or to 0
+                    gap = counter not in ((last + 1) & 0xFF, 1)
+                if gap:
                     self._sync_gaps += 1
             self._last_counter = counter
         self._cycle(counter)
