@@ -16,6 +16,15 @@ from gateway.control.controller import Command, Sample
 SetpointFrame = Literal["dq", "ab"]
 SETPOINT_FRAMES: tuple[str, ...] = ("dq", "ab")
 
+#: SYNC counter overflow (0x1019) the gateway configures: the counter runs 1..240 (CiA 301).
+SYNC_OVERFLOW = 240
+
+
+def sync_counter(k: int) -> int:
+    """The SYNC counter of cycle k (k = 1, 2, …): 1..SYNC_OVERFLOW, then 1 again."""
+    return ((k - 1) % SYNC_OVERFLOW) + 1
+
+
 #: CiA 402 controlword "enable operation" (bits 0–3 set: switch on, enable voltage,
 #: quick stop inactive, enable operation).
 CW_ENABLE_OPERATION = 0x000F

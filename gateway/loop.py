@@ -35,15 +35,19 @@ import can
 
 from gateway.control.controller import Controller
 from gateway.control.profiles import Profile
-from gateway.cycle import rpdo2_name, rpdos_from_command, sample_from_tpdos
+from gateway.cycle import (
+    SYNC_OVERFLOW,
+    rpdo2_name,
+    rpdos_from_command,
+    sample_from_tpdos,
+    sync_counter,
+)
 from gateway.report import BASE_COLUMNS, Record
 
 log = logging.getLogger(__name__)
 
 Timing = Literal["lockstep", "realtime"]
 SYNC_ID = 0x080
-#: SYNC counter overflow (0x1019) the gateway uses: the counter runs 1..240.
-SYNC_OVERFLOW = 240
 
 LOOP_COLUMNS: tuple[str, ...] = (
     *BASE_COLUMNS, "psi_rd_hat", "psi_rq_hat", "T_e", "i_limited", "u_limit_active",
@@ -154,13 +158,8 @@ class CycleLoop:
 
     # ------------------------------------------------------------------- frames in
 
-    @staticmethod
-    def _counter(k: int) -> int:
-        """The SYNC counter of cycle k: 1..SYNC_OVERFLOW, then 1 again (CiA 301)."""
-        return ((k - 1) % SYNC_OVERFLOW) + 1
-
     def _sync_message(self, k: int) -> can.Message:
-        data = [self._counter(k)] if self.cfg.sync_counter else []
+        data = [sync_counter(k)] if self.cfg.sync_counter else []
         return can.Message(arbitration_id=SYNC_ID, data=data, is_extended_id=False)
 
     def _on_own_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -199,7 +198,7 @@ class CycleLoop:
                 return  # a TPDO outside an open cycle (late, or before the first SYNC)
             if name == self._first_name and self.cfg.sync_counter:
                 counter = self.codec.decode(name, data).get("sync_counter")
-                self._stale = counter is not None and counter != self._counter(self._k)
+                self._stale = counter is not None and counter != sync_counter(self._k)
             if self._stale:
                 return  # the answer to an earlier SYNC, arriving in this cycle: not ours
             self._frames[name] = bytes(data)

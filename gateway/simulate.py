@@ -30,7 +30,7 @@ from gateway.control.controller import (
 )
 from gateway.control.laws import Gains, current_fed, full_order
 from gateway.control.profiles import Profile
-from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos
+from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos, sync_counter
 from gateway.errors import UserError
 from gateway.report import BASE_COLUMNS, Record
 from plant.drive import Drive, Measurement, MotorState
@@ -205,7 +205,7 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
         if delay == 1 and pending is not None:
             T_L_active = latch(pending)
         t = k * T
-        tpdo1, tpdo2, tpdo3 = link.tpdos(meas, k & 0xFF)
+        tpdo1, tpdo2, tpdo3 = link.tpdos(meas, sync_counter(k))
         sample = sample_from_tpdos(tpdo1, tpdo2, tpdo3)
         refs = profile.at(t)
         cmd = ctl.step(refs, sample)
