@@ -274,10 +274,10 @@ def _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id,
     if loop is not None and len(loop.record):
         sig = loop.record.arrays()
         loop.record.write_csv(out / "signals.csv")
-        if drive.truth:
+        if drive.truth:  # tracking errors need the emulator's truth (TPDO3)
             summary.update(report.metrics(sig))
+            report.plot_figures(sig, out, f"(over CAN, {cfg.timing})")
         summary["timing"] = timing_stats(sig, cfg.period, cfg.timing == "realtime")
-        report.plot_figures(sig, out, f"(over CAN, {cfg.timing})") if drive.truth else None
     stop_reason = (stats.stop_reason if stats else "") or interrupt_reason or "start-up stopped"
     summary["run"] = {
         "cycles": stats.cycles if stats else 0,
