@@ -27,6 +27,7 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     [timing]
     heartbeat_ms = 50                # the drive's heartbeat (0x1017)
     heartbeat_timeout_ms = 300       # the gateway's heartbeat as seen by the drive (0x1016)
+    drive_heartbeat_timeout_ms = 500 # the drive's heartbeat as watched by the gateway
     rpdo_timeout_ms = 300            # RPDO deadline monitoring (0x1400.5)
     boot_timeout_s = 2.0
     sdo_timeout_s = 0.5
@@ -49,6 +50,7 @@ _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
             "truth": str, "remap": bool},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
+               "drive_heartbeat_timeout_ms": int,
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
 }
 _REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "setpoints"),
@@ -77,6 +79,7 @@ class DriveProfile:
     remap: bool = True
     heartbeat_ms: int = 50
     heartbeat_timeout_ms: int = 300
+    drive_heartbeat_timeout_ms: int = 500
     rpdo_timeout_ms: int = 300
     boot_timeout_s: float = 2.0
     sdo_timeout_s: float = 0.5
@@ -150,6 +153,7 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         remap=p.get("remap", True),
         heartbeat_ms=t.get("heartbeat_ms", 50),
         heartbeat_timeout_ms=t.get("heartbeat_timeout_ms", 300),
+        drive_heartbeat_timeout_ms=t.get("drive_heartbeat_timeout_ms", 500),
         rpdo_timeout_ms=t.get("rpdo_timeout_ms", 300),
         boot_timeout_s=float(t.get("boot_timeout_s", 2.0)),
         sdo_timeout_s=float(t.get("sdo_timeout_s", 0.5)),

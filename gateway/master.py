@@ -273,8 +273,9 @@ class DriveMaster:
         self._watchdog.start()
 
     def _watch(self) -> None:
-        """Drive heartbeat consumer: no heartbeat for 3 producer periods → fault."""
-        limit = max(0.2, 3 * self.profile.heartbeat_ms / 1000.0)
+        """Drive heartbeat consumer: no heartbeat within the profile's
+        ``drive_heartbeat_timeout_ms`` (at least 3 producer periods) → fault."""
+        limit = max(self.profile.drive_heartbeat_timeout_ms, 3 * self.profile.heartbeat_ms) / 1e3
         while not self._stop_watchdog.wait(limit / 4):
             if time.monotonic() - self.state.last_heartbeat > limit and not self.fault.is_set():
                 self._raise(FaultEvent(time.monotonic(), "heartbeat", None,
