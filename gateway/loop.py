@@ -67,7 +67,7 @@ class LoopConfig:
     delay: int = 1
     setpoint_frame: str = "dq"
     max_missed: int = 5
-    tpdo_timeout: float = 0.25
+    tpdo_timeout: float = 1.0
     sync_counter: bool = True
 
 
