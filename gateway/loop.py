@@ -49,6 +49,10 @@ log = logging.getLogger(__name__)
 Timing = Literal["lockstep", "realtime"]
 SYNC_ID = 0x080
 
+#: Real-time SYNC thread: how long before a deadline it stops sleeping and spins, s. On the
+#: project's VM, time.sleep overshoots by 107 µs median, 217 µs p99 (2.9 ms p99.9).
+SPIN_MARGIN = 0.0003
+
 LOOP_COLUMNS: tuple[str, ...] = (
     *BASE_COLUMNS, "psi_rd_hat", "psi_rq_hat", "T_e", "i_limited", "u_limit_active",
     "statusword", "sync_counter", "sync_period", "sync_to_tpdo", "reaction", "missed",
@@ -354,7 +358,7 @@ class CycleLoop:
         self._sync_thread.start()
 
     def _sync_thread_main(self) -> None:
-        """SYNC on an absolute schedule: sleep until 0.3 ms before, then spin.
+        """SYNC on an absolute schedule: sleep until SPIN_MARGIN before, then spin.
 
         The spin yields the interpreter lock every turn (``sleep(0)``): a plain busy loop
         would hold it for the whole switch interval and starve the receive threads.
@@ -366,8 +370,8 @@ class CycleLoop:
             k += 1
             target = t0 + (k - 1) * T
             remaining = target - time.perf_counter()
-            if remaining > 0.0005:
-                time.sleep(remaining - 0.0003)
+            if remaining > SPIN_MARGIN:
+                time.sleep(remaining - SPIN_MARGIN)
             while time.perf_counter() < target:
                 time.sleep(0)
             if self._stop.is_set():
