@@ -229,13 +229,27 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
 
 
-def _run_config(args: argparse.Namespace):
+def _run_config(args: argparse.Namespace, drive: Any):
+    """The run's configuration, checked against what the drive can do."""
     from gateway.runner import RunConfig
-    from gateway.simulate import DEFAULT_DRIVE
+    from gateway.simulate import COMPATIBLE, DEFAULT_DRIVE
 
+    mode = args.drive_mode or DEFAULT_DRIVE[args.law]
+    if not drive.emulator and mode == "ideal":
+        if args.drive_mode:
+            raise UserError("--drive-mode ideal (an ideal current source) exists only on the "
+                            "emulator; a real drive runs its current loop: use --drive-mode "
+                            "current-loop")
+        mode = "current-loop"
+    if mode not in COMPATIBLE[args.law]:
+        raise UserError(f"the {args.law} law does not drive a {mode!r} drive: use --drive-mode "
+                        f"{' or '.join(COMPATIBLE[args.law])}")
+    if args.flux == "true" and not drive.truth:
+        raise UserError(f"--flux true needs the drive's true rotor flux, which only the "
+                        f"emulator sends (TPDO3); {drive.name} has none: use --flux estimated")
     return RunConfig(
         law=args.law, flux=args.flux, estimator=args.estimator,
-        drive_mode=args.drive_mode or DEFAULT_DRIVE[args.law],
+        drive_mode=mode,
         period=parse_duration(args.period, "--period"), timing=args.timing, delay=args.delay,
         gains=_gains(args), bus_log=args.log, max_missed=args.max_missed,
         duration=args.duration and parse_duration(args.duration, "--duration"),
@@ -273,7 +287,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    cfg = _run_config(args)
+    cfg = _run_config(args, drive)
     node = args.node or drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")

@@ -345,3 +345,41 @@ def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
     nmt = [m for m in frames if m.arbitration_id == 0x000]
     assert nmt[-1].data[0] == 0x80  # enter PRE-OPERATIONAL
     assert "stopped early" in stderr or "SIGINT" in stderr
+
+
+def _real_drive_profile(tmp_path: Path) -> Path:
+    """The emulator's profile, described as a real drive would be (no truth, no dynamometer)."""
+    dbc_dir = Path(__file__).parents[1] / "dbc"
+    text = (Path(__file__).parents[1] / "gateway" / "drives" / "emulator.toml").read_text()
+    text = text.replace('"builtin:drive.eds"', f'"{dbc_dir / "drive.eds"}"')
+    text = text.replace('"builtin:drive.dbc"', f'"{dbc_dir / "drive.dbc"}"')
+    text = text.replace("emulator = true", "emulator = false")
+    text = "\n".join(line for line in text.splitlines()
+                     if not line.startswith(("truth =", "load =")))
+    prof = tmp_path / "real.toml"
+    prof.write_text(text)
+    return prof
+
+
+def test_real_drive_profile_runs_without_truth(emulator, tmp_path):
+    """A drive described without the emulator's extras: the loop runs on its current loop and
+    the summary has timing but no tracking errors."""
+    emu = emulator("current-loop")
+    prof = _real_drive_profile(tmp_path)
+    assert gateway_run(emu, tmp_path / "out", "--drive", str(prof), "--duration", "0.3s") == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert "speed_error" not in s and s["run"]["cycles"] == 300
+    assert s["configuration"]["drive_mode"] == "current-loop"
+    assert_disabled(emu)
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--flux", "true"], "--flux true needs the drive's true rotor flux"),
+    (["--drive-mode", "ideal"], "exists only on the emulator"),
+    (["--law", "full-order", "--drive-mode", "current-loop", "--flux", "true"], "--flux true"),
+])
+def test_real_drive_refuses_emulator_options(emulator, tmp_path, capsys, args, needle):
+    emu = emulator()
+    prof = _real_drive_profile(tmp_path)
+    assert gateway_run(emu, tmp_path / "out", "--drive", str(prof), *args) == 2
+    assert needle in capsys.readouterr().err
