@@ -55,9 +55,8 @@ import textwrap
 import time
 from typing import Any
 
-from bench_plant import operating_point
+from bench_plant import operating_point, run_once
 
-from plant.drive import Drive, Setpoints
 from plant.params import DriveParams, MotorParams
 
 INSTALL_HINT = ".venv/bin/pip install motulator"
@@ -66,22 +65,9 @@ TORQUE_SCALE = 1.5  # motulator's peak-scaled torque over ours, same currents an
 
 # ---- ours ----------------------------------------------------------------------------------
 def run_ours(t_sim: float, T: float, f_pwm: float) -> tuple[float, float]:
-    """(wall s, simulated s) for plant.drive.Drive in current-loop mode over t_sim."""
-    motor = MotorParams()
-    state, sp, T_L = operating_point(motor)
-    drive = Drive(motor, DriveParams(mode="current-loop", f_pwm=f_pwm), state)
-    drive.enable(True)
-    n = round(t_sim / T)
-    w_0 = sp.w_0
-    t0 = time.perf_counter()
-    for k in range(n):
-        drive.set_setpoints(Setpoints("dq", sp.i_s_ref, sp.u_s_ref, w_0 * k * T, w_0))
-        drive.advance(T, T_L)
-    wall = time.perf_counter() - t0
-    i_dq = drive.state.i_s_ab * cmath.exp(-1j * w_0 * n * T)
-    if abs(i_dq - sp.i_s_ref) > 0.05 * abs(sp.i_s_ref):
-        raise SystemExit(f"bench: ours lost the operating point (i_dq = {i_dq:.3f})")
-    return wall, n * T
+    """(wall s, simulated s) for plant.drive.Drive in current-loop mode over t_sim
+    (bench_plant's timed run: it also checks that the operating point was held)."""
+    return run_once("current-loop", T, f_pwm, t_sim), round(t_sim / T) * T
 
 
 # ---- motulator -----------------------------------------------------------------------------

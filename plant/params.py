@@ -21,7 +21,7 @@ import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 DriveMode = Literal["ideal", "current-loop", "voltage"]
 DRIVE_MODES: tuple[str, ...] = ("ideal", "current-loop", "voltage")
@@ -71,6 +71,20 @@ def _read_toml(path: str | Path, table: str | None) -> tuple[str, dict[str, Any]
         data = data[table]
         source = f"{source} [{table}]"
     return source, data
+
+
+_P = TypeVar("_P")
+
+
+def _build(cls: type[_P], valid: tuple[str, ...], values: Mapping[str, Any], source: str) -> _P:
+    """A frozen params dataclass from checked ``values`` (defaults for the rest), validated
+    with ``source`` named in the messages (construction itself would name no file)."""
+    obj = cls.__new__(cls)
+    defaults = cls()
+    for name in valid:
+        object.__setattr__(obj, name, values.get(name, getattr(defaults, name)))
+    obj._validate(source)  # type: ignore[attr-defined]
+    return obj
 
 
 @dataclass(frozen=True)
@@ -140,12 +154,7 @@ class MotorParams:
         valid = tuple(f.name for f in fields(cls))
         _check_keys(source, data, valid)
         values = {k: _positive(source, k, v) for k, v in data.items()}
-        obj = cls.__new__(cls)
-        defaults = cls()
-        for name in valid:
-            object.__setattr__(obj, name, values.get(name, getattr(defaults, name)))
-        obj._validate(source)
-        return obj
+        return _build(cls, valid, values, source)
 
     @classmethod
     def from_toml(cls, path: str | Path, table: str | None = None) -> MotorParams:
@@ -248,12 +257,7 @@ class DriveParams:
         for key in ("f_pwm", "u_dc", "i_trip", "current_loop_bw", "i_gain_error", "i_noise_rms"):
             if isinstance(values.get(key), int) and not isinstance(values.get(key), bool):
                 values[key] = float(values[key])
-        obj = cls.__new__(cls)
-        defaults = cls()
-        for name in valid:
-            object.__setattr__(obj, name, values.get(name, getattr(defaults, name)))
-        obj._validate(source)
-        return obj
+        return _build(cls, valid, values, source)
 
     @classmethod
     def from_toml(cls, path: str | Path, table: str | None = None) -> DriveParams:
