@@ -36,7 +36,7 @@ from gateway.report import BASE_COLUMNS, Record
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams, MotorParams
-from plant.rpdo import setpoints_from_rpdos
+from plant.rpdo import setpoints_from_rpdos, tpdo_signals
 
 DRIVES: tuple[str, ...] = ("ideal", "current-loop", "voltage")
 #: The drive each law is meant for when none is given.
@@ -154,14 +154,9 @@ class PdoLink:
     def tpdos(self, meas: Measurement, sync_counter: int = 0) -> tuple[dict, dict, dict]:
         """TPDO1..3 signal values (decoded) for one measurement."""
         q = self.quantize
-        i, u, psi = meas.i_s_ab, meas.u_s_ab, meas.psi_r_ab
         status = SW_OPERATION_ENABLED | (0x0800 if meas.limit_active else 0)
-        tpdo1 = q("TPDO1", {"statusword": status, "i_sa": i.real, "i_sb": i.imag,
-                            "sync_counter": sync_counter})
-        tpdo2 = q("TPDO2", {"u_sa": u.real, "u_sb": u.imag, "u_dc": meas.u_dc})
-        tpdo3 = q("TPDO3", {"w_m": meas.w_m, "psi_ra": psi.real, "psi_rb": psi.imag,
-                            "T_e": meas.T_e})
-        return tpdo1, tpdo2, tpdo3
+        values = tpdo_signals(meas, status, sync_counter)
+        return q("TPDO1", values), q("TPDO2", values), q("TPDO3", values)
 
 
 def drive_params_for_period(params: DriveParams, T: float, mode: str) -> DriveParams:

@@ -48,7 +48,7 @@ from plant import od as odm
 from plant.cia402 import PowerStateMachine, State
 from plant.drive import Drive, Measurement, Setpoints
 from plant.params import DriveParams, MotorParams
-from plant.rpdo import setpoints_from_rpdos
+from plant.rpdo import setpoints_from_rpdos, tpdo_signals
 
 log = logging.getLogger(__name__)
 
@@ -514,13 +514,8 @@ class DriveDevice:
         if was_on and drive.tripped:
             self._fault(EMCY_OVERCURRENT)
         self._limit = meas.limit_active
-        i, u, psi = meas.i_s_ab, meas.u_s_ab, meas.psi_r_ab
         sw = self._sm.statusword(meas.limit_active)
-        raws = self._tx_codec.raw({
-            "statusword": sw, "i_sa": i.real, "i_sb": i.imag, "sync_counter": counter,
-            "u_sa": u.real, "u_sb": u.imag, "u_dc": meas.u_dc, "w_m": meas.w_m,
-            "psi_ra": psi.real, "psi_rb": psi.imag, "T_e": meas.T_e,
-        })
+        raws = self._tx_codec.raw(tpdo_signals(meas, sw, counter))
         v = self._values
         for key, raw in zip(self._tx_keys, raws, strict=True):
             v[key] = raw
