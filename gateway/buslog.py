@@ -85,6 +85,17 @@ def _check_writable(p: Path, option: str) -> None:
                         "another place")
 
 
+def write_frame(writer: can.Listener, msg: can.Message) -> None:
+    """Write one frame with a python-can writer. BLF stores the channel as a small integer
+    taken from the digits of its name; a name whose number does not fit (virtual channels
+    named with a counter or a clock) is written as the default channel instead."""
+    try:
+        writer.on_message_received(msg)
+    except struct.error:
+        msg.channel = None
+        writer.on_message_received(msg)
+
+
 def read_log(path: str | Path) -> list[can.Message]:
     """All frames of a log written by `hil-gateway log` (or any python-can-readable log)."""
     p = Path(path)
@@ -288,7 +299,7 @@ class _Recorder(can.Listener):
         with self.lock:
             if self.closed:
                 return
-            self.writer.on_message_received(msg)
+            write_frame(self.writer, msg)
             if self.t_first is None:
                 self.t_first = msg.timestamp
             self.frames += 1

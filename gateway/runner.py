@@ -12,7 +12,6 @@ from __future__ import annotations
 import collections
 import logging
 import signal
-import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -26,6 +25,7 @@ import numpy as np
 
 from dbc import load_codec
 from gateway import report
+from gateway.buslog import write_frame
 from gateway.control.controller import Controller, ControllerConfig
 from gateway.control.laws import Gains
 from gateway.control.profiles import Profile
@@ -100,16 +100,9 @@ class BusRecorder(can.Listener):
 
     def _drain(self) -> None:
         q = self._queue
-        write = self._writer.on_message_received
+        writer = self._writer
         while q:
-            msg = q.popleft()
-            try:
-                write(msg)
-            except struct.error:
-                # BLF stores the channel as a small integer; a channel name with a long
-                # number in it (virtual buses) does not fit: log it as channel 1
-                msg.channel = None
-                write(msg)
+            write_frame(writer, q.popleft())
             self.count += 1
 
     def _drain_loop(self) -> None:
