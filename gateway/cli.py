@@ -220,8 +220,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="1: the drive applies RPDOs at the next SYNC (CiA 301); 0: on receipt "
                         "(emulator option)")
     p.add_argument("--duration", help="run this long instead of the profile's duration")
-    p.add_argument("--max-missed", type=int, default=5,
-                   help="consecutive missed cycles that stop the loop (default 5)")
+    p.add_argument("--max-missed", type=int,
+                   help="consecutive missed cycles that stop the loop (default: 50 ms worth, "
+                        "at least 5: 50 at 1 ms)")
     p.add_argument("--log", default="bus.blf", metavar="NAME",
                    help="raw bus log in the run directory; .blf (default), .asc, .csv, .log "
                         "(candump) or .trc by suffix")
@@ -247,11 +248,15 @@ def _run_config(args: argparse.Namespace, drive: Any):
     if args.flux == "true" and not drive.truth:
         raise UserError(f"--flux true needs the drive's true rotor flux, which only the "
                         f"emulator sends (TPDO3); {drive.name} has none: use --flux estimated")
+    period = parse_duration(args.period, "--period")
+    if args.max_missed is not None and args.max_missed < 1:
+        raise UserError(f"--max-missed {args.max_missed}: give a number of cycles >= 1")
     return RunConfig(
         law=args.law, flux=args.flux, estimator=args.estimator,
         drive_mode=mode,
-        period=parse_duration(args.period, "--period"), timing=args.timing, delay=args.delay,
-        gains=_gains(args), bus_log=args.log, max_missed=args.max_missed,
+        period=period, timing=args.timing, delay=args.delay,
+        gains=_gains(args), bus_log=args.log,
+        max_missed=args.max_missed or max(5, round(0.05 / period)),
         duration=args.duration and parse_duration(args.duration, "--duration"),
     )
 
