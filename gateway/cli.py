@@ -221,8 +221,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "(emulator option)")
     p.add_argument("--duration", help="run this long instead of the profile's duration")
     p.add_argument("--max-missed", type=int,
-                   help="consecutive missed cycles that stop the loop (default: 50 ms worth, "
-                        "at least 5: 50 at 1 ms)")
+                   help="consecutive missed cycles that stop the loop (default: real time 50 "
+                        "ms worth, at least 5 (50 at 1 ms); lockstep 5, each after 1 s)")
     p.add_argument("--log", default="bus.blf", metavar="NAME",
                    help="raw bus log in the run directory; .blf (default), .asc, .csv, .log "
                         "(candump) or .trc by suffix")
@@ -256,7 +256,9 @@ def _run_config(args: argparse.Namespace, drive: Any):
         drive_mode=mode,
         period=period, timing=args.timing, delay=args.delay,
         gains=_gains(args), bus_log=args.log,
-        max_missed=args.max_missed or max(5, round(0.05 / period)),
+        # real time: 50 ms worth of cycles; lockstep waits 1 s per cycle already: 5
+        max_missed=args.max_missed or (max(5, round(0.05 / period))
+                                       if args.timing == "realtime" else 5),
         duration=args.duration and parse_duration(args.duration, "--duration"),
     )
 
