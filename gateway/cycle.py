@@ -25,11 +25,12 @@ def sync_counter(k: int) -> int:
     return ((k - 1) % SYNC_OVERFLOW) + 1
 
 
-#: CiA 402 controlword "enable operation" (bits 0–3 set: switch on, enable voltage,
-#: quick stop inactive, enable operation).
-CW_ENABLE_OPERATION = 0x000F
-#: CiA 402 controlword "disable voltage" (all of bits 0–3 clear except quick stop).
-CW_DISABLE_VOLTAGE = 0x0000
+# CiA 402 controlword commands (CiA 402-2, device control).
+CW_DISABLE_VOLTAGE = 0x0000  #: → Switch on disabled (power stage off)
+CW_SHUTDOWN = 0x0006  #: → Ready to switch on
+CW_SWITCH_ON = 0x0007  #: → Switched on
+CW_ENABLE_OPERATION = 0x000F  #: → Operation enabled
+CW_FAULT_RESET = 0x0080  #: rising edge of bit 7: Fault → Switch on disabled
 
 
 def rpdo2_name(frame: SetpointFrame) -> str:

@@ -28,7 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import can
@@ -84,7 +84,6 @@ class LoopStats:
     late_rpdo: int = 0
     stop_reason: str = ""
     wall_time: float = 0.0
-    timing: dict[str, Any] = field(default_factory=dict)
 
 
 class PdoNames:
@@ -140,7 +139,6 @@ class CycleLoop:
         self._consecutive_missed = 0
         self._sync_time = math.nan
         self._sync_prev = math.nan
-        self._complete_for = 0
         self._progress_at = time.monotonic()
         rpdo2_expected = rpdo2_name(cfg.setpoint_frame)  # type: ignore[arg-type]
         # (COB-ID, DBC message, key of rpdos_from_command's result)

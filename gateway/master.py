@@ -30,6 +30,13 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
+from gateway.cycle import (
+    CW_DISABLE_VOLTAGE,
+    CW_ENABLE_OPERATION,
+    CW_FAULT_RESET,
+    CW_SHUTDOWN,
+    CW_SWITCH_ON,
+)
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 
@@ -46,11 +53,6 @@ SW_SWITCHED_ON = 0x0023
 SW_OPERATION_ENABLED = 0x0027
 SW_FAULT_BIT = 0x0008
 
-CW_SHUTDOWN = 0x0006
-CW_SWITCH_ON = 0x0007
-CW_ENABLE_OPERATION = 0x000F
-CW_DISABLE_VOLTAGE = 0x0000
-CW_FAULT_RESET = 0x0080
 
 #: CiA 301 EMCY codes the emulator raises, for messages.
 EMCY_TEXT = {
@@ -250,12 +252,6 @@ class DriveMaster:
         if name.startswith("RPDO"):
             self.sdo_write(comm, 5, self.profile.rpdo_timeout_ms, f"{name} deadline, ms")
         self.sdo_write(comm, 1, cob_id, f"{name} COB-ID, enabled")
-
-    def disable_pdo(self, name: str, cob_id: int) -> None:
-        """Switch a PDO off (COB-ID bit 31), e.g. the truth TPDO when nobody reads it."""
-        n = int(name[4]) - 1
-        comm = (0x1400 if name.startswith("RPDO") else 0x1800) + n
-        self.sdo_write(comm, 1, cob_id | 0x80000000, f"{name} disabled")
 
     # ------------------------------------------------------------------ operation
 

@@ -33,6 +33,7 @@ from gateway.control.profiles import Profile
 from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos, sync_counter
 from gateway.errors import UserError
 from gateway.report import BASE_COLUMNS, Record
+from plant.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, State
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams, MotorParams
@@ -46,8 +47,6 @@ COMPATIBLE = {
     "current-fed": ("ideal", "current-loop"),
     "full-order": ("voltage", "current-loop"),
 }
-#: CiA 402 statusword "operation enabled" with "remote" (bits 0, 1, 2, 4, 5, 9).
-SW_OPERATION_ENABLED = 0x0237
 
 COLUMNS: tuple[str, ...] = (
     *BASE_COLUMNS, "psi_rd_hat", "psi_rq_hat", "T_e", "i_limited", "u_limit_active",
@@ -154,7 +153,8 @@ class PdoLink:
     def tpdos(self, meas: Measurement, sync_counter: int = 0) -> tuple[dict, dict, dict]:
         """TPDO1..3 signal values (decoded) for one measurement."""
         q = self.quantize
-        status = SW_OPERATION_ENABLED | (0x0800 if meas.limit_active else 0)
+        status = int(State.OPERATION_ENABLED) | SW_REMOTE | (
+            SW_INTERNAL_LIMIT if meas.limit_active else 0)
         values = tpdo_signals(meas, status, sync_counter)
         return q("TPDO1", values), q("TPDO2", values), q("TPDO3", values)
 

@@ -278,14 +278,20 @@ def test_sdo_abort_during_configuration(emulator, tmp_path, capsys):
     assert_disabled(emu)
 
 
-def test_wrong_device_type(emulator, tmp_path, capsys):
-    emu = emulator()
-    prof = tmp_path / "drive.toml"
+def _drive_profile_copy(tmp_path: Path, edit=lambda text: text) -> Path:
+    """The emulator's drive profile as a file (paths made absolute), edited by ``edit``."""
     dbc_dir = Path(__file__).parents[1] / "dbc"
     text = (Path(__file__).parents[1] / "gateway" / "drives" / "emulator.toml").read_text()
     text = text.replace('"builtin:drive.eds"', f'"{dbc_dir / "drive.eds"}"')
     text = text.replace('"builtin:drive.dbc"', f'"{dbc_dir / "drive.dbc"}"')
-    prof.write_text(text.replace("0x00010192", "0x00020192"))
+    prof = tmp_path / "drive.toml"
+    prof.write_text(edit(text))
+    return prof
+
+
+def test_wrong_device_type(emulator, tmp_path, capsys):
+    emu = emulator()
+    prof = _drive_profile_copy(tmp_path, lambda t: t.replace("0x00010192", "0x00020192"))
     assert gateway_run(emu, tmp_path / "out", "--drive", str(prof)) == 2
     assert "device type" in capsys.readouterr().err
 
@@ -349,16 +355,13 @@ def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
 
 def _real_drive_profile(tmp_path: Path) -> Path:
     """The emulator's profile, described as a real drive would be (no truth, no dynamometer)."""
-    dbc_dir = Path(__file__).parents[1] / "dbc"
-    text = (Path(__file__).parents[1] / "gateway" / "drives" / "emulator.toml").read_text()
-    text = text.replace('"builtin:drive.eds"', f'"{dbc_dir / "drive.eds"}"')
-    text = text.replace('"builtin:drive.dbc"', f'"{dbc_dir / "drive.dbc"}"')
-    text = text.replace("emulator = true", "emulator = false")
-    text = "\n".join(line for line in text.splitlines()
-                     if not line.startswith(("truth =", "load =")))
-    prof = tmp_path / "real.toml"
-    prof.write_text(text)
-    return prof
+
+    def as_real(text: str) -> str:
+        text = text.replace("emulator = true", "emulator = false")
+        return "\n".join(line for line in text.splitlines()
+                         if not line.startswith(("truth =", "load =")))
+
+    return _drive_profile_copy(tmp_path, as_real)
 
 
 def test_real_drive_profile_runs_without_truth(emulator, tmp_path):
