@@ -16,10 +16,10 @@ import statistics
 import sys
 import time
 
+from dbc.motor import MotorParams
 from gateway.control.controller import Controller, ControllerConfig, Sample
 from gateway.control.profiles import paper_profile
 from gateway.simulate import SimConfig, run
-from plant.params import MotorParams
 
 TARGET_US = 20.0
 
@@ -29,7 +29,7 @@ def _samples(law: str, n: int) -> list[tuple[object, Sample]]:
     motor = MotorParams.paper()
     prof = paper_profile()
     drive = "ideal" if law == "current-fed" else "voltage"
-    sig = run(prof, motor, SimConfig(law=law, drive=drive, duration=n * 1e-3)).arrays()
+    sig = run(prof, motor, SimConfig(law=law, drive_mode=drive, duration=n * 1e-3)).arrays()
     out = []
     for k in range(len(sig["t"])):
         t = float(sig["t"][k])
@@ -75,7 +75,7 @@ def bench_simulate(repeats: int, duration: float) -> dict[str, float]:
         walls = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            run(prof, motor, SimConfig(law=law, drive=drive, duration=duration))
+            run(prof, motor, SimConfig(law=law, drive_mode=drive, duration=duration))
             walls.append(time.perf_counter() - t0)
         out[f"{law}/{drive}"] = duration / statistics.median(walls)
     return out

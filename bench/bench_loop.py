@@ -26,13 +26,14 @@ from pathlib import Path
 import can
 import numpy as np
 
+from dbc.motor import MotorParams
 from gateway.control.profiles import paper_profile
 from gateway.drive_profile import load_drive_profile
 from gateway.report import read_csv
 from gateway.runner import RunConfig, run_gateway
 from gateway.transport import InProcessChannel
 from plant.device import DriveDevice
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 
 
 def _buses(args: argparse.Namespace, tag: str, transport: str):

@@ -57,7 +57,8 @@ from typing import Any
 
 from bench_plant import operating_point, run_once
 
-from plant.params import DriveParams, MotorParams
+from dbc.motor import MotorParams
+from plant.params import DriveParams
 
 INSTALL_HINT = ".venv/bin/pip install motulator"
 TORQUE_SCALE = 1.5  # motulator's peak-scaled torque over ours, same currents and fluxes

@@ -18,8 +18,10 @@ import statistics
 import sys
 import time
 
+from dbc.modes import DriveMode
+from dbc.motor import MotorParams
 from plant.drive import Drive, MotorState, Setpoints
-from plant.params import DRIVE_MODES, DriveParams, MotorParams
+from plant.params import DriveParams
 
 TARGET_X_REAL_TIME = 10.0
 
@@ -70,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
           f"(Python {sys.version.split()[0]})")
     print(f"{'mode':<14}{'sim s / wall s':>16}{'us / step':>12}{'x real time':>13}")
     ratios: dict[str, float] = {}
-    for mode in DRIVE_MODES:
+    for mode in DriveMode:
         run_once(mode, args.T, args.f_pwm, min(t_sim, 0.01))  # warm-up
         walls = [run_once(mode, args.T, args.f_pwm, t_sim) for _ in range(repeats)]
         wall = statistics.median(walls)

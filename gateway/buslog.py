@@ -18,7 +18,6 @@ import argparse
 import contextlib
 import csv
 import functools
-import logging
 import os
 import signal
 import struct
@@ -33,7 +32,7 @@ from typing import Any, TextIO
 
 import can
 
-from gateway.bus import add_bus_options, bus_config, open_bus
+from dbc.bus import add_bus_options, bus_config, open_bus
 from gateway.errors import UserError
 
 #: Raw log formats (python-can writers/readers), by file suffix.
@@ -180,25 +179,10 @@ def csv_columns(node_id: int = 1, prefer: Iterable[str] = ()) -> list[str]:
 @functools.cache
 def _units() -> dict[str, str]:
     """Signal name → unit, from the DBC (for the live display)."""
-    import cantools
+    from dbc import load_database
 
-    from dbc import DBC_PATH
-
-    quiet = _DropDuplicateIdWarning()
-    cantools_log = logging.getLogger("cantools.database.can.database")
-    cantools_log.addFilter(quiet)
-    try:
-        db = cantools.database.load_file(str(DBC_PATH))
-    finally:
-        cantools_log.removeFilter(quiet)
+    db = load_database()
     return {s.name: (s.unit or "") for m in db.messages for s in m.signals}
-
-
-class _DropDuplicateIdWarning(logging.Filter):
-    """RPDO2 and RPDO2_AB share a frame id on purpose."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return "identical masked frame ids" not in record.getMessage()
 
 
 def _fmt(name: str, value: Any) -> str:

@@ -62,7 +62,7 @@ def _load_profile(path: str | None):
 
 
 def _load_motor(path: str | None):
-    from plant.params import MotorParams, ParamsError
+    from dbc.motor import MotorParams, ParamsError
 
     if path is None:
         return MotorParams.paper()
@@ -99,19 +99,26 @@ class Progress:
             sys.stderr.flush()
 
 
+def _choices(enum: Any) -> list[str]:
+    return [m.value for m in enum]
+
+
 def _add_control_options(p: argparse.ArgumentParser) -> None:
-    from gateway.control.controller import ESTIMATORS, FLUX_SOURCES, LAWS
+    from gateway.control.controller import EstimatorKind, FluxSource, Law
     from gateway.control.laws import Gains
 
     g = Gains()
-    p.add_argument("--profile", metavar="FILE",
-                   help="reference profile (TOML); default: the paper's section 6 scenario")
-    p.add_argument("--law", choices=LAWS, default="current-fed",
+    p.add_argument("--reference", "--profile", dest="profile", metavar="FILE",
+                   help="reference profile ω*(t), ψ*(t), T_L(t) (TOML); default: the paper's "
+                        "section 6 scenario")
+    p.add_argument("--law", type=Law, choices=list(Law), default=Law.CURRENT_FED,
                    help="control law: current-fed (15),(16),(20) or full-order (25)-(27),(32)")
-    p.add_argument("--flux", choices=FLUX_SOURCES, default="estimated",
+    p.add_argument("--flux", type=FluxSource, choices=list(FluxSource),
+                   default=FluxSource.ESTIMATED,
                    help="rotor flux for the law: estimated by (24) (sensorless, default) or the "
                         "true flux (the paper's 'flux measurements available' comparison)")
-    p.add_argument("--estimator", choices=ESTIMATORS, default="open-loop",
+    p.add_argument("--estimator", type=EstimatorKind, choices=list(EstimatorKind),
+                   default=EstimatorKind.OPEN_LOOP,
                    help="flux estimator: the paper's open-loop integrator or the drift-free one")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
@@ -141,18 +148,18 @@ def _gains(args: argparse.Namespace):
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """`hil-gateway simulate`: the closed loop without CAN."""
+    from dbc.timing import Sampling
     from gateway import report
-    from gateway.simulate import DEFAULT_DRIVE, SimConfig, run
-    from plant.params import DriveParams
+    from gateway.simulate import SimConfig, run
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     period = None if args.period == "continuous" else parse_duration(args.period, "--period")
-    drive = args.drive or DEFAULT_DRIVE[args.law]
+    drive = args.drive_mode or args.law.drive_modes[0]
     cfg = SimConfig(
-        law=args.law, flux=args.flux, estimator=args.estimator, drive=drive, period=period,
-        delay=args.delay, setpoint_frame=args.setpoint_frame, quantize=not args.no_quantize,
-        gains=_gains(args), drive_params=DriveParams(mode=drive),
+        law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=drive,
+        sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
+        quantize=not args.no_quantize, gains=_gains(args),
         duration=args.duration and parse_duration(args.duration, "--duration"),
     )
     out = _out_dir(args.out, f"simulate-{args.law}")
@@ -203,15 +210,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
+    from dbc.modes import DriveMode
+    from gateway.loop import Timing
+
     _add_control_options(p)
     p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
                    "profile's, 1)")
     p.add_argument("--period", default="1ms", help="cycle period (SYNC), e.g. 1ms (default)")
-    p.add_argument("--timing", choices=("lockstep", "realtime"), default="lockstep",
+    p.add_argument("--timing", type=Timing, choices=list(Timing), default=Timing.LOCKSTEP,
                    help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
                         "faster than real time against the emulator); realtime: SYNC on an "
                         "absolute schedule")
-    p.add_argument("--drive-mode", choices=("ideal", "current-loop", "voltage"),
+    p.add_argument("--drive-mode", type=DriveMode, choices=list(DriveMode),
                    help="what the drive does with the setpoints: ideal current source or PI "
                         "current loop (CiA 402 current vector mode; 'ideal' only on the "
                         "emulator), or voltage-fed (voltage vector mode); default: ideal for "
@@ -232,33 +242,36 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 def _run_config(args: argparse.Namespace, drive: Any):
     """The run's configuration, checked against what the drive can do."""
+    from dbc.modes import DriveMode
+    from dbc.timing import Sampling
+    from gateway.control.controller import FluxSource
+    from gateway.loop import Timing
     from gateway.runner import RunConfig
-    from gateway.simulate import COMPATIBLE, DEFAULT_DRIVE
 
-    mode = args.drive_mode or DEFAULT_DRIVE[args.law]
-    if not drive.emulator and mode == "ideal":
+    law = args.law
+    mode = args.drive_mode or law.drive_modes[0]
+    if not drive.emulator and mode is DriveMode.IDEAL:
         if args.drive_mode:
             raise UserError("--drive-mode ideal (an ideal current source) exists only on the "
                             "emulator; a real drive runs its current loop: use --drive-mode "
                             "current-loop")
-        mode = "current-loop"
-    if mode not in COMPATIBLE[args.law]:
-        raise UserError(f"the {args.law} law does not drive a {mode!r} drive: use --drive-mode "
-                        f"{' or '.join(COMPATIBLE[args.law])}")
-    if args.flux == "true" and not drive.truth:
+        mode = DriveMode.CURRENT_LOOP
+    if mode not in law.drive_modes:
+        raise UserError(f"the {law} law does not drive a '{mode}' drive: use --drive-mode "
+                        f"{' or '.join(law.drive_modes)}")
+    if args.flux is FluxSource.TRUE and not drive.truth:
         raise UserError(f"--flux true needs the drive's true rotor flux, which only the "
                         f"emulator sends (TPDO3); {drive.name} has none: use --flux estimated")
     period = parse_duration(args.period, "--period")
     if args.max_missed is not None and args.max_missed < 1:
         raise UserError(f"--max-missed {args.max_missed}: give a number of cycles >= 1")
     return RunConfig(
-        law=args.law, flux=args.flux, estimator=args.estimator,
-        drive_mode=mode,
-        period=period, timing=args.timing, delay=args.delay,
+        law=law, flux=args.flux, estimator=args.estimator, drive_mode=mode,
+        sampling=Sampling(period, args.delay, drive.setpoint_frame), timing=args.timing,
         gains=_gains(args), bus_log=args.log,
         # real time: 50 ms worth of cycles; lockstep waits 1 s per cycle already: 5
         max_missed=args.max_missed or (max(5, round(0.05 / period))
-                                       if args.timing == "realtime" else 5),
+                                       if args.timing is Timing.REALTIME else 5),
         duration=args.duration and parse_duration(args.duration, "--duration"),
     )
 
@@ -275,12 +288,12 @@ def _print_run(kind: str, summary: dict[str, Any], out: Path, profile: Any) -> N
 
 
 def _finish_run(summary: dict[str, Any]) -> int:
-    """Exit status: 0 when the profile ran to its end, 1 otherwise (fault, lost, stopped)."""
-    reason = summary["run"]["stop_reason"]
-    if reason == "end of the profile":
-        return 0
-    print(f"{PROG}: the run stopped early: {reason}", file=sys.stderr)
-    return 1 if summary.get("faults") or "cycles" in reason else 130
+    """Exit status from the stop's cause (:class:`gateway.stop.StopReason`): 0 when the
+    profile ran to its end, 130 when interrupted, 1 otherwise (fault, drive lost, error)."""
+    run = summary["run"]
+    if run["exit_status"] != 0:
+        print(f"{PROG}: the run stopped early: {run['stop_reason']}", file=sys.stderr)
+    return run["exit_status"]
 
 
 def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
@@ -312,7 +325,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
             close()
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
           f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
-          f"{format_duration(cfg.period)}, delay {cfg.delay}")
+          f"{format_duration(cfg.period)}, delay {cfg.sampling.delay}")
     _print_run(kind, summary, out, profile)
     return _finish_run(summary)
 
@@ -323,7 +336,7 @@ OWN_ECHO_INTERFACES = ("socketcan", "virtual", "inprocess")
 
 def cmd_run(args: argparse.Namespace) -> int:
     """`hil-gateway run`: the loop against a drive on a CAN bus."""
-    from gateway.bus import bus_config, open_bus
+    from dbc.bus import bus_config, open_bus
     from gateway.drive_profile import load_drive_profile
 
     drive = load_drive_profile(args.drive)
@@ -338,39 +351,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
-    import os
-
-    import can
-
     from gateway.drive_profile import load_drive_profile
-    from gateway.transport import InProcessChannel
-    from plant.device import DriveDevice
-    from plant.params import DriveParams
+    from gateway.sim import open_emulator
 
     def open_buses(ctx: Any) -> tuple[Any, str, Callable[[], None]]:
         cfg, motor, node = ctx
-        if args.transport == "virtual":
-            channel = f"hil-sim-{os.getpid()}"
-            bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
-            bus_dev = can.Bus(interface="virtual", channel=channel)
-        else:
-            medium = InProcessChannel("hil-sim")
-            channel = medium.name
-            bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
-        device = DriveDevice(bus_dev, node_id=node, motor=motor,
-                             drive_params=DriveParams(mode=cfg.drive_mode))
-
-        def close() -> None:
-            device.stop()
-            bus_gw.shutdown()
-            bus_dev.shutdown()
-
-        try:
-            device.start()
-        except BaseException:
-            close()
-            raise
-        return bus_gw, f"{args.transport}:{channel}", close
+        return open_emulator(args.transport, node, motor, cfg.drive_mode)
 
     return _gateway_session(args, "sim", load_drive_profile(None), open_buses)
 
@@ -388,9 +374,9 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
     for line in profile.set_points():
         print(f"  {line}")
     d = demand(profile, motor)
-    from plant.params import DriveParams
+    from gateway.sim import emulator_limits
 
-    drive = DriveParams()
+    i_trip, u_lim = emulator_limits()
     print("demand on the motor under perfect tracking (open-loop references (9)-(11)):")
     print(f"  peak current |i_s|   {d.i_s_peak:8.3g} A    at {d.t_i_s_peak:.3g} s "
           f"(i_sd up to {d.i_sd_peak:.3g} A, i_sq up to {d.i_sq_peak:.3g} A)")
@@ -398,10 +384,10 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
     print(f"  peak torque  |T_e|   {d.T_e_peak:8.3g} N·m  at {d.t_T_e_peak:.3g} s")
     print(f"  peak speed   |ω*|    {d.w_peak:8.4g} rad/s, frame speed |ω0| up to "
           f"{d.w_0_peak:.4g} rad/s")
-    if d.i_s_peak > drive.i_trip:
-        print(f"  warning: beyond the default drive's over-current trip ({drive.i_trip:g} A)")
-    if d.u_s_peak > drive.u_lim:
-        print(f"  warning: beyond the default drive's voltage limit ({drive.u_lim:.0f} V = "
+    if d.i_s_peak > i_trip:
+        print(f"  warning: beyond the default drive's over-current trip ({i_trip:g} A)")
+    if d.u_s_peak > u_lim:
+        print(f"  warning: beyond the default drive's voltage limit ({u_lim:.0f} V = "
               f"u_dc/√3): expect the limit to act")
     return 0
 
@@ -464,12 +450,17 @@ def build_parser() -> argparse.ArgumentParser:
                     "exactly as over the bus (zero-order hold, optional one-period SYNC delay, "
                     "INT16 PDO quantisation). Writes summary.json, signals.csv and the figures.")
     _add_control_options(p)
-    p.add_argument("--drive", choices=("ideal", "current-loop", "voltage"),
-                   help="drive model: ideal current source, PI current loop at 10 kHz, or "
-                        "voltage-fed (default: ideal for current-fed, voltage for full-order)")
+    from dbc.modes import DriveMode, SetpointFrame
+
+    p.add_argument("--drive-mode", "--drive", dest="drive_mode", type=DriveMode,
+                   choices=list(DriveMode),
+                   help="the emulated drive's mode: ideal current source, PI current loop at "
+                        "10 kHz, or voltage-fed (default: ideal for current-fed, voltage for "
+                        "full-order); --drive is the old spelling")
     p.add_argument("--period", default="1ms",
                    help="sampling period (1ms, 250us, ...) or 'continuous' (default 1ms)")
-    p.add_argument("--setpoint-frame", choices=("dq", "ab"), default="dq",
+    p.add_argument("--setpoint-frame", type=SetpointFrame, choices=list(SetpointFrame),
+                   default=SetpointFrame.DQ,
                    help="dq: the drive turns the frame itself (ERRATA 9); ab: setpoints held "
                         "in the fixed frame over the period")
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
@@ -487,13 +478,15 @@ def build_parser() -> argparse.ArgumentParser:
                     "started in the same process on python-can's virtual bus: no hardware, no "
                     "setup. Writes the run directory like `run`.")
     _add_run_options(p)
-    p.add_argument("--transport", choices=("inprocess", "virtual"), default="inprocess",
+    from gateway.transport import TRANSPORTS
+
+    p.add_argument("--transport", choices=TRANSPORTS, default="inprocess",
                    help="inprocess (default): a python-can bus that hands each receiver the "
                         "same frame; virtual: python-can's virtual interface, which deep-copies "
                         "every frame per receiver (about half the cycles per second)")
     p.set_defaults(func=cmd_sim)
 
-    from gateway.bus import add_bus_options
+    from dbc.bus import add_bus_options
 
     p = sub.add_parser(
         "run", help="the loop against a drive on a CAN bus (real, or `hil-plant run`)",

@@ -1,64 +1,90 @@
-"""One control cycle at the PDO level, shared by `simulate` and the CANopen loop.
+"""One control cycle at the PDO level: the single cycle body of `simulate` and the bus loop.
 
-Data flows one way: TPDO signal values → :func:`sample_from_tpdos` → controller →
-:func:`rpdos_from_command` → RPDO signal values. The signal names and scalings are the
-contract of ``dbc/drive.dbc``; both the sampled simulation and the bus loop go through the
-same functions and the same codec, so their results agree to the last bit.
+Data flows one way: decoded TPDO values → :class:`gateway.control.controller.Sample` →
+controller step → :class:`gateway.control.controller.Command` → RPDO values, plus one
+named record row. :class:`ControlCycle` is used by :func:`gateway.simulate.run_sampled`
+and by :class:`gateway.loop.CycleLoop` alike, with the same codec, so a lockstep run over
+the bus equals the simulation to the last bit. The signal names and scalings are the
+contract of ``dbc/drive.dbc`` (:mod:`dbc.signals`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
-from typing import Literal
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
 
-from gateway.control.controller import Command, Sample
-
-SetpointFrame = Literal["dq", "ab"]
-SETPOINT_FRAMES: tuple[str, ...] = ("dq", "ab")
-
-#: SYNC counter overflow (0x1019) the gateway configures: the counter runs 1..240 (CiA 301).
-SYNC_OVERFLOW = 240
-
-
-def sync_counter(k: int) -> int:
-    """The SYNC counter of cycle k (k = 1, 2, …): 1..SYNC_OVERFLOW, then 1 again."""
-    return ((k - 1) % SYNC_OVERFLOW) + 1
+from dbc.cia402 import SW_INTERNAL_LIMIT, Controlword
+from dbc.modes import SetpointFrame
+from dbc.signals import SETPOINT_MESSAGE, SETPOINTS
+from dbc.timing import Sampling
+from gateway.control.controller import Command, Controller, Sample
+from gateway.control.laws import Refs
 
 
-# CiA 402 controlword commands (CiA 402-2, device control).
-CW_DISABLE_VOLTAGE = 0x0000  #: → Switch on disabled (power stage off)
-CW_SHUTDOWN = 0x0006  #: → Ready to switch on
-CW_SWITCH_ON = 0x0007  #: → Switched on
-CW_ENABLE_OPERATION = 0x000F  #: → Operation enabled
-CW_FAULT_RESET = 0x0080  #: rising edge of bit 7: Fault → Switch on disabled
+class ReferenceProfile(Protocol):
+    """What the cycle needs of a reference profile: the references at a time."""
+
+    def at(self, t: float) -> Refs: ...
 
 
-def rpdo2_name(frame: SetpointFrame) -> str:
-    """The DBC message carrying the setpoints in that frame."""
-    return "RPDO2" if frame == "dq" else "RPDO2_AB"
+class CycleRow(NamedTuple):
+    """One cycle's record (SI units; the columns of ``signals.csv``, docs in README).
 
-
-def rpdos_from_command(
-    cmd: Command, T_L: float, frame: SetpointFrame, controlword: int = CW_ENABLE_OPERATION
-) -> dict[str, dict[str, float]]:
-    """The RPDO signal values (SI) for one command.
-
-    RPDO1: controlword, frame angle ε0 at the start of the interval the setpoints act on,
-    frame speed ω0. RPDO2: current and voltage setpoints in the (d, q) frame, or, for
-    drives that hold (a, b) setpoints, in the fixed frame (RPDO2_AB). RPDO3: the load torque
-    for the emulated dynamometer, N·m.
+    t: sample time t_k, s. w_ref, psi_ref, T_L: references at t_k. w_m, psi_r_mod, T_e:
+    the drive's truth (emulator only; NaN otherwise). w_hat, psi_r_mod_hat, psi_rd_hat,
+    psi_rq_hat: the controller's estimates. i_sa, i_sb, u_sa, u_sb: measured currents and
+    average applied voltages. i_sd_ref … u_sq_ref: setpoints sent. eps_0, w_0: the frame
+    sent. i_limited, u_limit_active: 1.0 when the current limit / the drive's voltage
+    limit acted.
     """
-    if frame == "dq":
-        i, u = cmd.i_s_dq_ref, cmd.u_s_dq_ref
-        rpdo2 = {"i_sd_ref": i.real, "i_sq_ref": i.imag, "u_sd_ref": u.real, "u_sq_ref": u.imag}
-    else:
-        i, u = cmd.i_s_ab_ref, cmd.u_s_ab_ref
-        rpdo2 = {"i_sa_ref": i.real, "i_sb_ref": i.imag, "u_sa_ref": u.real, "u_sb_ref": u.imag}
-    return {
-        "RPDO1": {"controlword": controlword, "eps_0": cmd.eps_0, "w_0": cmd.w_0},
-        rpdo2_name(frame): rpdo2,
-        "RPDO3": {"T_L": T_L},
-    }
+
+    t: float
+    w_ref: float
+    psi_ref: float
+    T_L: float
+    w_m: float
+    psi_r_mod: float
+    w_hat: float
+    psi_r_mod_hat: float
+    i_sa: float
+    i_sb: float
+    u_sa: float
+    u_sb: float
+    i_sd_ref: float
+    i_sq_ref: float
+    u_sd_ref: float
+    u_sq_ref: float
+    eps_0: float
+    w_0: float
+    psi_rd_hat: float
+    psi_rq_hat: float
+    T_e: float
+    i_limited: float
+    u_limit_active: float
+
+
+@dataclass(frozen=True, slots=True)
+class Truth:
+    """What the emulator knows of its motor at a sample (for the record only).
+
+    w_m: speed, rad/s. psi_r_ab: rotor flux, Wb. T_e: electromagnetic torque, N·m.
+    """
+
+    w_m: float
+    psi_r_ab: complex
+    T_e: float
+
+
+NO_TRUTH = Truth(math.nan, complex(math.nan, math.nan), math.nan)
+
+
+def truth_from_tpdo(tpdo3: Mapping[str, float] | None) -> Truth:
+    """The truth the emulator sends in TPDO3 (INT16 resolution), or :data:`NO_TRUTH`."""
+    if tpdo3 is None:
+        return NO_TRUTH
+    return Truth(tpdo3["w_m"], complex(tpdo3["psi_ra"], tpdo3["psi_rb"]), tpdo3["T_e"])
 
 
 def sample_from_tpdos(
@@ -74,3 +100,69 @@ def sample_from_tpdos(
         u_s_ab=complex(tpdo2["u_sa"], tpdo2["u_sb"]),
         psi_r_ab=psi,
     )
+
+
+def rpdos_from_command(
+    cmd: Command, T_L: float, frame: SetpointFrame,
+    controlword: int = Controlword.ENABLE_OPERATION,
+) -> dict[str, dict[str, float]]:
+    """The RPDO signal values (SI) for one command, by default DBC message name.
+
+    RPDO1: controlword, frame angle ε0 at the start of the interval the setpoints act on,
+    frame speed ω0. RPDO2: current and voltage setpoints in the (d, q) frame, or, for
+    drives that hold (a, b) setpoints, in the fixed frame (RPDO2_AB). RPDO3: the load torque
+    for the emulated dynamometer, N·m.
+    """
+    if frame is SetpointFrame.DQ:
+        i, u = cmd.i_s_dq_ref, cmd.u_s_dq_ref
+    else:
+        i, u = cmd.i_s_ab_ref, cmd.u_s_ab_ref
+    n_i1, n_i2, n_u1, n_u2 = SETPOINTS[frame]
+    return {
+        "RPDO1": {"controlword": int(controlword), "eps_0": cmd.eps_0, "w_0": cmd.w_0},
+        SETPOINT_MESSAGE[frame]: {n_i1: i.real, n_i2: i.imag, n_u1: u.real, n_u2: u.imag},
+        "RPDO3": {"T_L": T_L},
+    }
+
+
+class CycleOutput(NamedTuple):
+    """What one cycle produces: the RPDO values by default message name, and the row."""
+
+    rpdos: dict[str, dict[str, float]]
+    row: CycleRow
+
+
+class ControlCycle:
+    """Cycle k: TPDO values at t_k = k·T → one controller step → RPDO values and a row.
+
+    The load torque sent (RPDO3, for the emulated dynamometer) is the profile's at the
+    start of the interval the setpoints act on, t_k + delay·T (docs/ARCHITECTURE.md).
+    """
+
+    def __init__(self, controller: Controller, profile: ReferenceProfile,
+                 sampling: Sampling) -> None:
+        self.controller = controller
+        self.profile = profile
+        self.sampling = sampling
+
+    def step(self, k: int, tpdo1: Mapping[str, float], tpdo2: Mapping[str, float],
+             tpdo3: Mapping[str, float] | None, truth: Truth | None = None) -> CycleOutput:
+        """Run cycle k. ``truth`` overrides TPDO3's (simulate records it unquantised)."""
+        s = self.sampling
+        t = k * s.period
+        sample = sample_from_tpdos(tpdo1, tpdo2, tpdo3)
+        refs = self.profile.at(t)
+        cmd = self.controller.step(refs, sample)
+        T_L_cmd = self.profile.at(s.t_apply(t)).T_L if s.delay else refs.T_L
+        rpdos = rpdos_from_command(cmd, T_L_cmd, s.setpoint_frame)
+        tr = truth if truth is not None else truth_from_tpdo(tpdo3)
+        psi = cmd.psi_r_dq
+        status = int(tpdo1.get("statusword", 0))
+        row = CycleRow(
+            t, refs.w_ref, refs.psi_ref, refs.T_L, tr.w_m, abs(tr.psi_r_ab), cmd.w_hat,
+            abs(psi), sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real,
+            sample.u_s_ab.imag, cmd.i_s_dq_ref.real, cmd.i_s_dq_ref.imag, cmd.u_s_dq_ref.real,
+            cmd.u_s_dq_ref.imag, cmd.eps_0, cmd.w_0, psi.real, psi.imag, tr.T_e,
+            float(cmd.i_limited), float(bool(status & SW_INTERNAL_LIMIT)),
+        )
+        return CycleOutput(rpdos, row)

@@ -1,15 +1,5 @@
-"""The one exception that carries a user-facing message (what failed, where, how to fix)."""
+"""The user-facing error of the gateway's commands (defined in :mod:`dbc.errors`)."""
 
-from __future__ import annotations
+from dbc.errors import UserError
 
-
-class UserError(Exception):
-    """A failure caused by the user's input or environment, reported without a traceback.
-
-    The message is one paragraph: what failed, where (file, key, interface, node), and
-    what to do about it. ``exit_code`` is the process exit status (2 for bad input).
-    """
-
-    def __init__(self, message: str, exit_code: int = 2) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
+__all__ = ["UserError"]

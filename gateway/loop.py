@@ -6,9 +6,8 @@ python-canopen), driven by frames:
 * the gateway's own SYNC, received back from the bus (``receive_own_messages``; on
   interfaces without it the sender reports it directly) opens cycle k and timestamps it;
 * the drive's TPDOs are stored raw; when the last expected one arrives the cycle is
-  complete: decode → :func:`gateway.cycle.sample_from_tpdos` → controller step →
-  :func:`gateway.cycle.rpdos_from_command` → encode → send, exactly as
-  :func:`gateway.simulate.run_sampled` does, so lockstep over the bus equals `simulate`;
+  complete: decode → :class:`gateway.cycle.ControlCycle` → encode → send, the same cycle
+  :func:`gateway.simulate.run_sampled` runs, so lockstep over the bus equals `simulate`;
 * ``lockstep``: the next SYNC is sent right after the RPDOs. ``realtime``: SYNC comes from
   a periodic sender (the kernel's broadcast manager on SocketCAN, a sleep-then-spin thread
   elsewhere); a cycle whose TPDOs are incomplete when the next SYNC appears is *missed*:
@@ -28,60 +27,101 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, Literal
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any, NamedTuple
 
 import can
 
+from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, sync_counter
+from dbc.signals import SETPOINT_MESSAGE
+from dbc.timing import Sampling
 from gateway.control.controller import Controller
-from gateway.control.profiles import Profile
-from gateway.cycle import (
-    SYNC_OVERFLOW,
-    rpdo2_name,
-    rpdos_from_command,
-    sample_from_tpdos,
-    sync_counter,
-)
-from gateway.report import BASE_COLUMNS, Record
+from gateway.cycle import ControlCycle, CycleRow, ReferenceProfile
+from gateway.report import Record
+from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
 
-Timing = Literal["lockstep", "realtime"]
-SYNC_ID = 0x080
+
+class Timing(StrEnum):
+    """LOCKSTEP: the next SYNC as soon as the RPDOs are out (deterministic); REALTIME: SYNC
+    on an absolute schedule."""
+
+    LOCKSTEP = "lockstep"
+    REALTIME = "realtime"
+
 
 #: Real-time SYNC thread: how long before a deadline it stops sleeping and spins, s. On the
 #: project's VM, time.sleep overshoots by 107 µs median, 217 µs p99 (2.9 ms p99.9).
 SPIN_MARGIN = 0.0003
 
-LOOP_COLUMNS: tuple[str, ...] = (
-    *BASE_COLUMNS, "psi_rd_hat", "psi_rq_hat", "T_e", "i_limited", "u_limit_active",
-    "statusword", "sync_counter", "sync_period", "sync_to_tpdo", "reaction", "missed",
-)
+
+class LoopRow(NamedTuple):
+    """A bus cycle's record: the cycle's columns (:class:`gateway.cycle.CycleRow`) and the
+    bus's: statusword and SYNC-counter echo of TPDO1; SYNC period, SYNC → last TPDO and
+    last TPDO → RPDOs sent (reaction), s; missed cycles so far."""
+
+    t: float
+    w_ref: float
+    psi_ref: float
+    T_L: float
+    w_m: float
+    psi_r_mod: float
+    w_hat: float
+    psi_r_mod_hat: float
+    i_sa: float
+    i_sb: float
+    u_sa: float
+    u_sb: float
+    i_sd_ref: float
+    i_sq_ref: float
+    u_sd_ref: float
+    u_sq_ref: float
+    eps_0: float
+    w_0: float
+    psi_rd_hat: float
+    psi_rq_hat: float
+    T_e: float
+    i_limited: float
+    u_limit_active: float
+    statusword: float
+    sync_counter: float
+    sync_period: float
+    sync_to_tpdo: float
+    reaction: float
+    missed: float
+
+
+assert LoopRow._fields[:len(CycleRow._fields)] == CycleRow._fields
 
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """period: s; n_cycles: cycles to run; delay: 1 for synchronous RPDOs (the drive applies
-    them at the next SYNC), 0 for "on receipt"; max_missed: consecutive missed cycles that
-    stop the loop; tpdo_timeout: in lockstep, how long to wait for a cycle's TPDOs."""
+    """sampling: period, delay (1 for synchronous RPDOs: the drive applies them at the next
+    SYNC; 0 for "on receipt") and setpoint frame; n_cycles: cycles to run; max_missed:
+    consecutive missed cycles that stop the loop; tpdo_timeout: in lockstep, how long to
+    wait for a cycle's TPDOs, s; sync_counter: SYNC carries the counter (0x1019)."""
 
-    period: float
     n_cycles: int
-    timing: Timing = "lockstep"
-    delay: int = 1
-    setpoint_frame: str = "dq"
+    sampling: Sampling = field(default_factory=Sampling)
+    timing: Timing = Timing.LOCKSTEP
     max_missed: int = 5
     tpdo_timeout: float = 1.0
     sync_counter: bool = True
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "timing", Timing(self.timing))
+
 
 @dataclass
 class LoopStats:
-    """What happened, for the summary."""
+    """What happened, for the summary: the stop's cause and its message."""
 
     cycles: int = 0
     missed: int = 0
     late_rpdo: int = 0
+    stop: StopReason | None = None
     stop_reason: str = ""
     wall_time: float = 0.0
 
@@ -105,7 +145,7 @@ class CycleLoop:
         codec: Any,
         names: PdoNames,
         controller: Controller,
-        profile: Profile,
+        profile: ReferenceProfile,
         cfg: LoopConfig,
         own_echo: bool = True,
         fault: threading.Event | None = None,
@@ -114,18 +154,17 @@ class CycleLoop:
         self.codec = codec
         self.names = names
         self.ctl = controller
-        self.profile = profile
+        self.cycle = ControlCycle(controller, profile, cfg.sampling)
         self.cfg = cfg
         self.own_echo = own_echo
         self.fault = fault or threading.Event()
-        self.record = Record(LOOP_COLUMNS)
+        self.record = Record(LoopRow)
         self.stats = LoopStats()
         self._lock = threading.Lock()
         self._done = threading.Event()
         self._stop = threading.Event()
         self._error: BaseException | None = None
-        T = cfg.period
-        self._T = T
+        self._T = cfg.sampling.period
         # the frames the controller needs, in the order the drive sends them
         self._expected = [names.currents, names.voltages] + ([names.truth] if names.truth else [])
         self._ids = {codec.frame_id(n): n for n in self._expected}
@@ -140,7 +179,7 @@ class CycleLoop:
         self._sync_time = math.nan
         self._sync_prev = math.nan
         self._progress_at = time.monotonic()
-        rpdo2_expected = rpdo2_name(cfg.setpoint_frame)  # type: ignore[arg-type]
+        rpdo2_expected = SETPOINT_MESSAGE[cfg.sampling.setpoint_frame]
         # (COB-ID, DBC message, key of rpdos_from_command's result)
         self._rpdo: list[tuple[int, str, str]] = [
             (codec.frame_id(names.control), names.control, "RPDO1"),
@@ -150,7 +189,7 @@ class CycleLoop:
             self._rpdo.append((codec.frame_id(names.load), names.load, "RPDO3"))
         if names.setpoints != rpdo2_expected:
             raise ValueError(f"setpoint message {names.setpoints} does not carry the "
-                             f"{cfg.setpoint_frame} frame ({rpdo2_expected})")
+                             f"{cfg.sampling.setpoint_frame} frame ({rpdo2_expected})")
         self._sync_task: Any = None
         self._sync_thread: threading.Thread | None = None
         for cob_id in self._ids:
@@ -187,7 +226,8 @@ class CycleLoop:
         self._k_done = self._k
         self.ctl.coast()
         if self._consecutive_missed >= self.cfg.max_missed:
-            self._finish(f"{self._consecutive_missed} consecutive cycles without the drive's "
+            self._finish(StopReason.DRIVE_LOST,
+                         f"{self._consecutive_missed} consecutive cycles without the drive's "
                          "TPDOs (drive lost or bus overloaded)")
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -211,14 +251,13 @@ class CycleLoop:
                 self._cycle(t_arrival)
             except Exception as exc:  # the receive thread must not die silently
                 self._error = exc
-                self._finish(f"error in the control cycle: {exc!r}")
+                self._finish(StopReason.CONTROL_ERROR, f"error in the control cycle: {exc!r}")
 
     # ------------------------------------------------------------------ the cycle
 
     def _cycle(self, t_arrival: float) -> None:
         """Decode, step, encode, send (lock held)."""
         k = self._k
-        T = self._T
         cfg = self.cfg
         codec = self.codec
         names = self.names
@@ -226,41 +265,26 @@ class CycleLoop:
         tp1 = codec.decode(names.currents, fr[names.currents])
         tp2 = codec.decode(names.voltages, fr[names.voltages])
         tp3 = codec.decode(names.truth, fr[names.truth]) if names.truth else None
-        sample = sample_from_tpdos(tp1, tp2, tp3)
-        t = k * T
-        refs = self.profile.at(t)
-        cmd = self.ctl.step(refs, sample)
-        T_L_cmd = self.profile.at(t + cfg.delay * T).T_L if cfg.delay else refs.T_L
-        msgs = rpdos_from_command(cmd, T_L_cmd, cfg.setpoint_frame)  # type: ignore[arg-type]
+        rpdos, row = self.cycle.step(k, tp1, tp2, tp3)
         send = self.bus.send
         for cob_id, name, key in self._rpdo:
-            send(can.Message(arbitration_id=cob_id, data=codec.encode(name, msgs[key]),
+            send(can.Message(arbitration_id=cob_id, data=codec.encode(name, rpdos[key]),
                              is_extended_id=False))
         t_sent = time.perf_counter()
         self._k_done = k
         self._consecutive_missed = 0
         self.stats.cycles += 1
-        if cfg.timing == "realtime" and time.time() > self._sync_time + T:
+        if cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T:
             self.stats.late_rpdo += 1  # the next SYNC was due before the RPDOs went out
-        psi = cmd.psi_r_dq
-        if tp3 is not None:
-            w_m, psi_mod, T_e = tp3["w_m"], abs(complex(tp3["psi_ra"], tp3["psi_rb"])), tp3["T_e"]
-        else:
-            w_m = psi_mod = T_e = math.nan
-        status = int(tp1["statusword"])
-        self.record.append((
-            t, refs.w_ref, refs.psi_ref, refs.T_L, w_m, psi_mod, cmd.w_hat, abs(psi),
-            sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real, sample.u_s_ab.imag,
-            cmd.i_s_dq_ref.real, cmd.i_s_dq_ref.imag, cmd.u_s_dq_ref.real, cmd.u_s_dq_ref.imag,
-            cmd.eps_0, cmd.w_0, psi.real, psi.imag, T_e, float(cmd.i_limited),
-            float(bool(status & 0x0800)), float(status), float(tp1.get("sync_counter", 0)),
+        self.record.append(LoopRow(
+            *row, float(tp1["statusword"]), float(tp1.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
             t_sent - t_arrival, float(self.stats.missed),
         ))
         self._progress_at = time.monotonic()
         if k >= cfg.n_cycles:
-            self._finish("end of the profile")
-        elif cfg.timing == "lockstep" and not self._stop.is_set():
+            self._finish(StopReason.END_OF_PROFILE, "end of the profile")
+        elif cfg.timing is Timing.LOCKSTEP and not self._stop.is_set():
             self._send_sync(k + 1)
 
     def _send_sync(self, k: int) -> None:
@@ -270,17 +294,18 @@ class CycleLoop:
             self._open_locked(time.time())
         self.bus.send(msg)
 
-    def _finish(self, reason: str) -> None:
-        if not self.stats.stop_reason:
-            self.stats.stop_reason = reason
+    def _finish(self, stop: StopReason, message: str) -> None:
+        if self.stats.stop is None:
+            self.stats.stop, self.stats.stop_reason = stop, message
         self._done.set()
 
     # ------------------------------------------------------------------- running
 
-    def request_stop(self, reason: str) -> None:
-        """Stop after the cycle in progress (Ctrl-C, SIGTERM, a fault)."""
+    def request_stop(self, reason: str, stop: StopReason = StopReason.INTERRUPTED) -> None:
+        """Stop after the cycle in progress (Ctrl-C, SIGTERM, a fault); ``reason`` is the
+        message."""
         self._stop.set()
-        self._finish(reason)
+        self._finish(stop, reason)
 
     def run(self, progress: Callable[[float], None] | None = None) -> LoopStats:
         """Run until the profile ends, a stop is requested, the drive faults or is lost."""
@@ -295,18 +320,18 @@ class CycleLoop:
         gc.disable()
         switch_interval = sys.getswitchinterval()
         try:
-            if self.cfg.timing == "lockstep":
+            if self.cfg.timing is Timing.LOCKSTEP:
                 with self._lock:
                     self._send_sync(1)
             else:
                 self._start_sync_producer()
             while not self._done.wait(0.05):
                 if self.fault.is_set():
-                    self.request_stop("drive fault")
+                    self.request_stop("drive fault", StopReason.DRIVE_FAULT)
                     break
                 if progress is not None:
                     progress(self._k_done / self.cfg.n_cycles)
-                if self.cfg.timing == "lockstep":
+                if self.cfg.timing is Timing.LOCKSTEP:
                     self._lockstep_watchdog()
         finally:
             self._stop.set()
@@ -324,10 +349,9 @@ class CycleLoop:
 
     def _lockstep_watchdog(self) -> None:
         """No progress for tpdo_timeout: count the cycle as missed and send the next SYNC."""
-        if time.monotonic() - self._progress_at < self.cfg.tpdo_timeout:
-            return
         with self._lock:
-            if self._done.is_set():
+            if self._done.is_set() or (time.monotonic() - self._progress_at
+                                       < self.cfg.tpdo_timeout):
                 return
             self._miss()
             self._progress_at = time.monotonic()

@@ -30,12 +30,15 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from gateway.cycle import (
-    CW_DISABLE_VOLTAGE,
-    CW_ENABLE_OPERATION,
-    CW_FAULT_RESET,
-    CW_SHUTDOWN,
-    CW_SWITCH_ON,
+from dbc.cia301 import EMCY_BASE, HEARTBEAT_BASE, Emcy, NmtCommand, NmtState
+from dbc.cia402 import (
+    CONTROLWORD,
+    ENABLE_SEQUENCE,
+    MODES_OF_OPERATION,
+    STATUSWORD,
+    SW_FAULT,
+    Controlword,
+    State,
 )
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
@@ -44,24 +47,6 @@ log = logging.getLogger(__name__)
 
 #: The gateway's own node id for its heartbeat (0x700 + id); 0x7F is conventional for masters.
 GATEWAY_NODE_ID = 0x7F
-
-# CiA 402 statusword masks and patterns (CiA 402-2, table "state coding").
-SW_MASK = 0x006F
-SW_SWITCH_ON_DISABLED = 0x0040
-SW_READY_TO_SWITCH_ON = 0x0021
-SW_SWITCHED_ON = 0x0023
-SW_OPERATION_ENABLED = 0x0027
-SW_FAULT_BIT = 0x0008
-
-
-#: CiA 301 EMCY codes the emulator raises, for messages.
-EMCY_TEXT = {
-    0x0000: "error reset / no error",
-    0x2310: "over-current",
-    0x8130: "heartbeat of the master lost",
-    0x8210: "PDO of wrong length",
-    0x8250: "RPDO timeout",
-}
 
 
 @dataclass
@@ -84,7 +69,7 @@ class MasterState:
 
     faults: list[FaultEvent] = field(default_factory=list)
     last_heartbeat: float = 0.0
-    nmt_state: str = "UNKNOWN"
+    nmt_state: NmtState | None = None
 
 
 class DriveMaster:
@@ -120,11 +105,11 @@ class DriveMaster:
         self._connected = True
         for listener in listeners or []:
             self.network.notifier.add_listener(listener)
-        hb_id = 0x700 + self.node_id
-        self.network.subscribe(hb_id, self._on_heartbeat)
-        self.network.subscribe(0x80 + self.node_id, self._on_emcy)
+        self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
+        self.network.subscribe(EMCY_BASE + self.node_id, self._on_emcy)
         self._booted.clear()
-        self.node.nmt.send_command(0x82)  # reset communication (callbacks already registered)
+        # reset communication (callbacks already registered)
+        self.node.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
         if not self._booted.wait(self.profile.boot_timeout_s):
             raise UserError(
                 f"no drive at node {self.node_id} on the bus: no boot-up within "
@@ -137,21 +122,19 @@ class DriveMaster:
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
             return
-        state = data[0] & 0x7F
+        state = NmtState.from_heartbeat(data[0])
         self.state.last_heartbeat = time.monotonic()
-        self.state.nmt_state = {0x00: "INITIALISING", 0x04: "STOPPED", 0x05: "OPERATIONAL",
-                                0x7F: "PRE-OPERATIONAL"}.get(state, f"0x{state:02X}")
-        if state == 0x00:
+        self.state.nmt_state = state
+        if state is NmtState.INITIALISING:  # the boot-up message
             self._booted.set()
 
     def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 2:
             return
         code = struct.unpack_from("<H", data)[0]
-        if code == 0x0000:
+        if code == Emcy.NO_ERROR:
             return  # error reset
-        self._raise(FaultEvent(time.monotonic(), "EMCY", code,
-                               EMCY_TEXT.get(code, "drive-specific error")))
+        self._raise(FaultEvent(time.monotonic(), "EMCY", code, Emcy.describe(code)))
 
     def _raise(self, event: FaultEvent) -> None:
         self.state.faults.append(event)
@@ -199,11 +182,27 @@ class DriveMaster:
                 f"({self.profile.source}) against the drive's EDS, and that the drive is in "
                 "PRE-OPERATIONAL.") from exc
 
+    def find_object(self, name: str) -> canopen.objectdictionary.ODVariable | None:
+        """The EDS variable of that ParameterName (an object or a sub-index); None if the
+        drive's EDS has none."""
+        od = self.node.object_dictionary
+        try:
+            obj = od[name]
+        except KeyError:
+            obj = None
+        if isinstance(obj, canopen.objectdictionary.ODVariable):
+            return obj
+        for o in od.values():
+            if isinstance(o, canopen.objectdictionary.ODRecord | canopen.objectdictionary.ODArray):
+                for var in o.values():
+                    if var.name == name:
+                        return var
+        return None
+
     def write_by_name(self, name: str, value: int | float) -> bool:
         """Write an object found by its EDS name; False if the drive has no such object."""
-        try:
-            var = self.node.object_dictionary[name]
-        except KeyError:
+        var = self.find_object(name)
+        if var is None:
             return False
         self.sdo_write(var.index, var.subindex, value, name)
         return True
@@ -219,7 +218,7 @@ class DriveMaster:
         cob_ids: the COB-ID of each PDO. mode: 0x6060 value. emulator_objects: EDS name →
         value for the emulator's own objects (ignored on drives without them).
         """
-        self.node.nmt.state = "PRE-OPERATIONAL"
+        self.node.nmt.state = NmtState.PRE_OPERATIONAL
         p = self.profile
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
             self.write_by_name(name, value)
@@ -236,7 +235,7 @@ class DriveMaster:
                        "consumer heartbeat of the gateway")
         for name, entries in pdo_map.items():
             self._map_pdo(name, entries, cob_ids[name])
-        self.sdo_write(0x6060, 0, mode, "modes of operation")
+        self.sdo_write(MODES_OF_OPERATION, 0, mode, "modes of operation")
 
     def _map_pdo(self, name: str, entries: list[tuple[int, int, int]], cob_id: int) -> None:
         """Write one PDO's communication and mapping parameters (CiA 301 procedure)."""
@@ -258,10 +257,10 @@ class DriveMaster:
     def start(self) -> None:
         """NMT OPERATIONAL and the gateway's heartbeat producer; the watchdog starts."""
         hb_period = max(0.01, self.profile.heartbeat_timeout_ms / 3000.0)
-        msg = can.Message(arbitration_id=0x700 + GATEWAY_NODE_ID, data=[0x05],
-                          is_extended_id=False)
+        msg = can.Message(arbitration_id=HEARTBEAT_BASE + GATEWAY_NODE_ID,
+                          data=[NmtState.OPERATIONAL.heartbeat], is_extended_id=False)
         self._heartbeat_task = self.bus.send_periodic(msg, hb_period)
-        self.node.nmt.state = "OPERATIONAL"
+        self.node.nmt.state = NmtState.OPERATIONAL
         self.state.last_heartbeat = time.monotonic()
         self._stop_watchdog.clear()
         self._watchdog = threading.Thread(target=self._watch, name="drive-watchdog",
@@ -279,12 +278,12 @@ class DriveMaster:
 
     def statusword(self) -> int:
         """0x6041 by SDO."""
-        return int(self.sdo_read(0x6041, 0))
+        return int(self.sdo_read(STATUSWORD, 0))
 
-    def _await_state(self, pattern: int, timeout: float = 1.0) -> int:
+    def _await_state(self, state: State, timeout: float = 1.0) -> int:
         t_end = time.monotonic() + timeout
         sw = self.statusword()
-        while (sw & SW_MASK) != pattern and time.monotonic() < t_end:
+        while State.from_statusword(sw) is not state and time.monotonic() < t_end:
             time.sleep(0.005)
             sw = self.statusword()
         return sw
@@ -292,16 +291,14 @@ class DriveMaster:
     def enable(self) -> None:
         """CiA 402: (fault reset) → shutdown → switch on → enable operation, checked."""
         sw = self.statusword()
-        if sw & SW_FAULT_BIT:
-            self.sdo_write(0x6040, 0, CW_DISABLE_VOLTAGE, "controlword")
-            self.sdo_write(0x6040, 0, CW_FAULT_RESET, "controlword fault reset")
-        for cw, pattern, name in ((CW_SHUTDOWN, SW_READY_TO_SWITCH_ON, "Ready to switch on"),
-                                  (CW_SWITCH_ON, SW_SWITCHED_ON, "Switched on"),
-                                  (CW_ENABLE_OPERATION, SW_OPERATION_ENABLED,
-                                   "Operation enabled")):
-            self.sdo_write(0x6040, 0, cw, "controlword")
-            sw = self._await_state(pattern)
-            if (sw & SW_MASK) != pattern:
+        if sw & SW_FAULT:
+            self.sdo_write(CONTROLWORD, 0, Controlword.DISABLE_VOLTAGE, "controlword")
+            self.sdo_write(CONTROLWORD, 0, Controlword.FAULT_RESET, "controlword fault reset")
+        for cw, state in ENABLE_SEQUENCE:
+            self.sdo_write(CONTROLWORD, 0, cw, "controlword")
+            sw = self._await_state(state)
+            if State.from_statusword(sw) is not state:
+                name = state.name.replace("_", " ").capitalize()
                 raise UserError(
                     f"node {self.node_id} did not reach the CiA 402 state {name!r}: statusword "
                     f"0x{sw:04X} after controlword 0x{cw:04X}. The drive may be in fault or "
@@ -310,7 +307,7 @@ class DriveMaster:
     def disable(self) -> None:
         """Controlword 'disable voltage' (power stage off); best effort, never raises."""
         try:
-            self._entry(0x6040, 0).raw = CW_DISABLE_VOLTAGE
+            self._entry(CONTROLWORD, 0).raw = Controlword.DISABLE_VOLTAGE
         except Exception as exc:
             log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
 
@@ -323,7 +320,7 @@ class DriveMaster:
         if self._connected:
             self.disable()
             try:
-                self.node.nmt.state = "PRE-OPERATIONAL"
+                self.node.nmt.state = NmtState.PRE_OPERATIONAL
                 # the gateway's heartbeat is about to stop: the drive no longer watches it
                 self._entry(0x1016, 1).raw = 0
             except Exception as exc:

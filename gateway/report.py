@@ -9,7 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -18,25 +18,27 @@ import numpy as np
 #: Metric windows of the paper scenario, s: start-up and first load, load steps, field weakening.
 DEFAULT_WINDOWS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.5), (1.5, math.inf))
 
-#: Columns every record has (more may follow).
-BASE_COLUMNS: tuple[str, ...] = (
-    "t", "w_ref", "psi_ref", "T_L",
-    "w_m", "psi_r_mod", "w_hat", "psi_r_mod_hat",
-    "i_sa", "i_sb", "u_sa", "u_sb",
-    "i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref", "eps_0", "w_0",
-)
-
-
 class Record:
-    """Per-cycle signals, appended row by row, read back as numpy columns."""
+    """Per-cycle signals, appended row by row, read back as numpy columns.
 
-    def __init__(self, columns: Sequence[str] = BASE_COLUMNS) -> None:
-        self.columns: tuple[str, ...] = tuple(columns)
+    ``row_type`` is a :class:`typing.NamedTuple` class (e.g. :class:`gateway.cycle.CycleRow`):
+    its fields are the columns, and :meth:`append` takes only rows of that type.
+    """
+
+    def __init__(self, row_type: type[tuple]) -> None:
+        fields = getattr(row_type, "_fields", None)
+        if not fields:
+            raise TypeError(f"{row_type!r} is not a NamedTuple class")
+        self.row_type = row_type
+        self.columns: tuple[str, ...] = tuple(fields)
         self._rows: list[tuple[float, ...]] = []
 
-    def append(self, row: Sequence[float]) -> None:
-        """Add one row, in :attr:`columns` order."""
-        self._rows.append(tuple(row))
+    def append(self, row: tuple) -> None:
+        """Add one row; a row of another type (other columns) raises TypeError."""
+        if type(row) is not self.row_type:
+            raise TypeError(f"a {type(row).__name__} row in a record of "
+                            f"{self.row_type.__name__} rows")
+        self._rows.append(row)
 
     def __len__(self) -> int:
         return len(self._rows)

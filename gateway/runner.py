@@ -24,56 +24,74 @@ import can
 import numpy as np
 
 from dbc import load_codec
+from dbc.cia301 import SYNC_OVERFLOW
+from dbc.modes import DriveMode
+from dbc.motor import MotorParams
+from dbc.timing import Sampling, internal_rate
 from gateway import report
-from gateway.buslog import write_frame
-from gateway.control.controller import Controller, ControllerConfig
+from gateway.buslog import LOG_SUFFIXES, write_frame
+from gateway.control.controller import (
+    Controller,
+    ControllerConfig,
+    EstimatorKind,
+    FluxSource,
+    Law,
+    as_enum,
+)
 from gateway.control.laws import Gains
 from gateway.control.profiles import Profile
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
-from gateway.loop import SYNC_OVERFLOW, CycleLoop, LoopConfig, PdoNames
+from gateway.loop import CycleLoop, LoopConfig, PdoNames, Timing
 from gateway.master import DriveMaster
-from gateway.simulate import DRIVES, drive_params_for_period
-from plant.params import DriveParams, MotorParams
+from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
-
-LOG_SUFFIXES = (".blf", ".asc", ".csv", ".log", ".trc")
-
 
 @dataclass(frozen=True)
 class RunConfig:
     """One gateway run.
 
-    drive_mode: what the drive is asked to be: "ideal" or "current-loop" (CiA 402 current
-        vector mode; on the emulator also its model of the current loop) or "voltage"
-        (voltage vector mode). delay: 1 = synchronous RPDOs (CiA 301 default), 0 = the
-        emulator applies RPDOs on receipt. bus_log: file name of the raw bus log in the run
-        directory; its suffix picks the python-can writer.
+    drive_mode: what the drive is asked to be (:class:`DriveMode`): IDEAL or CURRENT_LOOP
+        (CiA 402 current vector mode; on the emulator also its model of the current loop)
+        or VOLTAGE (voltage vector mode). sampling: period, delay (1 = synchronous RPDOs,
+        CiA 301 default; 0 = the emulator applies RPDOs on receipt) and the setpoint frame
+        (the drive profile's). bus_log: file name of the raw bus log in the run directory;
+        its suffix picks the python-can writer. Strings are accepted for the enums.
     """
 
-    law: str = "current-fed"
-    flux: str = "estimated"
-    estimator: str = "open-loop"
-    drive_mode: str = "ideal"
-    period: float = 1e-3
-    timing: str = "lockstep"
-    delay: int = 1
+    law: Law = Law.CURRENT_FED
+    flux: FluxSource = FluxSource.ESTIMATED
+    estimator: EstimatorKind = EstimatorKind.OPEN_LOOP
+    drive_mode: DriveMode = DriveMode.IDEAL
+    sampling: Sampling = field(default_factory=Sampling)
+    timing: Timing = Timing.LOCKSTEP
     gains: Gains = field(default_factory=Gains)
     bus_log: str = "bus.blf"
     max_missed: int = 5
     duration: float | None = None
 
     def __post_init__(self) -> None:
-        if self.drive_mode not in DRIVES:
-            raise UserError(f"unknown drive mode {self.drive_mode!r}: use {', '.join(DRIVES)}")
+        try:
+            for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),
+                                     ("estimator", EstimatorKind, "estimator"),
+                                     ("drive_mode", DriveMode, "drive mode"),
+                                     ("timing", Timing, "timing")):
+                object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
         if Path(self.bus_log).suffix.lower() not in LOG_SUFFIXES:
             raise UserError(f"bus log {self.bus_log!r}: the file name must end in one of "
                             f"{', '.join(LOG_SUFFIXES)} (it selects python-can's writer)")
 
+    @property
+    def period(self) -> float:
+        """The cycle period T, s (from :attr:`sampling`)."""
+        return self.sampling.period
+
     def controller_config(self) -> ControllerConfig:
-        return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,  # type: ignore[arg-type]
-                                period=self.period, delay=self.delay, gains=self.gains)
+        return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,
+                                sampling=self.sampling, gains=self.gains)
 
 
 class BusRecorder(can.Listener):
@@ -159,6 +177,15 @@ class StopSignals:
                 signal.signal(sig, old)
 
 
+def _eds_default(master: DriveMaster, name: str) -> float:
+    """The default value the drive's EDS gives an object (the emulator's own objects)."""
+    var = master.find_object(name)
+    if var is None or var.default is None:
+        raise UserError(f"the drive's EDS ({master.profile.eds}) has no default for {name!r}, "
+                        "which the emulator's drive profile needs")
+    return float(var.default)
+
+
 def pdo_layout(
     master: DriveMaster, codec: Any, names: list[str]
 ) -> dict[str, list[tuple[int, int, int]]]:
@@ -205,13 +232,15 @@ def run_gateway(
     """Run the loop against the drive on ``bus``; returns the summary (also written to out/)."""
     node_id = node or drive.node
     codec = load_codec(node_id)
-    frame = drive.setpoint_frame
+    if cfg.sampling.setpoint_frame != drive.setpoint_frame:
+        raise UserError(f"the run's setpoint frame {cfg.sampling.setpoint_frame} is not the "
+                        f"drive profile's ({drive.setpoint_frame}, {drive.source})")
     names = PdoNames(currents=drive.currents, voltages=drive.voltages, truth=drive.truth,
                      control=drive.control, setpoints=drive.setpoints, load=drive.load)
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / cfg.period)
-    loop_cfg = LoopConfig(period=cfg.period, n_cycles=n_cycles, timing=cfg.timing,  # type: ignore[arg-type]
-                          delay=cfg.delay, setpoint_frame=frame, max_missed=cfg.max_missed)
+    loop_cfg = LoopConfig(n_cycles=n_cycles, sampling=cfg.sampling, timing=cfg.timing,
+                          max_missed=cfg.max_missed)
     signals = signals or StopSignals()
     recorder = BusRecorder(out / cfg.bus_log)
     master = DriveMaster(bus, drive, node_id)
@@ -223,14 +252,14 @@ def run_gateway(
         master.connect(listeners=[recorder])
         pdos = [names.control, names.setpoints, names.currents, names.voltages]
         pdos += [n for n in (names.load, names.truth) if n]
-        mode = drive.mode_voltage if cfg.drive_mode == "voltage" else drive.mode_current
+        mode = (drive.mode_voltage if cfg.drive_mode is DriveMode.VOLTAGE
+                else drive.mode_current)
         emulator: dict[str, int | float] = {}
         if drive.emulator:
-            f_pwm = drive_params_for_period(DriveParams(), cfg.period, cfg.drive_mode).f_pwm
-            emulator = {"Emulator model": 0 if cfg.drive_mode == "ideal" else 1,
-                        "RPDO apply": 0 if cfg.delay == 1 else 1,
-                        "f_pwm": round(f_pwm)}
-        elif cfg.delay != 1:
+            emulator = {"Emulator model": cfg.drive_mode.emulator_model,
+                        "RPDO apply": int(cfg.sampling.apply),
+                        "f_pwm": round(internal_rate(_eds_default(master, "f_pwm"), cfg.period))}
+        elif cfg.sampling.delay != 1:
             raise UserError("--delay 0 (RPDOs applied on receipt) is an emulator option; a "
                             "CiA 402 drive applies synchronous RPDOs at the next SYNC (--delay 1)")
         layout = pdo_layout(master, codec, pdos) if drive.remap else {}
@@ -247,7 +276,7 @@ def run_gateway(
         stats = loop.run(progress)
     except KeyboardInterrupt:
         error = None
-        signals.reason = signals.reason or "interrupted"
+        signals.reason = signals.reason or "interrupted during start-up"
     except BaseException as exc:
         error = exc
     finally:
@@ -270,9 +299,12 @@ def _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id,
         if drive.truth:  # tracking errors need the emulator's truth (TPDO3)
             summary.update(report.metrics(sig))
             report.plot_figures(sig, out, f"(over CAN, {cfg.timing})")
-        summary["timing"] = timing_stats(sig, cfg.period, cfg.timing == "realtime")
+        summary["timing"] = timing_stats(sig, cfg.period, cfg.timing is Timing.REALTIME)
+    stop = stats.stop if stats and stats.stop else StopReason.INTERRUPTED
     stop_reason = (stats.stop_reason if stats else "") or interrupt_reason or "start-up stopped"
     summary["run"] = {
+        "stop": stop.name,
+        "exit_status": stop.exit_status,
         "cycles": stats.cycles if stats else 0,
         "missed_cycles": stats.missed if stats else 0,
         "late_rpdo": stats.late_rpdo if stats else 0,
@@ -285,7 +317,9 @@ def _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id,
                          for f in master.state.faults]
     summary["configuration"] = {
         "command": "run", "bus": bus_label, "node": node_id, "drive_profile": drive.source,
-        "profile": profile.source, **{k: v for k, v in asdict(cfg).items() if k != "gains"},
+        "profile": profile.source,
+        **{k: v for k, v in asdict(cfg).items() if k not in ("gains", "sampling")},
+        "period": cfg.period, "delay": cfg.sampling.delay,
         "gains": asdict(cfg.gains), "setpoint_frame": drive.setpoint_frame,
     }
     report.write_summary(out / "summary.json", summary)

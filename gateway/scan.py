@@ -26,14 +26,13 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from gateway.bus import add_bus_options, bus_config, open_bus
+from dbc.bus import add_bus_options, bus_config, open_bus
+from dbc.cia301 import HEARTBEAT_BASE, NmtState
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.errors import UserError
 
 log = logging.getLogger(__name__)
 
-#: Heartbeat state byte → NMT state (CiA 301); 0 is the boot-up message.
-NMT_STATES = {0x00: "BOOT-UP", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
 #: The identity object's sub-indices.
 IDENTITY = {1: "vendor_id", 2: "product_code", 3: "revision", 4: "serial"}
 #: What reveals a node: function code (COB-ID & 0x780) → source.
@@ -47,7 +46,7 @@ class NodeInfo:
 
     node_id: int
     #: From the last heartbeat ('PRE-OPERATIONAL' after a boot-up); None without heartbeat.
-    nmt_state: str | None = None
+    nmt_state: NmtState | str | None = None
     #: How the node showed itself: 'heartbeat', 'boot-up', 'SDO', 'PDO', 'EMCY'.
     seen: set[str] = field(default_factory=set)
     device_type: int | None = None
@@ -85,13 +84,14 @@ class _Watcher(can.Listener):
         if node == 0 or source is None:
             return
         with self.lock:
-            if func == 0x700:
+            if func == HEARTBEAT_BASE:
                 if msg.dlc < 1:
                     return
                 code = msg.data[0] & 0x7F
-                if code == 0:
+                if code == NmtState.INITIALISING.heartbeat:
                     source = "boot-up"
-                    code = 0x7F  # after the boot-up a node is PRE-OPERATIONAL (CiA 301)
+                    # after the boot-up a node is PRE-OPERATIONAL (CiA 301)
+                    code = NmtState.PRE_OPERATIONAL.heartbeat
                 self.state[node] = code
             self.seen.setdefault(node, set()).add(source)
 
@@ -210,7 +210,8 @@ def scan(bus: can.BusABC, timeout: float = 1.0, profile: DriveProfile | None = N
                 info.seen = set(watcher.seen.get(node_id, ()))
             if node_id in network.scanner.nodes and not info.seen:
                 info.seen.add("SDO")
-            info.nmt_state = None if code is None else NMT_STATES.get(code, f"0x{code:02X}")
+            info.nmt_state = None if code is None else (NmtState.from_heartbeat(code)
+                                                        or f"0x{code:02X}")
             if expected is not None:
                 _match(info, expected)
             infos.append(info)

@@ -21,58 +21,51 @@ from typing import Any
 
 import numpy as np
 
+from dbc.cia301 import sync_counter
+from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, State
+from dbc.modes import DriveMode
+from dbc.motor import MotorParams
+from dbc.signals import SETPOINT_MESSAGE
+from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
-    ESTIMATORS,
-    FLUX_SOURCES,
-    LAWS,
     Controller,
     ControllerConfig,
+    EstimatorKind,
+    FluxSource,
+    Law,
+    as_enum,
 )
 from gateway.control.laws import Gains, current_fed, full_order
 from gateway.control.profiles import Profile
-from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos, sync_counter
+from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.errors import UserError
-from gateway.report import BASE_COLUMNS, Record
-from plant.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, State
+from gateway.report import Record
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 from plant.rpdo import setpoints_from_rpdos, tpdo_signals
-
-DRIVES: tuple[str, ...] = ("ideal", "current-loop", "voltage")
-#: The drive each law is meant for when none is given.
-DEFAULT_DRIVE = {"current-fed": "ideal", "full-order": "voltage"}
-#: Which drives make sense with which law.
-COMPATIBLE = {
-    "current-fed": ("ideal", "current-loop"),
-    "full-order": ("voltage", "current-loop"),
-}
-
-COLUMNS: tuple[str, ...] = (
-    *BASE_COLUMNS, "psi_rd_hat", "psi_rq_hat", "T_e", "i_limited", "u_limit_active",
-)
+from plant.timing import sync_cycle
 
 
 @dataclass(frozen=True)
 class SimConfig:
     """One simulation's configuration.
 
-    period: sampling period T in s, or None for continuous time.
-    delay: 0 or 1 periods between a sample and the interval its setpoints act on.
-    setpoint_frame: "dq" (the drive turns the frame) or "ab" (held in the fixed frame).
+    law, flux, estimator: the controller's (:class:`Law`, :class:`FluxSource`,
+        :class:`EstimatorKind`); drive_mode: the emulated drive's :class:`DriveMode`.
+    sampling: period, delay and setpoint frame (:class:`dbc.timing.Sampling`), or None
+        for continuous time.
     quantize: pass the PDO signals through the INT16 codec of dbc/drive.dbc.
     record_step: sampling of the continuous-time record, s.
     initial: the motor's state at t = 0 (the paper: all zero).
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
     """
 
-    law: str = "current-fed"
-    flux: str = "estimated"
-    estimator: str = "open-loop"
-    drive: str = "ideal"
-    period: float | None = 1e-3
-    delay: int = 1
-    setpoint_frame: str = "dq"
+    law: Law = Law.CURRENT_FED
+    flux: FluxSource = FluxSource.ESTIMATED
+    estimator: EstimatorKind = EstimatorKind.OPEN_LOOP
+    drive_mode: DriveMode = DriveMode.IDEAL
+    sampling: Sampling | None = field(default_factory=Sampling)
     quantize: bool = True
     gains: Gains = field(default_factory=Gains)
     drive_params: DriveParams = field(default_factory=DriveParams)
@@ -84,36 +77,44 @@ class SimConfig:
     eps_0: float = 0.0
 
     def __post_init__(self) -> None:
-        checks = (("law", LAWS), ("flux", FLUX_SOURCES), ("estimator", ESTIMATORS),
-                  ("drive", DRIVES), ("setpoint_frame", SETPOINT_FRAMES))
-        for name, allowed in checks:
-            if getattr(self, name) not in allowed:
-                raise UserError(f"unknown {name.replace('_', ' ')} {getattr(self, name)!r}: "
-                                f"use one of {', '.join(allowed)}")
-        if self.drive not in COMPATIBLE[self.law]:
+        try:
+            for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),
+                                     ("estimator", EstimatorKind, "estimator"),
+                                     ("drive_mode", DriveMode, "drive mode")):
+                object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        if self.drive_mode not in self.law.drive_modes:
             raise UserError(
-                f"the {self.law} law does not drive a {self.drive!r} drive: use --drive "
-                f"{' or '.join(COMPATIBLE[self.law])} (the current-fed law sends currents, "
-                "the full-order law voltages)"
+                f"the {self.law} law does not drive a '{self.drive_mode}' drive: use "
+                f"--drive-mode {' or '.join(self.law.drive_modes)} (the current-fed law sends "
+                "currents, the full-order law voltages)"
             )
-        if self.period is None and self.drive == "current-loop":
+        if self.drive_params.mode is not self.drive_mode:
+            object.__setattr__(self, "drive_params", replace(self.drive_params,
+                                                             mode=self.drive_mode))
+        if self.sampling is None and self.drive_mode is DriveMode.CURRENT_LOOP:
             raise UserError("continuous time models the drive as ideal (current-fed law) or "
-                            "voltage-fed (full-order law): choose --drive ideal or voltage, or "
-                            "a sampling --period such as 1ms for the current-loop drive")
-        if self.delay not in (0, 1):
-            raise UserError(f"delay {self.delay!r}: use 0 or 1 periods")
+                            "voltage-fed (full-order law): choose --drive-mode ideal or "
+                            "voltage, or a sampling --period such as 1ms for the current-loop "
+                            "drive")
 
     def controller_config(self) -> ControllerConfig:
-        """The controller's part of this configuration."""
+        """The controller's part of this configuration (continuous time: the record step
+        stands in for the period, unused)."""
         return ControllerConfig(
-            law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,  # type: ignore[arg-type]
-            period=self.period or self.record_step, delay=self.delay, gains=self.gains,
+            law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,
+            sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
         )
 
     def describe(self) -> dict[str, Any]:
         """A JSON-able description (for summary.json)."""
         d = asdict(self)
-        d["period"] = "continuous" if self.period is None else self.period
+        del d["sampling"]
+        s = self.sampling
+        d["period"] = "continuous" if s is None else s.period
+        if s is not None:
+            d["delay"], d["setpoint_frame"] = s.delay, s.setpoint_frame
         d["initial"] = {k: (str(v) if isinstance(v, complex) else v)
                         for k, v in asdict(self.initial).items()}
         d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
@@ -131,7 +132,7 @@ def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
     ``stop`` (sampled runs): when set, the run ends after the current cycle and the record
     holds what was simulated so far.
     """
-    if cfg.period is None:
+    if cfg.sampling is None:
         return run_continuous(profile, motor, cfg, progress)
     return run_sampled(profile, motor, cfg, progress, stop)
 
@@ -159,12 +160,10 @@ class PdoLink:
         return q("TPDO1", values), q("TPDO2", values), q("TPDO3", values)
 
 
-def drive_params_for_period(params: DriveParams, T: float, mode: str) -> DriveParams:
-    """The drive's parameters with its internal rate raised, if needed, to a whole number
-    of steps per period (250 µs at 10 kHz: 3 steps, 12 kHz)."""
-    n = max(1, math.ceil(T * params.f_pwm - 1e-9))
-    f_pwm = params.f_pwm if abs(n - T * params.f_pwm) < 1e-9 else n / T
-    return replace(params, mode=mode, f_pwm=f_pwm)
+def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> DriveParams:
+    """The drive's parameters in ``mode`` with its internal rate raised, if needed, to a
+    whole number of steps per period (:func:`dbc.timing.internal_rate`)."""
+    return replace(params, mode=mode, f_pwm=internal_rate(params.f_pwm, T))
 
 
 def _identity(name: str, values: dict) -> dict:
@@ -174,58 +173,51 @@ def _identity(name: str, values: dict) -> dict:
 def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
                 progress: Progress | None = None, stop: threading.Event | None = None
                 ) -> Record:
-    """The sampled loop, cycle by cycle exactly as on the bus (docs/ARCHITECTURE.md)."""
-    T = cfg.period
-    assert T is not None
+    """The sampled loop, cycle by cycle exactly as on the bus (docs/ARCHITECTURE.md): the
+    drive's timing rule (:func:`plant.timing.sync_cycle`) and the gateway's cycle
+    (:class:`gateway.cycle.ControlCycle`), with the PDO codec between them."""
+    sampling = cfg.sampling
+    assert sampling is not None
+    T = sampling.period
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / T)
-    drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive), cfg.initial)
+    drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive_mode),
+                  cfg.initial)
     drive.enable(True)
     ctl = Controller(motor, cfg.controller_config(), eps_0=cfg.eps_0, w_hat=cfg.w_hat_0)
+    cycle = ControlCycle(ctl, profile, sampling)
     link = PdoLink(cfg.quantize)
-    rec = Record(COLUMNS)
-    delay = cfg.delay
-    pending: dict[str, dict] | None = None
-    T_L_active = 0.0
+    rec = Record(CycleRow)
+    apply = sampling.apply
+    setpoint_message = SETPOINT_MESSAGE[sampling.setpoint_frame]
+    pending: dict[str, dict] = {}
+    T_L_active = [0.0]
     step_progress = max(1, n_cycles // 100)
 
-    def latch(msgs: dict[str, dict]) -> float:
-        drive.set_setpoints(setpoints_from_rpdos(msgs["RPDO1"], _rpdo2(msgs)))
-        return msgs["RPDO3"]["T_L"]
+    def latch() -> None:
+        if pending:
+            drive.set_setpoints(setpoints_from_rpdos(pending["RPDO1"],
+                                                     pending[setpoint_message]))
+            T_L_active[0] = pending["RPDO3"]["T_L"]
+            pending.clear()
+
+    def advance() -> Measurement:
+        return drive.advance(T, T_L_active[0])
 
     for k in range(1, n_cycles + 1):
-        if delay == 0 and pending is not None:
-            T_L_active = latch(pending)
-        meas = drive.advance(T, T_L_active)
-        if delay == 1 and pending is not None:
-            T_L_active = latch(pending)
-        t = k * T
+        meas = sync_cycle(advance, latch, apply)
         tpdo1, tpdo2, tpdo3 = link.tpdos(meas, sync_counter(k))
-        sample = sample_from_tpdos(tpdo1, tpdo2, tpdo3)
-        refs = profile.at(t)
-        cmd = ctl.step(refs, sample)
-        T_L_cmd = profile.at(t + delay * T).T_L if delay else refs.T_L
-        pending = {name: link.quantize(name, values) for name, values in
-                   rpdos_from_command(cmd, T_L_cmd, cfg.setpoint_frame).items()}  # type: ignore[arg-type]
-        psi_hat = cmd.psi_r_dq
-        rec.append((
-            t, refs.w_ref, refs.psi_ref, refs.T_L,
-            meas.w_m, abs(meas.psi_r_ab), cmd.w_hat, abs(psi_hat),
-            sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real, sample.u_s_ab.imag,
-            cmd.i_s_dq_ref.real, cmd.i_s_dq_ref.imag, cmd.u_s_dq_ref.real, cmd.u_s_dq_ref.imag,
-            cmd.eps_0, cmd.w_0,
-            psi_hat.real, psi_hat.imag, meas.T_e, float(cmd.i_limited), float(meas.limit_active),
-        ))
+        out = cycle.step(k, tpdo1, tpdo2, tpdo3,
+                         truth=Truth(meas.w_m, meas.psi_r_ab, meas.T_e))
+        pending.update({name: link.quantize(name, values)
+                        for name, values in out.rpdos.items()})
+        rec.append(out.row)
         if k % step_progress == 0:
             if progress is not None:
                 progress(k / n_cycles)
             if stop is not None and stop.is_set():
                 break
     return rec
-
-
-def _rpdo2(msgs: dict[str, dict]) -> dict:
-    return msgs["RPDO2"] if "RPDO2" in msgs else msgs["RPDO2_AB"]
 
 
 # ------------------------------------------------------------------------ continuous
@@ -253,8 +245,8 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     t_eval = np.arange(n + 1) * h
     m, g = motor, cfg.gains
     k_r = m.M / m.L_r
-    full = cfg.law == "full-order"
-    estimated = full and cfg.flux == "estimated"
+    full = cfg.law is Law.FULL_ORDER
+    estimated = full and cfg.flux is FluxSource.ESTIMATED
     last = [0.0]
 
     def psi_r_used(x: np.ndarray) -> complex:
@@ -302,7 +294,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
                     rtol=1e-9, atol=1e-10, max_step=h)
     if not sol.success:
         raise RuntimeError(f"continuous simulation failed: {sol.message}")
-    rec = Record(COLUMNS)
+    rec = Record(CycleRow)
     psi_s_prev = i_prev = None
     for j, t in enumerate(sol.t):
         x = sol.y[:, j]
@@ -319,7 +311,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         psi_s_prev, i_prev = psi_s, i
         psi_hat = psi_r_used(x) * cmath.exp(-1j * eps)
         T_e = m.J * m.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
-        rec.append((
+        rec.append(CycleRow(
             t, r.w_ref, r.psi_ref, r.T_L, x[0], abs(psi_r), x[6 if full else 4], abs(psi_hat),
             i.real, i.imag, u.real, u.imag, out.i_sd_ref, out.i_sq_ref, out.u_sd_ref,
             out.u_sq_ref, math.remainder(eps, 2 * math.pi), out.w_0,

@@ -79,3 +79,8 @@ class InProcessBus(can.BusABC):
             self._open = False
             self._medium._detach(self)
         super().shutdown()
+
+
+#: The transports `hil-gateway sim` offers between the gateway and the emulated drive:
+#: this module's in-process channel, or python-can's virtual interface.
+TRANSPORTS: tuple[str, ...] = ("inprocess", "virtual")

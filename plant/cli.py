@@ -17,102 +17,56 @@ import sys
 import threading
 from typing import Any
 
+from dbc.bus import add_bus_options, bus_config, open_bus
+from dbc.errors import UserError
+from dbc.modes import DriveMode
+
 EXIT_OK, EXIT_USAGE, EXIT_FAILURE = 0, 2, 1
 
 
-class UsageError(Exception):
-    """Bad input: the message says what failed and how to fix it."""
+def _debug_option(p: argparse.ArgumentParser, default: Any) -> None:
+    p.add_argument("--debug", action="store_true", default=default,
+                   help="show tracebacks on errors")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``hil-plant``."""
+    """The argument parser of ``hil-plant``; ``--debug`` goes before or after the command."""
     p = argparse.ArgumentParser(
         prog="hil-plant",
         description="The emulated induction-motor drive as a CANopen CiA 402 device.")
+    _debug_option(p, False)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     run = sub.add_parser("run", help="run the emulated drive until SIGINT/SIGTERM",
                          description="Run the emulated drive on a CAN bus until SIGINT/SIGTERM.")
-    run.add_argument("-i", "--interface",
-                     help="python-can interface (socketcan, virtual, pcan, ...); default: "
-                          "python-can config file or CAN_INTERFACE")
-    run.add_argument("-c", "--channel",
-                     help="channel (vcan0, can0, PCAN_USBBUS1, ...); default: config or "
-                          "CAN_CHANNEL")
-    run.add_argument("-b", "--bitrate", type=int,
-                     help="bit rate in bit/s (ignored by socketcan/virtual); default: config "
-                          "or CAN_BITRATE")
+    add_bus_options(run)
     run.add_argument("--node", type=int, default=1, help="CANopen node id 1..127 (default 1)")
     run.add_argument("--motor", metavar="FILE",
                      help="motor parameters (TOML: J, R_s, R_r, L_s, L_r, M in SI units); "
                           "default: the paper's 0.6 kW motor")
-    run.add_argument("--drive-mode", choices=("ideal", "current-loop", "voltage"),
-                     default="current-loop",
+    run.add_argument("--drive-mode", type=DriveMode, choices=list(DriveMode),
+                     default=DriveMode.CURRENT_LOOP,
                      help="default drive model (0x6060/0x2202; the master may change it by "
                           "SDO); default current-loop")
     run.add_argument("--log-level", default="WARNING",
                      choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                      help="logging level on stderr (default WARNING)")
-    run.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    _debug_option(run, argparse.SUPPRESS)
     return p
-
-
-def bus_config(args: argparse.Namespace) -> dict[str, Any]:
-    """The python-can configuration: the options given, the rest from config file/env."""
-    import can
-
-    given: dict[str, Any] = {}
-    if args.interface:
-        given["interface"] = args.interface
-    if args.channel:
-        given["channel"] = args.channel
-    if args.bitrate is not None:
-        if args.bitrate <= 0:
-            raise UsageError(f"bit rate {args.bitrate} is not positive: give it in bit/s, "
-                             "e.g. -b 500000")
-        given["bitrate"] = args.bitrate
-    try:
-        cfg = can.util.load_config(config=given)
-    except can.CanInterfaceNotImplementedError as exc:
-        if "interface" not in given and "None" in str(exc):
-            raise UsageError(
-                "no CAN interface given and none configured: pass -i/--interface and "
-                "-c/--channel (e.g. -i socketcan -c vcan0, or -i virtual -c test), or set "
-                "CAN_INTERFACE and CAN_CHANNEL, or write a python-can config file "
-                "(~/.canrc)") from None
-        raise UsageError(
-            f"unknown CAN interface {given.get('interface')!r} ({exc}): use one python-can "
-            f"knows, e.g. socketcan, virtual, pcan, kvaser, slcan") from None
-    if cfg.get("channel") is None:
-        raise UsageError(
-            f"no channel for interface {cfg['interface']!r}: pass -c/--channel (e.g. -c vcan0) "
-            f"or set CAN_CHANNEL")
-    return cfg
-
-
-def _open_bus(cfg: dict[str, Any]) -> Any:
-    import can
-
-    try:
-        return can.Bus(**cfg)
-    except (can.CanError, OSError, ValueError, ImportError) as exc:
-        raise UsageError(
-            f"cannot open CAN bus {cfg['interface']}:{cfg['channel']} ({exc}): check that the "
-            f"interface exists and is up (e.g. `ip link set vcan0 up`), that its driver is "
-            f"installed, and the channel name") from None
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """``hil-plant run``."""
     if not 1 <= args.node <= 127:
-        raise UsageError(f"node id {args.node} is outside 1..127: pass --node 1..127")
-    from plant.params import DriveParams, MotorParams, ParamsError
+        raise UserError(f"node id {args.node} is outside 1..127: pass --node 1..127")
+    from dbc.motor import MotorParams, ParamsError
+    from plant.params import DriveParams
 
     try:
         motor = MotorParams.from_toml(args.motor) if args.motor else MotorParams()
     except ParamsError as exc:
-        raise UsageError(f"bad --motor file: {exc}") from None
+        raise UserError(f"bad --motor file: {exc}") from None
     cfg = bus_config(args)
-    bus = _open_bus(cfg)
+    bus = open_bus(cfg, receive_own_messages=False)
     from plant.device import DriveDevice
 
     stop = threading.Event()
@@ -122,8 +76,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         device.start()
-        print(f"hil-plant: node {args.node} ready on {cfg['interface']}:{cfg['channel']} "
-              f"(PRE-OPERATIONAL)", flush=True)
+        print(f"hil-plant: node {args.node} ready on {cfg.label()} (PRE-OPERATIONAL)", flush=True)
         while not stop.wait(0.2):
             pass
     finally:
@@ -147,11 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "run":
             return cmd_run(args)
-    except UsageError as exc:
+    except UserError as exc:
         if args.debug:
             raise
         print(f"hil-plant: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+        return exc.exit_code
     except KeyboardInterrupt:
         return EXIT_OK
     parser.error(f"unknown command {args.command!r}")

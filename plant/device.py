@@ -44,28 +44,23 @@ import can
 from canopen import LocalNode
 
 from dbc import MessageCodec, message_codec, scaling
+from dbc.cia301 import HEARTBEAT_BASE, NMT_ID, SDO_RX_BASE, Emcy, NmtCommand, NmtState
+from dbc.modes import DriveMode, RpdoApply
+from dbc.motor import MotorParams
+from dbc.signals import FRAME, LOAD, SETPOINTS, TX, setpoint_frame_of
 from plant import od as odm
 from plant.cia402 import PowerStateMachine, State
 from plant.drive import Drive, Measurement, Setpoints
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 from plant.rpdo import setpoints_from_rpdos, tpdo_signals
+from plant.timing import sync_cycle
 
 log = logging.getLogger(__name__)
 
-EMCY_NO_ERROR = 0x0000
-EMCY_OVERCURRENT = 0x2310
-EMCY_HEARTBEAT = 0x8130
-EMCY_PDO_LENGTH = 0x8210
-EMCY_RPDO_TIMEOUT = 0x8250
-#: Error register 0x1001 bits per EMCY code class: generic | current or communication.
-_ERROR_REGISTER = {0x2: 0x03, 0x8: 0x11}
-
 FAULT_LOG = 100  #: faults kept in the account
-NMT_HEARTBEAT = {"PRE-OPERATIONAL": 0x7F, "OPERATIONAL": 0x05, "STOPPED": 0x04}
-DQ_NAMES = ("i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref")
-AB_NAMES = ("i_sa_ref", "i_sb_ref", "u_sa_ref", "u_sb_ref")
-TX_NAMES = ("statusword", "i_sa", "i_sb", "sync_counter", "u_sa", "u_sb", "u_dc", "w_m",
-            "psi_ra", "psi_rb", "T_e")
+#: NMT states in which the heartbeat producer runs.
+HEARTBEAT_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL, NmtState.STOPPED)
+SETPOINT_SIGNALS = frozenset({*FRAME, *(n for names in SETPOINTS.values() for n in names)})
 
 
 class _SdoNode(LocalNode):
@@ -141,10 +136,10 @@ class DriveDevice:
         self._stop_event = threading.Event()
         self._wake = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._nmt = "INITIALISING"
+        self._nmt = NmtState.INITIALISING
         self._sm = PowerStateMachine()
-        self._tx_codec = message_codec("TX", 0, TX_NAMES)
-        self._tx_keys = tuple(self._store.by_name[n] for n in TX_NAMES)
+        self._tx_codec = message_codec("TX", 0, TX)
+        self._tx_keys = tuple(self._store.by_name[n] for n in TX)
         self._factor = {n: scaling(n)[0] for n in self._store.by_name}
         self._k = {n: self._store.by_name[n] for n in self._store.by_name}
         # account (cumulative since construction)
@@ -180,7 +175,7 @@ class DriveDevice:
         self._threads.clear()
         with self._lock:
             self._drive.enable(False)
-            self._nmt = "STOPPED"
+            self._nmt = NmtState.STOPPED
             self._runtime_clear()
 
     def __enter__(self) -> DriveDevice:
@@ -231,9 +226,9 @@ class DriveDevice:
             (odm.DRIVE, 5): float(complex(p.i_offset_ab).imag),
             (odm.DRIVE, 6): float(p.i_gain_error), (odm.DRIVE, 7): float(p.i_noise_rms),
             (odm.DRIVE, 8): round(p.f_pwm), (odm.SEED, 0): p.seed & 0xFFFFFFFF,
-            (0x6060, 0): -2 if p.mode == "voltage" else -1,
-            (0x6061, 0): -2 if p.mode == "voltage" else -1,
-            (odm.MODEL, 0): 0 if p.mode == "ideal" else 1,
+            (0x6060, 0): p.mode.mode_of_operation,
+            (0x6061, 0): p.mode.mode_of_operation,
+            (odm.MODEL, 0): p.mode.emulator_model,
             (0x6079, 0): min(round(p.u_dc * 1000), 0xFFFFFFFF),
         })
         return o
@@ -242,8 +237,9 @@ class DriveDevice:
         v = self._values
         motor = MotorParams.from_mapping(
             {n: v[(odm.MOTOR, k)] for k, n in enumerate(odm.MOTOR_SUBS, 1)}, "0x2200")
-        mode = "voltage" if v[(0x6060, 0)] == -2 else (
-            "ideal" if v[(odm.MODEL, 0)] == 0 else "current-loop")
+        mode = DriveMode.VOLTAGE if v[(0x6060, 0)] == DriveMode.VOLTAGE.mode_of_operation else (
+            DriveMode.IDEAL if v[(odm.MODEL, 0)] == DriveMode.IDEAL.emulator_model
+            else DriveMode.CURRENT_LOOP)
         f_pwm = v[(odm.DRIVE, 8)]
         params = replace(
             self._params0, mode=mode, u_dc=v[(odm.DRIVE, 1)], i_trip=v[(odm.DRIVE, 2)],
@@ -284,8 +280,9 @@ class DriveDevice:
 
     def _boot(self) -> None:
         """Boot-up message, then PRE-OPERATIONAL (CiA 301)."""
-        self._send.send_message(0x700 + self.node_id, b"\x00")
-        self._nmt = "PRE-OPERATIONAL"
+        self._send.send_message(HEARTBEAT_BASE + self.node_id,
+                                bytes([NmtState.INITIALISING.heartbeat]))
+        self._nmt = NmtState.PRE_OPERATIONAL
         self._hb_next = time.monotonic() + self._hb_period
         self._wake.set()
 
@@ -294,7 +291,7 @@ class DriveDevice:
         self._hb_next = time.monotonic() + self._hb_period
         entry = self._values[(0x1016, 1)]
         node, ms = (entry >> 16) & 0xFF, entry & 0xFFFF
-        self._hb_consumer = (0x700 + node, ms / 1000.0) if node and ms else None
+        self._hb_consumer = (HEARTBEAT_BASE + node, ms / 1000.0) if node and ms else None
         self._hb_deadline = None  # armed by the next heartbeat received
         self._wake.set()
 
@@ -303,22 +300,22 @@ class DriveDevice:
         if len(data) != 2 or data[1] not in (0, self.node_id):
             return
         cmd = data[0]
-        if cmd == 0x01:
-            if self._nmt != "OPERATIONAL":
+        if cmd == NmtCommand.START:
+            if self._nmt is not NmtState.OPERATIONAL:
                 self._enter_operational()
-        elif cmd == 0x02:
-            self._nmt = "STOPPED"
+        elif cmd == NmtCommand.STOP:
+            self._nmt = NmtState.STOPPED
             self._runtime_clear()
-        elif cmd == 0x80:
-            self._nmt = "PRE-OPERATIONAL"
+        elif cmd == NmtCommand.ENTER_PRE_OPERATIONAL:
+            self._nmt = NmtState.PRE_OPERATIONAL
             self._runtime_clear()
-        elif cmd == 0x81:
+        elif cmd == NmtCommand.RESET_NODE:
             log.info("node %d: reset node", self.node_id)
             self._reset_application()
             self._reset_communication_state()
             self._sm.boot()
             self._boot()
-        elif cmd == 0x82:
+        elif cmd == NmtCommand.RESET_COMMUNICATION:
             log.info("node %d: reset communication", self.node_id)
             self._reset_communication_state()
             self._boot()
@@ -330,26 +327,25 @@ class DriveDevice:
         self._runtime_clear()
         T = self._values[(0x1006, 0)] / 1e6
         self._T = T
-        self._apply_on_receipt = self._values[(odm.RPDO_APPLY, 0)] == 1
-        frame_ab = False
+        self._apply = RpdoApply(self._values[(odm.RPDO_APPLY, 0)])
+        mapped: set[str] = set()
         for comm in odm.RPDO_COMM:
             cfg = self._store.pdo(comm)
             if not cfg.valid:
                 continue
             names = set(cfg.names)
-            frame_ab |= bool(names & set(AB_NAMES))
+            mapped |= names
             self._rpdos[cfg.cob_id] = _Rpdo(
                 cfg, message_codec(f"RPDO{cfg.number}", cfg.cob_id, cfg.names),
                 timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
-                setpoints=bool(names & {"eps_0", "w_0", *DQ_NAMES, *AB_NAMES}),
-                load="T_L" in names)
-        self._frame_names = AB_NAMES if frame_ab else DQ_NAMES
+                setpoints=bool(names & SETPOINT_SIGNALS), load=bool(names & set(LOAD)))
+        self._frame_names = SETPOINTS[setpoint_frame_of(mapped)]
         for comm in odm.TPDO_COMM:
             cfg = self._store.pdo(comm)
             if cfg.valid and cfg.entries:
                 self._tpdos.append(_Tpdo(cfg, message_codec(f"TPDO{cfg.number}", cfg.cob_id,
                                                             cfg.names)))
-        self._nmt = "OPERATIONAL"
+        self._nmt = NmtState.OPERATIONAL
 
     def _rebuild_drive(self) -> None:
         try:
@@ -413,7 +409,7 @@ class DriveDevice:
             log.debug("node %d: %s -> %s", self.node_id, before.name, after.name)
             self._drive.enable(self._sm.power)
 
-    def _fault(self, code: int) -> None:
+    def _fault(self, code: Emcy) -> None:
         """Safe reaction: EMCY, error register, 0x1003, 0x603F, Fault, power stage off."""
         log.warning("node %d: fault, EMCY 0x%04X", self.node_id, code)
         self._faults.append((code, time.time()))
@@ -421,7 +417,7 @@ class DriveDevice:
         self._sm.fault()
         self._drive.enable(False)
         self._drive.set_setpoints(Setpoints())  # re-enabling needs fresh setpoints
-        self._error_register |= _ERROR_REGISTER.get(code >> 12, 0x01)
+        self._error_register |= code.error_register
         v = self._values
         v[(0x1001, 0)] = self._error_register
         v[(0x603F, 0)] = code
@@ -435,18 +431,19 @@ class DriveDevice:
         self._error_register = 0
         self._values[(0x1001, 0)] = 0
         self._values[(0x603F, 0)] = 0
-        self._emcy(EMCY_NO_ERROR)
+        self._emcy(Emcy.NO_ERROR)
 
-    def _emcy(self, code: int) -> None:
+    def _emcy(self, code: Emcy) -> None:
         cob = self._values[(0x1014, 0)]
-        if self._nmt in ("PRE-OPERATIONAL", "OPERATIONAL") and not cob & odm.COB_INVALID:
+        talking = self._nmt in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)
+        if talking and not cob & odm.COB_INVALID:
             self._send.send_message(cob & 0x7FF, struct.pack("<HB5x", code,
                                                              self._error_register))
 
     # ---- PDOs and the cycle -----------------------------------------------------------------
     def _on_rpdo(self, r: _Rpdo, data: bytes) -> None:
         if len(data) != r.codec.length:
-            self._fault(EMCY_PDO_LENGTH)
+            self._fault(Emcy.PDO_LENGTH)
             return
         v = self._values
         for key, raw in zip(r.config.entries, r.codec.decode_raw(data), strict=True):
@@ -471,9 +468,9 @@ class DriveDevice:
             rpdo2 = {n: v[k[n]] * f[n] for n in self._frame_names}
             sp = setpoints_from_rpdos(rpdo1, rpdo2)
             self._drive.set_setpoints(sp)
-            if (self._sm.power and self._drive.params.mode != "voltage"
+            if (self._sm.power and self._drive.params.mode is not DriveMode.VOLTAGE
                     and abs(sp.i_s_ref) > self._drive.params.i_trip):
-                self._fault(EMCY_OVERCURRENT)
+                self._fault(Emcy.OVERCURRENT)
 
     def _on_sync(self, data: bytes) -> None:
         n = len(data)
@@ -504,15 +501,17 @@ class DriveDevice:
         for r in self._rpdos.values():
             if r.timeout and r.last is not None and (m - r.last) * T > r.timeout + 1e-12:
                 r.last = None  # re-armed by the next reception
-                self._fault(EMCY_RPDO_TIMEOUT)
-        if self._apply_on_receipt:
-            self._latch()
+                self._fault(Emcy.RPDO_TIMEOUT)
+        sync_cycle(lambda: self._advance_and_transmit(m, counter), self._latch, self._apply)
+
+    def _advance_and_transmit(self, m: int, counter: int) -> Measurement:
+        """Advance the model by T, sample, send the TPDOs of cycle ``m``."""
         drive = self._drive
         was_on = drive.enabled
-        meas: Measurement = drive.advance(T, self._T_L)
+        meas = drive.advance(self._T, self._T_L)
         self._cycles_total = m
         if was_on and drive.tripped:
-            self._fault(EMCY_OVERCURRENT)
+            self._fault(Emcy.OVERCURRENT)
         self._limit = meas.limit_active
         sw = self._sm.statusword(meas.limit_active)
         raws = self._tx_codec.raw(tpdo_signals(meas, sw, counter))
@@ -526,20 +525,19 @@ class DriveDevice:
                 data = t.codec.pack(*[v[e] for e in t.config.entries])
                 send(can.Message(arbitration_id=t.config.cob_id, data=data,
                                  is_extended_id=False))
-        if not self._apply_on_receipt:
-            self._latch()
+        return meas
 
     # ---- threads ----------------------------------------------------------------------------
     def _dispatch(self, can_id: int, data: bytes) -> None:
         nmt = self._nmt
-        if can_id == 0:
+        if can_id == NMT_ID:
             self._on_nmt(data)
-        elif nmt == "OPERATIONAL" and can_id == self._sync_id:
+        elif nmt is NmtState.OPERATIONAL and can_id == self._sync_id:
             self._on_sync(data)
-        elif nmt == "OPERATIONAL" and can_id in self._rpdos:
+        elif nmt is NmtState.OPERATIONAL and can_id in self._rpdos:
             self._on_rpdo(self._rpdos[can_id], data)
-        elif can_id == 0x600 + self.node_id:
-            if nmt != "STOPPED" and len(data) == 8:
+        elif can_id == SDO_RX_BASE + self.node_id:
+            if nmt is not NmtState.STOPPED and len(data) == 8:
                 self._node.sdo.on_request(can_id, data, 0.0)
         elif (self._hb_consumer is not None and can_id == self._hb_consumer[0]
               and len(data) >= 1):
@@ -588,9 +586,10 @@ class DriveDevice:
     def _timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""
         wait = 0.5
-        if self._hb_period > 0 and self._nmt in NMT_HEARTBEAT:
+        if self._hb_period > 0 and self._nmt in HEARTBEAT_STATES:
             if now >= self._hb_next:
-                self._send.send_message(0x700 + self.node_id, bytes([NMT_HEARTBEAT[self._nmt]]))
+                self._send.send_message(HEARTBEAT_BASE + self.node_id,
+                                        bytes([self._nmt.heartbeat]))
                 self._hb_next += self._hb_period
                 if self._hb_next <= now:
                     self._hb_next = now + self._hb_period
@@ -598,7 +597,7 @@ class DriveDevice:
         if self._hb_deadline is not None:
             if now >= self._hb_deadline:
                 self._hb_deadline = None
-                self._fault(EMCY_HEARTBEAT)
+                self._fault(Emcy.HEARTBEAT)
             else:
                 wait = min(wait, self._hb_deadline - now)
         return wait

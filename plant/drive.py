@@ -59,8 +59,9 @@ import random
 from dataclasses import dataclass
 from typing import Literal
 
+from dbc.motor import MotorParams
 from plant.motor import coeffs, rk4_step_current_fed, rk4_step_full
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 
 SetpointFrame = Literal["dq", "ab"]
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
-from plant.params import MotorParams
+from dbc.motor import MotorParams
 
 
 class Coeffs(NamedTuple):

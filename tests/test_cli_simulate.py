@@ -59,7 +59,7 @@ def test_simulate_sampled_summary_shows_delay(tmp_path):
         (["simulate", "--profile", "nope.toml"], "nope.toml"),
         (["simulate", "--period", "1 parsec"], "--period '1 parsec' is not a duration"),
         (["simulate", "--law", "full-order", "--drive", "ideal"],
-         "--drive voltage or current-loop"),
+         "--drive-mode voltage or current-loop"),
         (["simulate", "--period", "continuous", "--drive", "current-loop"], "continuous time"),
         (["simulate", "--out", "/proc/forbidden/run"], "cannot write the run directory"),
         (["simulate", "--k-w", "-3"], "must be > 0"),

@@ -3,8 +3,11 @@ codec agrees with cantools."""
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
 import timeit
+from pathlib import Path
 
 import canopen
 import cantools
@@ -14,7 +17,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import dbc
-from dbc import gen_eds
+
+
+def _load_tool(name: str):
+    """A development tool of tools/ (not an installed module)."""
+    path = Path(__file__).resolve().parents[1] / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+gen_eds = _load_tool("gen_eds")
 
 RPDO_DEFAULTS = {"RPDO1": 1, "RPDO2": 2, "RPDO3": 3}
 TPDO_DEFAULTS = {"TPDO1": 1, "TPDO2": 2, "TPDO3": 3}

@@ -11,12 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from dbc.motor import MotorParams
+from dbc.timing import Sampling
 from gateway.control.controller import Controller, ControllerConfig, Sample, wrap_angle
 from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
 from gateway.control.laws import Gains, current_fed, dsat_tanh, full_order, sat_tanh
 from gateway.simulate import SimConfig, run
 from plant.drive import Drive, MotorState, Setpoints
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 
 MOTOR = MotorParams.paper()
 
@@ -123,7 +125,7 @@ def test_full_order_law_zeroes_current_error_dynamics():
 def paper_continuous():
     from gateway.control.profiles import paper_profile
 
-    rec = run(paper_profile(), MOTOR, SimConfig(flux="true", period=None, drive="ideal"))
+    rec = run(paper_profile(), MOTOR, SimConfig(flux="true", sampling=None, drive_mode="ideal"))
     return rec.arrays()
 
 
@@ -154,7 +156,7 @@ def test_converges_from_other_initial_conditions():
     rng = random.Random(7)
     angle = rng.uniform(-math.pi, math.pi)
     cfg = SimConfig(
-        flux="true", period=None, drive="ideal", record_step=2e-3,
+        flux="true", sampling=None, drive_mode="ideal", record_step=2e-3,
         initial=MotorState(w_m=50.0, psi_r_ab=0.8 * cmath.exp(1j * angle)),
     )
     s = run(ConstProfile(8.0, w_ref=100.0, psi_ref=1.16), MOTOR, cfg).arrays()
@@ -169,7 +171,7 @@ def test_converges_from_other_initial_conditions():
 def test_full_order_continuous_with_estimated_flux_converges():
     from gateway.control.profiles import paper_profile
 
-    cfg = SimConfig(law="full-order", flux="estimated", drive="voltage", period=None)
+    cfg = SimConfig(law="full-order", flux="estimated", drive_mode="voltage", sampling=None)
     s = run(paper_profile(), MOTOR, cfg).arrays()
     assert np.max(np.abs(s["w_m"] - s["w_ref"])) < 5e-3
     assert abs(s["w_m"][-1] - 200.0) < 1e-3
@@ -182,12 +184,11 @@ def test_full_order_continuous_with_estimated_flux_converges():
 def test_sampled_approaches_continuous_as_period_shrinks():
     prof = ConstProfile(0.6, w_ref=100.0, psi_ref=1.16)
     init = MotorState(w_m=90.0, psi_r_ab=1.16 + 0j)
-    common = dict(flux="true", drive="ideal", initial=init, w_hat_0=90.0, quantize=False,
-                  delay=0)
-    ref = run(prof, MOTOR, SimConfig(period=None, record_step=1e-3, **common)).arrays()
+    common = dict(flux="true", drive_mode="ideal", initial=init, w_hat_0=90.0, quantize=False)
+    ref = run(prof, MOTOR, SimConfig(sampling=None, record_step=1e-3, **common)).arrays()
     errs = []
     for T in (1e-3, 5e-4, 2.5e-4):
-        s = run(prof, MOTOR, SimConfig(period=T, **common)).arrays()
+        s = run(prof, MOTOR, SimConfig(sampling=Sampling(T, delay=0), **common)).arrays()
         step = round(1e-3 / T)
         w = s["w_m"][step - 1::step]  # samples at the continuous record's times
         errs.append(np.max(np.abs(w - ref["w_m"][1:len(w) + 1])))
@@ -198,11 +199,11 @@ def test_sampled_approaches_continuous_as_period_shrinks():
 def test_sampled_paper_run_shows_delay_and_frame_effects():
     from gateway.control.profiles import paper_profile
 
-    base = dict(flux="estimated", drive="ideal", period=1e-3)
+    base = dict(flux="estimated", drive_mode="ideal")
     rms = {}
     for key, kw in {"dq0": dict(delay=0), "dq1": dict(delay=1),
                     "ab1": dict(delay=1, setpoint_frame="ab")}.items():
-        s = run(paper_profile(), MOTOR, SimConfig(**base, **kw)).arrays()
+        s = run(paper_profile(), MOTOR, SimConfig(**base, sampling=Sampling(1e-3, **kw))).arrays()
         e = s["w_m"] - s["w_ref"]
         rms[key] = float(np.sqrt(np.mean(e * e)))
         assert abs(e[-1]) < 0.5  # converges in every case
@@ -259,7 +260,7 @@ def test_controller_config_rejects_bad_values():
     with pytest.raises(ValueError, match="unknown law"):
         ControllerConfig(law="vector")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="delay"):
-        ControllerConfig(delay=2)
+        ControllerConfig(sampling=Sampling(delay=2))
     with pytest.raises(ValueError, match="gain k_w"):
         Gains(k_w=-1.0)
     ctl = Controller(MOTOR, ControllerConfig(flux="true"))
@@ -271,7 +272,7 @@ def test_full_order_sampled_needs_larger_gamma_2():
     """ERRATA 10: γ2 = γ1 works in continuous time but not sampled at 1 ms with a delay."""
     from gateway.control.profiles import paper_profile
 
-    base = dict(law="full-order", drive="voltage", period=1e-3, delay=1)
+    base = dict(law="full-order", drive_mode="voltage", sampling=Sampling(1e-3, delay=1))
     bad = run(paper_profile(), MOTOR, SimConfig(**base, gains=Gains(gamma_2=0.0008))).arrays()
     good = run(paper_profile(), MOTOR, SimConfig(**base)).arrays()
     e_bad = np.max(np.abs(bad["w_m"] - bad["w_ref"]))

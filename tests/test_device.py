@@ -376,8 +376,8 @@ def test_lockstep_motor_spins_with_the_expected_sign(ideal_rig, sign):
 
 def test_lockstep_equals_the_pure_model(rig):
     """The device is the pure Drive plus the codec: same setpoints → same samples."""
+    from dbc.motor import MotorParams
     from plant.drive import Drive, Setpoints
-    from plant.params import MotorParams
 
     rig.enable()
     rig.nmt("OPERATIONAL")

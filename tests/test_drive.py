@@ -10,9 +10,10 @@ import statistics
 import pytest
 from scipy.integrate import solve_ivp
 
+from dbc.motor import MotorParams
 from plant.drive import Drive, Measurement, MotorState, Setpoints, pi_gains
 from plant.motor import rhs_full, stator_flux, torque
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 
 MOTOR = MotorParams.paper()
 H = 1e-4  # internal step at the default f_pwm = 10 kHz

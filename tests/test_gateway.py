@@ -14,6 +14,9 @@ import numpy as np
 import pytest
 
 from dbc import load_codec
+from dbc.cia402 import State
+from dbc.motor import MotorParams
+from dbc.timing import Sampling
 from gateway.cli import main
 from gateway.control.profiles import paper_profile
 from gateway.drive_profile import load_drive_profile
@@ -21,9 +24,8 @@ from gateway.errors import UserError
 from gateway.report import read_csv
 from gateway.runner import RunConfig, StopSignals, run_gateway
 from gateway.simulate import SimConfig, run
-from plant.cia402 import State
 from plant.device import DriveDevice
-from plant.params import DriveParams, MotorParams
+from plant.params import DriveParams
 
 MOTOR = MotorParams.paper()
 _channels = itertools.count()
@@ -83,14 +85,15 @@ def assert_disabled(emu: Emulator) -> None:
     ("sim_kwargs", "cli_args"),
     [
         ({}, []),
-        ({"law": "full-order", "drive": "voltage"}, ["--law", "full-order"]),
-        ({"drive": "current-loop", "delay": 0}, ["--drive-mode", "current-loop", "--delay", "0"]),
+        ({"law": "full-order", "drive_mode": "voltage"}, ["--law", "full-order"]),
+        ({"drive_mode": "current-loop", "sampling": Sampling(delay=0)},
+         ["--drive-mode", "current-loop", "--delay", "0"]),
         ({"flux": "true", "estimator": "drift-free"}, ["--flux", "true", "--estimator",
                                                       "drift-free"]),
     ],
 )
 def test_lockstep_equals_simulate_bit_for_bit(emulator, tmp_path, sim_kwargs, cli_args):
-    emu = emulator(sim_kwargs.get("drive", "ideal"))
+    emu = emulator(sim_kwargs.get("drive_mode", "ideal"))
     assert gateway_run(emu, tmp_path, "--duration", "0.6s", *cli_args) == 0
     bus = read_csv(tmp_path / "signals.csv")
     sim = run(paper_profile(), MOTOR, SimConfig(duration=0.6, **sim_kwargs)).arrays()

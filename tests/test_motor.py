@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from dbc.motor import MotorParams, ParamsError
 from plant.motor import (
     coeffs,
     derivs_full,
@@ -22,7 +23,7 @@ from plant.motor import (
     stator_flux,
     torque,
 )
-from plant.params import DriveParams, MotorParams, ParamsError
+from plant.params import DriveParams
 
 MOTOR = MotorParams.paper()
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dbc.motor import MotorParams
 from gateway.control.profiles import (
     Profile,
     ProfileError,
@@ -23,7 +24,6 @@ from gateway.control.profiles import (
     paper_profile,
     parse_profile,
 )
-from plant.params import MotorParams
 
 PROFILES = Path(__file__).resolve().parent.parent / "gateway" / "profiles"
 SHIPPED = sorted(PROFILES.glob("*.toml"))

@@ -21,55 +21,80 @@ import cmath
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Literal
+from enum import StrEnum
 
+from dbc.modes import DriveMode
+from dbc.timing import Sampling
 from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
 from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
 
-Law = Literal["current-fed", "full-order"]
-FluxSource = Literal["estimated", "true"]
-EstimatorKind = Literal["open-loop", "drift-free"]
 
-LAWS: tuple[str, ...] = ("current-fed", "full-order")
-FLUX_SOURCES: tuple[str, ...] = ("estimated", "true")
-ESTIMATORS: tuple[str, ...] = ("open-loop", "drift-free")
+class Law(StrEnum):
+    """CURRENT_FED: (15), (16), (20) for a current-fed drive; FULL_ORDER: (25)–(27), (32)
+    for a voltage-fed drive."""
+
+    CURRENT_FED = "current-fed"
+    FULL_ORDER = "full-order"
+
+    @property
+    def drive_modes(self) -> tuple[DriveMode, ...]:
+        """The drive modes the law can drive; the first is the default (the current-fed law
+        sends currents, the full-order law voltages)."""
+        if self is Law.CURRENT_FED:
+            return (DriveMode.IDEAL, DriveMode.CURRENT_LOOP)
+        return (DriveMode.VOLTAGE, DriveMode.CURRENT_LOOP)
+
+
+class FluxSource(StrEnum):
+    """ESTIMATED: sensorless, (24); TRUE: the emulator's true flux (the paper's "flux
+    measurements available" comparison only)."""
+
+    ESTIMATED = "estimated"
+    TRUE = "true"
+
+
+class EstimatorKind(StrEnum):
+    """OPEN_LOOP: the paper's integrator (24); DRIFT_FREE: with a low-frequency correction."""
+
+    OPEN_LOOP = "open-loop"
+    DRIFT_FREE = "drift-free"
+
+
 TWO_PI = 2.0 * math.pi
+
+
+def as_enum(enum: type[StrEnum], value: object, what: str) -> StrEnum:
+    """``value`` as a member of ``enum``; ValueError naming ``what`` and the choices."""
+    try:
+        return enum(value)
+    except ValueError:
+        raise ValueError(f"unknown {what} {value!r}; use one of "
+                         f"{', '.join(m.value for m in enum)}") from None
 
 
 @dataclass(frozen=True)
 class ControllerConfig:
     """How the controller runs.
 
-    law: "current-fed" ((15), (16), (20)) or "full-order" ((25)–(27), (32)).
-    flux: "estimated" (sensorless, (24)) or "true" (the paper's "flux measurements
-        available" case, for comparison only).
-    estimator: "open-loop" (the paper's integrator) or "drift-free" (see
-        :mod:`gateway.control.estimator`).
-    w_c: corner of the drift-free estimator, rad/s.
-    period: sampling period T, s.
-    delay: 0 or 1 periods between the sample and the interval the setpoints act on.
-    gains: :class:`Gains`.
+    law: :class:`Law`. flux: :class:`FluxSource`. estimator: :class:`EstimatorKind` (see
+    :mod:`gateway.control.estimator`). w_c: corner of the drift-free estimator, rad/s.
+    sampling: period T and the delay between the sample and the interval the setpoints act
+    on (:class:`dbc.timing.Sampling`). gains: :class:`Gains`.
+    Strings are accepted for the enums (the command-line words) and converted.
     """
 
-    law: Law = "current-fed"
-    flux: FluxSource = "estimated"
-    estimator: EstimatorKind = "open-loop"
+    law: Law = Law.CURRENT_FED
+    flux: FluxSource = FluxSource.ESTIMATED
+    estimator: EstimatorKind = EstimatorKind.OPEN_LOOP
     w_c: float = 2.0
-    period: float = 1e-3
-    delay: int = 1
+    sampling: Sampling = field(default_factory=Sampling)
     gains: Gains = field(default_factory=Gains)
 
     def __post_init__(self) -> None:
-        if self.law not in LAWS:
-            raise ValueError(f"unknown law {self.law!r}; use one of {', '.join(LAWS)}")
-        if self.flux not in FLUX_SOURCES:
-            raise ValueError(f"unknown flux source {self.flux!r}; use {' or '.join(FLUX_SOURCES)}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"unknown estimator {self.estimator!r}; use {' or '.join(ESTIMATORS)}")
-        if not self.period > 0.0:
-            raise ValueError(f"period {self.period!r} s must be > 0")
-        if self.delay not in (0, 1):
-            raise ValueError(f"delay {self.delay!r} must be 0 or 1 periods")
+        object.__setattr__(self, "law", as_enum(Law, self.law, "law"))
+        object.__setattr__(self, "flux", as_enum(FluxSource, self.flux, "flux source"))
+        object.__setattr__(self, "estimator",
+                           as_enum(EstimatorKind, self.estimator, "estimator"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,12 +153,12 @@ class Controller:
     ) -> None:
         self.motor = motor
         self.config = config or ControllerConfig()
-        self._T = self.config.period
-        self._delay = self.config.delay
-        self._full = self.config.law == "full-order"
-        self._true_flux = self.config.flux == "true"
+        self._T = self.config.sampling.period
+        self._delay = self.config.sampling.delay
+        self._full = self.config.law is Law.FULL_ORDER
+        self._true_flux = self.config.flux is FluxSource.TRUE
         self._gains = self.config.gains
-        if self.config.estimator == "drift-free":
+        if self.config.estimator is EstimatorKind.DRIFT_FREE:
             self.estimator: OpenLoopFluxEstimator = DriftFreeFluxEstimator(motor, self.config.w_c)
         else:
             self.estimator = OpenLoopFluxEstimator(motor)

@@ -1,5 +1,8 @@
 """Opening a CAN bus: python-can's interfaces behind one call, with errors a user can act on.
 
+Both command lines (`hil-gateway`, `hil-plant`) take the same options and give the same
+messages.
+
 Interface, channel and bitrate come from the command line (-i/-c/-b) and otherwise from
 python-can's own configuration: the environment variables CAN_INTERFACE, CAN_CHANNEL,
 CAN_BITRATE and the config files (~/can.conf, ~/.canrc, /etc/can.conf, can.ini).
@@ -13,7 +16,7 @@ from typing import Any
 
 import can
 
-from gateway.errors import UserError
+from dbc.errors import UserError
 
 
 @dataclass(frozen=True)
@@ -49,26 +52,31 @@ def bus_config(args: argparse.Namespace) -> BusConfig:
         given["interface"] = args.interface
     if args.channel:
         given["channel"] = args.channel
-    if args.bitrate:
+    if args.bitrate is not None:
+        if args.bitrate <= 0:
+            raise UserError(f"bit rate {args.bitrate} is not positive: give it in bit/s, "
+                            "e.g. -b 500000")
         given["bitrate"] = args.bitrate
     no_interface = UserError(
-        "no CAN interface given: use -i/--interface and -c/--channel (e.g. -i socketcan "
-        "-c vcan0), or set CAN_INTERFACE and CAN_CHANNEL, or write them in python-can's "
-        "config file (~/can.conf). To try without hardware, run `hil-gateway sim`.")
+        "no CAN interface given and none configured: use -i/--interface and -c/--channel "
+        "(e.g. -i socketcan -c vcan0), or set CAN_INTERFACE and CAN_CHANNEL, or write them in "
+        "python-can's config file (~/can.conf). To try without hardware, run "
+        "`hil-gateway sim`.")
     try:
         cfg = can.util.load_config(config=given)
     except (can.CanInterfaceNotImplementedError, ValueError) as exc:
-        if "interface" not in given and '"None"' in str(exc):
+        if "interface" not in given and "None" in str(exc):
             raise no_interface from exc
-        raise UserError(f"CAN interface: {exc}. Give a python-can interface with -i "
-                        f"(socketcan, pcan, kvaser, vector, virtual, ...).") from exc
+        raise UserError(f"unknown CAN interface {given.get('interface')!r} ({exc}): give one "
+                        "python-can knows with -i (socketcan, pcan, kvaser, vector, slcan, "
+                        "virtual, ...).") from exc
     interface = cfg.get("interface")
     channel = cfg.get("channel")
     if not interface:
         raise no_interface
     if channel is None or channel == "":
-        raise UserError(f"no CAN channel given for interface {interface!r}: use -c/--channel "
-                        "(e.g. vcan0, can0, PCAN_USBBUS1) or set CAN_CHANNEL.")
+        raise UserError(f"no CAN channel given for interface {interface!r} (no channel): use "
+                        "-c/--channel (e.g. vcan0, can0, PCAN_USBBUS1) or set CAN_CHANNEL.")
     bitrate = cfg.get("bitrate")
     return BusConfig(str(interface), str(channel), int(bitrate) if bitrate else None)
 

@@ -1,0 +1,103 @@
+"""CiA 301 vocabulary both sides use: NMT, COB-ID bases, SYNC, EMCY codes.
+
+Pure constants and enums; no I/O.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum, StrEnum
+
+#: COB-ID function codes (CiA 301 pre-defined connection set): base + node id.
+NMT_ID = 0x000
+SYNC_ID = 0x080
+EMCY_BASE = 0x080
+SDO_TX_BASE = 0x580  #: server → client
+SDO_RX_BASE = 0x600  #: client → server
+HEARTBEAT_BASE = 0x700
+
+#: SYNC counter overflow (0x1019) the gateway configures: the counter runs 1..240.
+SYNC_OVERFLOW = 240
+
+
+def sync_counter(k: int) -> int:
+    """The SYNC counter of cycle k (k = 1, 2, …): 1..SYNC_OVERFLOW, then 1 again."""
+    return ((k - 1) % SYNC_OVERFLOW) + 1
+
+
+class NmtCommand(IntEnum):
+    """NMT command specifiers (first byte of COB-ID 0x000)."""
+
+    START = 0x01
+    STOP = 0x02
+    ENTER_PRE_OPERATIONAL = 0x80
+    RESET_NODE = 0x81
+    RESET_COMMUNICATION = 0x82
+
+
+class NmtState(StrEnum):
+    """NMT states, spelled as python-canopen spells them (``node.nmt.state``)."""
+
+    INITIALISING = "INITIALISING"
+    PRE_OPERATIONAL = "PRE-OPERATIONAL"
+    OPERATIONAL = "OPERATIONAL"
+    STOPPED = "STOPPED"
+
+    @property
+    def heartbeat(self) -> int:
+        """The state byte of the heartbeat (0x00 is the boot-up message)."""
+        return _HEARTBEAT_BYTE[self]
+
+    @classmethod
+    def from_heartbeat(cls, byte: int) -> NmtState | None:
+        """The state a heartbeat byte reports (bit 7, the toggle bit, ignored); None if none."""
+        return _FROM_HEARTBEAT.get(byte & 0x7F)
+
+
+_HEARTBEAT_BYTE = {
+    NmtState.INITIALISING: 0x00,
+    NmtState.STOPPED: 0x04,
+    NmtState.OPERATIONAL: 0x05,
+    NmtState.PRE_OPERATIONAL: 0x7F,
+}
+_FROM_HEARTBEAT = {v: k for k, v in _HEARTBEAT_BYTE.items()}
+
+
+class Emcy(IntEnum):
+    """The EMCY error codes (CiA 301 table 21, CiA 402) the emulator raises and the
+    gateway names."""
+
+    NO_ERROR = 0x0000  #: error reset / no error
+    OVERCURRENT = 0x2310  #: continuous over-current
+    HEARTBEAT = 0x8130  #: life guard / heartbeat error (the master's heartbeat lost)
+    PDO_LENGTH = 0x8210  #: PDO not processed due to length error
+    RPDO_TIMEOUT = 0x8250  #: RPDO timeout
+
+    @property
+    def text(self) -> str:
+        """What the code means, for messages."""
+        return _EMCY_TEXT[self]
+
+    @classmethod
+    def describe(cls, code: int) -> str:
+        """The text of any EMCY code (a drive's own codes: by class)."""
+        try:
+            return cls(code).text
+        except ValueError:
+            return "drive-specific error"
+
+    @property
+    def error_register(self) -> int:
+        """Bits of the error register 0x1001 this code sets: generic (bit 0) plus current
+        (bit 1) or communication (bit 4) by the code's class."""
+        return _ERROR_REGISTER.get(self >> 12, 0x01)
+
+
+_EMCY_TEXT = {
+    Emcy.NO_ERROR: "error reset / no error",
+    Emcy.OVERCURRENT: "over-current",
+    Emcy.HEARTBEAT: "heartbeat of the master lost",
+    Emcy.PDO_LENGTH: "PDO of wrong length",
+    Emcy.RPDO_TIMEOUT: "RPDO timeout",
+}
+#: Error register 0x1001 bits per EMCY code class (first hex digit).
+_ERROR_REGISTER = {0x2: 0x03, 0x8: 0x11}

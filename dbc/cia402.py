@@ -1,0 +1,112 @@
+"""CiA 402 vocabulary both sides use: power states, statusword, controlword.
+
+States and statusword patterns (0x6041; CiA 402-2, "state coding"):
+
+=========================  ============  =====  ======================
+state                      pattern       mask   emulator's statusword
+=========================  ============  =====  ======================
+Not ready to switch on     x0xx 0000     0x4F   0x0200
+Switch on disabled         x1xx 0000     0x4F   0x0240
+Ready to switch on         x01x 0001     0x6F   0x0231
+Switched on                x01x 0011     0x6F   0x0233
+Operation enabled          x01x 0111     0x6F   0x0237
+Quick stop active          x00x 0111     0x6F   0x0217
+Fault reaction active      x0xx 1111     0x4F   0x020F
+Fault                      x0xx 1000     0x4F   0x0208
+=========================  ============  =====  ======================
+
+(bit 9 "remote" is always set by the emulator, bit 4 "voltage enabled" in the energised
+states, bit 11 "internal limit active" while the voltage limit clips.)
+
+Controlword (0x6040) commands, bits 7, 3..0 (transition numbers of CiA 402-2):
+shutdown 0xxx x110 (2, 6, 8), switch on 0xxx 0111 (3, 5), switch on + enable operation
+0xxx 1111 (3 + 4, 4, 16), disable voltage 0xxx xx0x (7, 9, 10, 12), quick stop 0xxx x01x
+(7, 10, 11), fault reset: rising edge of bit 7 (15).
+"""
+
+from __future__ import annotations
+
+from enum import Enum, IntEnum
+
+
+class State(IntEnum):
+    """CiA 402 states; the value is the emulator's statusword without bits 9 and 11."""
+
+    NOT_READY_TO_SWITCH_ON = 0x0000
+    SWITCH_ON_DISABLED = 0x0040
+    READY_TO_SWITCH_ON = 0x0031
+    SWITCHED_ON = 0x0033
+    OPERATION_ENABLED = 0x0037
+    QUICK_STOP_ACTIVE = 0x0017
+    FAULT_REACTION_ACTIVE = 0x000F
+    FAULT = 0x0008
+
+    @classmethod
+    def from_statusword(cls, sw: int) -> State | None:
+        """The state a statusword reports (the standard's masks); None if no pattern."""
+        s = _BY_4F.get(sw & 0x4F)
+        return s if s is not None else _BY_6F.get(sw & 0x6F)
+
+
+_BY_4F = {0x00: State.NOT_READY_TO_SWITCH_ON, 0x40: State.SWITCH_ON_DISABLED,
+          0x0F: State.FAULT_REACTION_ACTIVE, 0x08: State.FAULT}
+_BY_6F = {0x21: State.READY_TO_SWITCH_ON, 0x23: State.SWITCHED_ON,
+          0x27: State.OPERATION_ENABLED, 0x07: State.QUICK_STOP_ACTIVE}
+
+SW_FAULT = 0x0008  #: statusword bit 3: fault
+SW_REMOTE = 0x0200  #: statusword bit 9
+SW_INTERNAL_LIMIT = 0x0800  #: statusword bit 11
+
+
+class Controlword(IntEnum):
+    """The controlword values the gateway writes (CiA 402-2, device control)."""
+
+    DISABLE_VOLTAGE = 0x0000  #: → Switch on disabled (power stage off)
+    QUICK_STOP = 0x0002  #: → Quick stop active / Switch on disabled
+    SHUTDOWN = 0x0006  #: → Ready to switch on
+    SWITCH_ON = 0x0007  #: → Switched on
+    ENABLE_OPERATION = 0x000F  #: → Operation enabled
+    FAULT_RESET = 0x0080  #: rising edge of bit 7: Fault → Switch on disabled
+
+
+CW_FAULT_RESET_BIT = 0x0080  #: controlword bit 7
+
+
+class Command(Enum):
+    """The command a controlword encodes (bits 7, 3..0), as a device decodes it."""
+
+    DISABLE_VOLTAGE = "disable voltage"
+    QUICK_STOP = "quick stop"
+    SHUTDOWN = "shutdown"
+    SWITCH_ON = "switch on"
+    ENABLE_OPERATION = "enable operation"
+
+    @classmethod
+    def decode(cls, cw: int) -> Command | None:
+        """The command of controlword ``cw`` (bit 7 not considered); None if no pattern."""
+        if cw & 0x0002 == 0:
+            return cls.DISABLE_VOLTAGE
+        if cw & 0x0006 == 0x0002:
+            return cls.QUICK_STOP
+        if cw & 0x0007 == 0x0006:
+            return cls.SHUTDOWN
+        if cw & 0x000F == 0x0007:
+            return cls.SWITCH_ON
+        if cw & 0x000F == 0x000F:
+            return cls.ENABLE_OPERATION
+        return None
+
+
+#: The enable sequence: (controlword, the state it must reach).
+ENABLE_SEQUENCE: tuple[tuple[Controlword, State], ...] = (
+    (Controlword.SHUTDOWN, State.READY_TO_SWITCH_ON),
+    (Controlword.SWITCH_ON, State.SWITCHED_ON),
+    (Controlword.ENABLE_OPERATION, State.OPERATION_ENABLED),
+)
+
+#: Object indices of the CiA 402 objects both sides use.
+CONTROLWORD = 0x6040
+STATUSWORD = 0x6041
+MODES_OF_OPERATION = 0x6060
+MODES_OF_OPERATION_DISPLAY = 0x6061
+ERROR_CODE = 0x603F

@@ -1,0 +1,61 @@
+"""How the drive runs: modes and frames as enums (the values are the command-line words).
+
+:class:`DriveMode` is what the drive does with the setpoints, :class:`SetpointFrame` the
+frame they are sent in, :class:`RpdoApply` when the drive makes received data active.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum, StrEnum
+
+
+class DriveMode(StrEnum):
+    """What the drive does with the setpoints.
+
+    IDEAL: the stator currents equal the setpoints (current-fed model; emulator only).
+    CURRENT_LOOP: a PI current loop at the drive's internal rate (CiA 402 current vector
+    mode on a real drive). VOLTAGE: the voltage setpoints are applied (voltage vector mode).
+    """
+
+    IDEAL = "ideal"
+    CURRENT_LOOP = "current-loop"
+    VOLTAGE = "voltage"
+
+    @property
+    def mode_of_operation(self) -> int:
+        """The emulator's 0x6060 value: −2 voltage vector mode, −1 current vector mode."""
+        return -2 if self is DriveMode.VOLTAGE else -1
+
+    @property
+    def emulator_model(self) -> int:
+        """The emulator's 0x2202 value: 0 ideal current source, 1 PI current loop."""
+        return 0 if self is DriveMode.IDEAL else 1
+
+
+class SetpointFrame(StrEnum):
+    """DQ: (d, q) setpoints that the drive turns from ε0 at ω0; AB: fixed-frame setpoints,
+    held over the period."""
+
+    DQ = "dq"
+    AB = "ab"
+
+
+class RpdoApply(IntEnum):
+    """When the drive makes RPDO data active (the emulator's 0x2203).
+
+    AT_NEXT_SYNC: CiA 301 synchronous RPDO, after the cycle that received them (one period
+    of delay). ON_RECEIPT: before the next cycle's advance (no delay; emulator only).
+    """
+
+    AT_NEXT_SYNC = 0
+    ON_RECEIPT = 1
+
+    @classmethod
+    def for_delay(cls, delay: int) -> RpdoApply:
+        """Delay 1 → AT_NEXT_SYNC, delay 0 → ON_RECEIPT."""
+        return cls.AT_NEXT_SYNC if delay == 1 else cls.ON_RECEIPT
+
+    @property
+    def delay(self) -> int:
+        """Periods between a sample and the interval its setpoints act on."""
+        return 1 if self is RpdoApply.AT_NEXT_SYNC else 0
