@@ -15,6 +15,25 @@ SDO_TX_BASE = 0x580  #: server → client
 SDO_RX_BASE = 0x600  #: client → server
 HEARTBEAT_BASE = 0x700
 
+#: PDO COB-ID function codes of the pre-defined connection set: code → (is RPDO, number).
+PDO_FUNCTIONS: dict[int, tuple[bool, int]] = {
+    0x180: (False, 1), 0x200: (True, 1), 0x280: (False, 2), 0x300: (True, 2),
+    0x380: (False, 3), 0x400: (True, 3), 0x480: (False, 4), 0x500: (True, 4),
+}
+#: Communication and mapping parameter indices of PDO 1 (PDO n: + n − 1).
+RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
+
+
+def pdo_of(cob_id: int) -> tuple[bool, int]:
+    """(is RPDO, PDO number 1..4) of a COB-ID of the pre-defined connection set;
+    ValueError for any other COB-ID."""
+    try:
+        return PDO_FUNCTIONS[cob_id & 0x780]
+    except KeyError:
+        raise ValueError(f"COB-ID 0x{cob_id:03X} is not a PDO of the pre-defined connection "
+                         "set (0x180..0x57F)") from None
+
+
 #: SYNC counter overflow (0x1019) the gateway configures: the counter runs 1..240.
 SYNC_OVERFLOW = 240
 

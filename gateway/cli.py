@@ -29,7 +29,7 @@ examples:
                                                     the paper's section 6, continuous time
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
-  hil-gateway profile check profiles/paper.toml
+  hil-gateway reference check profiles/paper.toml
 """
 
 
@@ -445,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser(
-        "simulate", help="the closed loop without CAN (continuous or sampled)",
+        "simulate", help="the closed loop without CAN (continuous or sampled); no bus at all",
         description="Run the closed loop without CAN: continuous time with scipy, or sampled "
                     "exactly as over the bus (zero-order hold, optional one-period SYNC delay, "
                     "INT16 PDO quantisation). Writes summary.json, signals.csv and the figures.")
@@ -475,8 +475,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "sim", help="the loop over CANopen against the emulated drive, in one process",
         description="Run the sensorless loop over CANopen against the emulated CiA 402 drive "
-                    "started in the same process on python-can's virtual bus: no hardware, no "
-                    "setup. Writes the run directory like `run`.")
+                    "started in the same process (in-process channel by default, or "
+                    "python-can's virtual bus): no hardware, no setup. It is `run` with the "
+                    "emulator built in; `simulate` is the same loop without CAN. Writes the "
+                    "run directory like `run`.")
     _add_run_options(p)
     from gateway.transport import TRANSPORTS
 
@@ -504,8 +506,10 @@ def build_parser() -> argparse.ArgumentParser:
     buslog.add_parser(sub)
     scan.add_parser(sub)
 
-    p = sub.add_parser("profile", help="check or plot a reference profile",
-                       description="Validate or plot a reference profile (TOML).")
+    p = sub.add_parser("reference", aliases=["profile"],
+                       help="check or plot a reference profile (alias: profile)",
+                       description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
+                                   "(TOML). (A drive profile, --drive, describes a drive.)")
     psub = p.add_subparsers(dest="profile_command", metavar="ACTION")
     pc = psub.add_parser("check", help="validate; print the set points and peak demands",
                          description="Validate a profile, print its set points and the peak "

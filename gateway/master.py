@@ -30,7 +30,18 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dbc.cia301 import EMCY_BASE, HEARTBEAT_BASE, Emcy, NmtCommand, NmtState
+from dbc.cia301 import (
+    EMCY_BASE,
+    HEARTBEAT_BASE,
+    RPDO_COMM,
+    RPDO_MAP,
+    TPDO_COMM,
+    TPDO_MAP,
+    Emcy,
+    NmtCommand,
+    NmtState,
+    pdo_of,
+)
 from dbc.cia402 import (
     CONTROLWORD,
     ENABLE_SEQUENCE,
@@ -239,16 +250,20 @@ class DriveMaster:
 
     def _map_pdo(self, name: str, entries: list[tuple[int, int, int]], cob_id: int) -> None:
         """Write one PDO's communication and mapping parameters (CiA 301 procedure)."""
-        n = int(name[4]) - 1
-        comm = (0x1400 if name.startswith("RPDO") else 0x1800) + n
-        mapping = (0x1600 if name.startswith("RPDO") else 0x1A00) + n
+        try:
+            rx, n = pdo_of(cob_id)
+        except ValueError as exc:
+            raise UserError(f"{name}: {exc}; check the drive profile ({self.profile.source})"
+                            ) from None
+        comm = (RPDO_COMM if rx else TPDO_COMM) + n - 1
+        mapping = (RPDO_MAP if rx else TPDO_MAP) + n - 1
         self.sdo_write(comm, 1, cob_id | 0x80000000, f"{name} COB-ID, disabled for mapping")
         self.sdo_write(mapping, 0, 0, f"{name} mapping count 0")
         for k, (index, sub, bits) in enumerate(entries, start=1):
             self.sdo_write(mapping, k, (index << 16) | (sub << 8) | bits, f"{name} entry {k}")
         self.sdo_write(mapping, 0, len(entries), f"{name} mapping count")
         self.sdo_write(comm, 2, 1, f"{name} transmission type: synchronous, every SYNC")
-        if name.startswith("RPDO"):
+        if rx:
             self.sdo_write(comm, 5, self.profile.rpdo_timeout_ms, f"{name} deadline, ms")
         self.sdo_write(comm, 1, cob_id, f"{name} COB-ID, enabled")
 

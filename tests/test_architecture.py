@@ -1,0 +1,75 @@
+"""The import graph: `plant` and `gateway` stand side by side on the contract (`dbc`).
+
+* `dbc` imports nothing of ours but itself;
+* `plant` never imports `gateway`;
+* `gateway` imports `plant` only where it assembles the emulator beside the gateway
+  (`gateway/sim.py` for `hil-gateway sim`, `gateway/simulate.py` for `simulate`);
+* the pure modules (control math, motor model, the contract's vocabulary) import neither
+  python-can nor python-canopen.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("dbc", "gateway", "plant")
+ASSEMBLERS = {"gateway/sim.py", "gateway/simulate.py"}
+PURE = ("dbc/cia301.py", "dbc/cia402.py", "dbc/modes.py", "dbc/signals.py", "dbc/timing.py",
+        "dbc/motor.py", "plant/params.py", "plant/motor.py", "plant/drive.py",
+        "plant/timing.py", "plant/cia402.py", "gateway/cycle.py", "gateway/control")
+
+
+def _modules() -> list[Path]:
+    return sorted(p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py"))
+
+
+def imports(path: Path) -> set[str]:
+    """The top-level names of everything ``path`` imports (at any depth of the file)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+    return out
+
+
+def _tops(path: Path) -> set[str]:
+    return {name.split(".")[0] for name in imports(path)}
+
+
+def _rel(p: Path) -> str:
+    return p.relative_to(ROOT).as_posix()
+
+
+def test_the_graph_is_what_the_checks_look_at():
+    mods = [_rel(p) for p in _modules()]
+    assert "gateway/loop.py" in mods and "plant/device.py" in mods and "dbc/codec.py" in mods
+    assert "plant" in _tops(ROOT / "gateway/simulate.py")  # the check can see a violation
+
+
+@pytest.mark.parametrize("path", _modules(), ids=_rel)
+def test_layering(path):
+    rel, tops = _rel(path), _tops(path)
+    if rel.startswith("dbc/"):
+        assert not tops & {"gateway", "plant"}, f"{rel} must import nothing of ours but dbc"
+    elif rel.startswith("plant/"):
+        assert "gateway" not in tops, f"{rel}: the plant never imports the gateway"
+    elif rel not in ASSEMBLERS:
+        assert "plant" not in tops, (f"{rel}: the gateway knows the drive through dbc and the "
+                                     f"bus; only {sorted(ASSEMBLERS)} assemble the emulator")
+
+
+@pytest.mark.parametrize("path", [p for p in _modules()
+                                  if _rel(p).startswith(PURE)], ids=_rel)
+def test_pure_modules_do_no_bus_io(path):
+    assert not _tops(path) & {"can", "canopen", "cantools", "socket", "threading"}, _rel(path)
+
+
+def test_a_can_run_does_not_load_the_simulation():
+    assert not {"gateway.simulate", "gateway.sim"} & imports(ROOT / "gateway/runner.py")
