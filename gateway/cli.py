@@ -289,10 +289,19 @@ def _print_run(kind: str, summary: dict[str, Any], out: Path, profile: Any) -> N
 
 def _finish_run(summary: dict[str, Any]) -> int:
     """Exit status from the stop's cause (:class:`gateway.stop.StopReason`): 0 when the
-    profile ran to its end, 130 when interrupted, 1 otherwise (fault, drive lost, error)."""
+    profile ran to its end, 130 when interrupted, 1 otherwise (fault, drive lost, error),
+    and 1 whenever the drive was not confirmed safe or a result could not be written."""
     run = summary["run"]
-    if run["exit_status"] != 0:
-        print(f"{PROG}: the run stopped early: {run['stop_reason']}", file=sys.stderr)
+    for err in summary.get("write_errors", []):
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+    shutdown = summary.get("shutdown")
+    if shutdown is not None and not shutdown["safe"]:
+        steps = "; ".join(shutdown["steps"])
+        print(f"{PROG}: the drive's power stage was NOT confirmed off ({steps}). Check the "
+              "drive before touching the motor.", file=sys.stderr)
+    if run["stop"] != "END_OF_PROFILE":
+        print(f"{PROG}: the run stopped early ({run['stop'].lower().replace('_', ' ')}): "
+              f"{run['stop_reason']}", file=sys.stderr)
     return run["exit_status"]
 
 

@@ -11,11 +11,19 @@ Sequence (:meth:`DriveMaster.connect` … :meth:`DriveMaster.shutdown`):
    cycle period 0x1006, synchronous window 0x1007, producer heartbeat 0x1017, consumer
    heartbeat 0x1016 (the gateway's own heartbeat), PDO mappings and transmission types
    (every SYNC), RPDO deadline 0x140x.5, mode of operation 0x6060, emulator objects;
-3. NMT OPERATIONAL; the gateway's heartbeat producer starts;
+3. NMT OPERATIONAL; the gateway's heartbeat producer starts; the watch is armed;
 4. CiA 402 enable sequence on 0x6040/0x6041 (shutdown → switch on → enable operation);
-5. shutdown: controlword "disable voltage", NMT PRE-OPERATIONAL, heartbeat stopped.
+5. shutdown (:meth:`DriveMaster.shutdown`), on every exit path: the power stage off
+   through the CiA 402 state machine, confirmed by an SDO read of the statusword; if the
+   drive does not answer SDO (NMT STOPPED), NMT PRE-OPERATIONAL and again; if still not
+   confirmed, NMT *reset node* and its boot-up. The drive's supervision of the gateway
+   (0x1016) is switched off only once the power stage is confirmed off; otherwise the
+   gateway's heartbeat stops with the supervision on, so the drive trips by itself, and
+   the run is reported unsafe.
 
-A lost drive heartbeat or an EMCY sets :attr:`DriveMaster.fault`, which stops the loop.
+While the watch is armed, an EMCY, a lost drive heartbeat, a boot-up or an NMT state
+other than OPERATIONAL sets :attr:`DriveMaster.fault` (with a :class:`FaultEvent` naming
+it), which the loop checks every cycle.
 """
 
 from __future__ import annotations
@@ -53,6 +61,7 @@ from dbc.cia402 import (
 )
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
+from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
 
@@ -62,12 +71,17 @@ GATEWAY_NODE_ID = 0x7F
 
 @dataclass
 class FaultEvent:
-    """Something that stops the loop: an EMCY or a lost heartbeat."""
+    """Something that stops the loop: an EMCY, a lost heartbeat, a boot-up or NMT change.
+
+    time: ``time.monotonic()``; kind: 'EMCY', 'heartbeat', 'boot-up', 'NMT'; code: the EMCY
+    code; reason: the stop reason it gives the run.
+    """
 
     time: float
     kind: str
     code: int | None = None
     text: str = ""
+    reason: StopReason = StopReason.DRIVE_FAULT
 
     def describe(self) -> str:
         code = "" if self.code is None else f" 0x{self.code:04X}"
@@ -81,6 +95,25 @@ class MasterState:
     faults: list[FaultEvent] = field(default_factory=list)
     last_heartbeat: float = 0.0
     nmt_state: NmtState | None = None
+
+
+@dataclass
+class ShutdownReport:
+    """What the shutdown did and whether the drive's power stage was confirmed off.
+
+    safe: confirmed off (by statusword, or by the boot-up after a reset node). state: the
+    last CiA 402 state read (name), or None. steps: what was done, in order.
+    supervision_off: 0x1016 was switched off (only when safe).
+    """
+
+    safe: bool = False
+    state: str | None = None
+    steps: list[str] = field(default_factory=list)
+    supervision_off: bool = False
+
+#: CiA 402 states in which the power stage applies no voltage to the motor.
+POWER_OFF_STATES = (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
+                    State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.FAULT)
 
 
 class DriveMaster:
@@ -106,6 +139,8 @@ class DriveMaster:
         self._watchdog: threading.Thread | None = None
         self._stop_watchdog = threading.Event()
         self._connected = False
+        self._armed = False  # the NMT watch: set by start(), cleared by shutdown()
+        self.shutdown_report: ShutdownReport | None = None
 
     # ------------------------------------------------------------------ connection
 
@@ -138,6 +173,17 @@ class DriveMaster:
         self.state.nmt_state = state
         if state is NmtState.INITIALISING:  # the boot-up message
             self._booted.set()
+        if not self._armed or state is NmtState.OPERATIONAL:
+            return
+        if state is NmtState.INITIALISING:
+            self._raise(FaultEvent(time.monotonic(), "boot-up", None,
+                                   f"drive node {self.node_id} rebooted during the run",
+                                   StopReason.DRIVE_STATE))
+        else:
+            shown = state or f"0x{data[0]:02X}"
+            self._raise(FaultEvent(time.monotonic(), "NMT", None,
+                                   f"drive node {self.node_id} left OPERATIONAL: {shown}",
+                                   StopReason.DRIVE_STATE))
 
     def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 2:
@@ -151,6 +197,11 @@ class DriveMaster:
         self.state.faults.append(event)
         log.warning("drive fault: %s", event.describe())
         self.fault.set()
+
+    @property
+    def first_fault(self) -> FaultEvent | None:
+        """The first fault seen while armed (the cause; later ones are consequences)."""
+        return self.state.faults[0] if self.state.faults else None
 
     def check_device_type(self) -> None:
         """SDO read of 0x1000 against the profile's device type."""
@@ -281,6 +332,7 @@ class DriveMaster:
         self._watchdog = threading.Thread(target=self._watch, name="drive-watchdog",
                                           daemon=True)
         self._watchdog.start()
+        self._armed = True
 
     def _watch(self) -> None:
         """Drive heartbeat consumer: no heartbeat within the profile's
@@ -319,6 +371,74 @@ class DriveMaster:
                     f"0x{sw:04X} after controlword 0x{cw:04X}. The drive may be in fault or "
                     "refuse to enable (check its EMCY messages and DC link).")
 
+    def _power_off_confirmed(self, report: ShutdownReport) -> bool:
+        """Controlword 'disable voltage' by SDO, then the statusword until the power stage is
+        off (at most 1 s); False when the drive does not answer or stays on."""
+        try:
+            self._entry(CONTROLWORD, 0).raw = Controlword.DISABLE_VOLTAGE
+            report.steps.append("controlword disable voltage (SDO)")
+            t_end = time.monotonic() + 1.0
+            while True:
+                state = State.from_statusword(int(self._entry(STATUSWORD, 0).raw))
+                report.state = state.name if state is not None else None
+                if state in POWER_OFF_STATES:
+                    report.steps.append(f"statusword confirms {state.name}")
+                    return True
+                if time.monotonic() > t_end:
+                    report.steps.append(f"statusword still {report.state} after 1 s")
+                    return False
+                time.sleep(0.005)
+        except Exception as exc:
+            report.steps.append(f"no SDO answer ({type(exc).__name__}: {exc})")
+            log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
+            return False
+
+    def _reset_node_confirmed(self, report: ShutdownReport) -> bool:
+        """NMT reset node: the drive restarts with its power stage off; confirmed by its
+        boot-up message."""
+        self._booted.clear()
+        try:
+            self.node.nmt.send_command(NmtCommand.RESET_NODE)
+        except Exception as exc:
+            report.steps.append(f"NMT reset node not sent: {exc}")
+            return False
+        report.steps.append("NMT reset node")
+        if self._booted.wait(max(1.0, self.profile.boot_timeout_s)):
+            report.steps.append("boot-up confirms the reset")
+            report.state = None
+            return True
+        report.steps.append("no boot-up after the reset")
+        return False
+
+    def bring_down(self) -> ShutdownReport:
+        """Power stage off, confirmed (see the module docstring, step 5)."""
+        report = ShutdownReport()
+        reset = False
+        safe = self._power_off_confirmed(report)
+        if not safe:
+            try:
+                self.node.nmt.state = NmtState.PRE_OPERATIONAL
+                report.steps.append("NMT pre-operational")
+            except Exception as exc:
+                report.steps.append(f"NMT pre-operational not sent: {exc}")
+            safe = self._power_off_confirmed(report)
+        if not safe:
+            safe = reset = self._reset_node_confirmed(report)
+        report.safe = safe
+        if safe and not reset:
+            try:
+                self.node.nmt.state = NmtState.PRE_OPERATIONAL
+                # confirmed off: the drive need no longer watch the gateway's heartbeat
+                self._entry(0x1016, 1).raw = 0
+                report.supervision_off = True
+                report.steps.append("NMT pre-operational, 0x1016:1 = 0")
+            except Exception as exc:
+                report.steps.append(f"NMT pre-operational / 0x1016 off failed: {exc}")
+        elif not safe:
+            report.steps.append("power stage NOT confirmed off: the gateway's heartbeat stops "
+                                "with the drive's supervision on, so the drive trips itself")
+        return report
+
     def disable(self) -> None:
         """Controlword 'disable voltage' (power stage off); best effort, never raises."""
         try:
@@ -326,20 +446,16 @@ class DriveMaster:
         except Exception as exc:
             log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
 
-    def shutdown(self) -> None:
-        """Disable voltage, NMT PRE-OPERATIONAL, stop the heartbeat and the notifier.
+    def shutdown(self) -> ShutdownReport | None:
+        """Bring the drive down safely (:meth:`bring_down`), stop the heartbeat and the
+        notifier; returns the report (None if the bus was never connected).
 
         Safe to call twice and after partial start-up; does not shut the bus down.
         """
         self._stop_watchdog.set()
-        if self._connected:
-            self.disable()
-            try:
-                self.node.nmt.state = NmtState.PRE_OPERATIONAL
-                # the gateway's heartbeat is about to stop: the drive no longer watches it
-                self._entry(0x1016, 1).raw = 0
-            except Exception as exc:
-                log.warning("NMT pre-operational / heartbeat consumer off failed: %s", exc)
+        self._armed = False
+        if self._connected and self.shutdown_report is None:
+            self.shutdown_report = self.bring_down()
         if self._heartbeat_task is not None:
             try:
                 self._heartbeat_task.stop()
@@ -350,3 +466,4 @@ class DriveMaster:
             self.network.notifier.stop(1.0)
             self.network.notifier = None
         self._connected = False
+        return self.shutdown_report

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -148,7 +149,7 @@ def summary_table(summary: Mapping[str, Any]) -> str:
 
 
 def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
-    """summary.json, pretty-printed, NaN/inf written as null."""
+    """summary.json, pretty-printed, NaN/inf written as null, replaced atomically."""
 
     def clean(x: Any) -> Any:
         if isinstance(x, float) and not math.isfinite(x):
@@ -159,7 +160,14 @@ def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
             return [clean(v) for v in x]
         return x
 
-    path.write_text(json.dumps(clean(summary), indent=2, sort_keys=False) + "\n")
+    text = json.dumps(clean(summary), indent=2, sort_keys=False) + "\n"
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)  # readers see the old summary or the new one, never half
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "") -> list[Path]:

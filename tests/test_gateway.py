@@ -226,7 +226,7 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     th.join(10)
     assert not th.is_alive()
     s = result["summary"]
-    assert s["run"]["stop_reason"] == "drive fault"
+    assert s["run"]["stop"] == "DRIVE_FAULT" and "0x8210" in s["run"]["stop_reason"]
     assert any(f["code"] == 0x8210 for f in s["faults"])
     assert_disabled(emu)
 
@@ -242,8 +242,11 @@ def test_lost_drive_stops_the_loop(emulator, tmp_path):
     assert not th.is_alive()
     s = result["summary"]
     reason = s["run"]["stop_reason"]
-    assert reason == "drive fault" or "without the drive's TPDOs" in reason
+    assert ((s["run"]["stop"] == "DRIVE_FAULT" and "heartbeat" in reason)
+            or (s["run"]["stop"] == "DRIVE_LOST" and "without the drive's TPDOs" in reason))
     assert s["run"]["cycles"] < 30000
+    # a silent drive cannot confirm its power stage off: said, and never exit 0
+    assert s["shutdown"]["safe"] is False and s["run"]["exit_status"] == 1
 
 
 # ----------------------------------------------------------------- bad input
