@@ -270,7 +270,10 @@ class CycleLoop:
             self._open_locked(timestamp)
 
     def _open_locked(self, timestamp: float) -> None:
-        """A SYNC went out: cycle k begins; the previous one, if incomplete, is missed."""
+        """A SYNC went out: cycle k begins; the previous one, if incomplete, is missed
+        (unless the master saw a fault, which is then the cause)."""
+        if self._drive_faulted():
+            return
         if self._k > self._k_done and self._k_done < self.cfg.n_cycles:
             self._miss()
         self._k += 1
@@ -499,7 +502,9 @@ class CycleLoop:
         self._sync_thread.start()
 
     def _sync_thread_main(self) -> None:
-        """SYNC on an absolute schedule: sleep until SPIN_MARGIN before, then spin.
+        """SYNC on an absolute schedule: sleep until SPIN_MARGIN before, then spin. A thread
+        held up for more than a period (the host stalled) shifts its schedule: the SYNCs it
+        could not send are not sent later in a burst, which the drive could not follow.
 
         The spin yields the interpreter lock every turn (``sleep(0)``): a plain busy loop
         would hold it for the whole switch interval and starve the receive threads.
@@ -510,6 +515,10 @@ class CycleLoop:
         while not self._stop.is_set():
             k += 1
             target = t0 + (k - 1) * T
+            late = time.perf_counter() - target
+            if late > T:  # the thread was held up: shift the schedule, never send a burst
+                t0 += late
+                target += late
             remaining = target - time.perf_counter()
             if remaining > SPIN_MARGIN:
                 time.sleep(remaining - SPIN_MARGIN)

@@ -41,6 +41,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from dbc.cia301 import (
     EMCY_BASE,
     HEARTBEAT_BASE,
+    NMT_ID,
     RPDO_COMM,
     RPDO_MAP,
     TPDO_COMM,
@@ -155,7 +156,7 @@ class DriveMaster:
         self.network.subscribe(EMCY_BASE + self.node_id, self._on_emcy)
         self._booted.clear()
         # reset communication (callbacks already registered)
-        self.node.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
+        self.nmt_command(NmtCommand.RESET_COMMUNICATION)
         if not self._booted.wait(self.profile.boot_timeout_s):
             raise UserError(
                 f"no drive at node {self.node_id} on the bus: no boot-up within "
@@ -164,6 +165,11 @@ class DriveMaster:
                 "for the emulator that `hil-plant run` is running on the same channel "
                 "(`hil-gateway scan` lists the nodes present).")
         self.check_device_type()
+
+    def nmt_command(self, command: NmtCommand) -> None:
+        """Send an NMT command to the drive (python-canopen's NMT object is not used: its
+        bookkeeping fails on a heartbeat byte it does not know)."""
+        self.network.send_message(NMT_ID, bytes([command, self.node_id]))
 
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
@@ -280,7 +286,7 @@ class DriveMaster:
         cob_ids: the COB-ID of each PDO. mode: 0x6060 value. emulator_objects: EDS name →
         value for the emulator's own objects (ignored on drives without them).
         """
-        self.node.nmt.state = NmtState.PRE_OPERATIONAL
+        self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
         p = self.profile
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
             self.write_by_name(name, value)
@@ -326,7 +332,7 @@ class DriveMaster:
         msg = can.Message(arbitration_id=HEARTBEAT_BASE + GATEWAY_NODE_ID,
                           data=[NmtState.OPERATIONAL.heartbeat], is_extended_id=False)
         self._heartbeat_task = self.bus.send_periodic(msg, hb_period)
-        self.node.nmt.state = NmtState.OPERATIONAL
+        self.nmt_command(NmtCommand.START)
         self.state.last_heartbeat = time.monotonic()
         self._stop_watchdog.clear()
         self._watchdog = threading.Thread(target=self._watch, name="drive-watchdog",
@@ -398,7 +404,7 @@ class DriveMaster:
         boot-up message."""
         self._booted.clear()
         try:
-            self.node.nmt.send_command(NmtCommand.RESET_NODE)
+            self.nmt_command(NmtCommand.RESET_NODE)
         except Exception as exc:
             report.steps.append(f"NMT reset node not sent: {exc}")
             return False
@@ -417,7 +423,7 @@ class DriveMaster:
         safe = self._power_off_confirmed(report)
         if not safe:
             try:
-                self.node.nmt.state = NmtState.PRE_OPERATIONAL
+                self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
                 report.steps.append("NMT pre-operational")
             except Exception as exc:
                 report.steps.append(f"NMT pre-operational not sent: {exc}")
@@ -427,13 +433,15 @@ class DriveMaster:
         report.safe = safe
         if safe and not reset:
             try:
-                self.node.nmt.state = NmtState.PRE_OPERATIONAL
+                self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
+                report.steps.append("NMT pre-operational")
                 # confirmed off: the drive need no longer watch the gateway's heartbeat
                 self._entry(0x1016, 1).raw = 0
                 report.supervision_off = True
-                report.steps.append("NMT pre-operational, 0x1016:1 = 0")
+                report.steps.append("0x1016:1 = 0")
             except Exception as exc:
-                report.steps.append(f"NMT pre-operational / 0x1016 off failed: {exc}")
+                report.steps.append(f"NMT pre-operational / 0x1016 off failed: "
+                                    f"{type(exc).__name__}: {exc}")
         elif not safe:
             report.steps.append("power stage NOT confirmed off: the gateway's heartbeat stops "
                                 "with the drive's supervision on, so the drive trips itself")

@@ -358,6 +358,10 @@ def run_gateway(
         if signals.requested.is_set():
             loop.request_stop(signals.reason)
         stats = loop.run(progress)
+        if stats.stop is StopReason.DRIVE_LOST:
+            # TPDOs stop before the heartbeat tells why (a reset, NMT pre-operational): give
+            # the drive one heartbeat to name the cause
+            master.fault.wait(1.5 * drive.heartbeat_ms / 1e3)
     except KeyboardInterrupt:
         error = None
         signals.reason = signals.reason or "interrupted during start-up"
@@ -396,6 +400,8 @@ def _final_stop(stats: Any, master: DriveMaster, interrupt_reason: str
     fault = master.first_fault
     if stop is StopReason.END_OF_PROFILE and fault is not None:
         stop, message = fault.reason, f"{fault.describe()} (after the last cycle)"
+    elif stop is StopReason.DRIVE_LOST and fault is not None:
+        stop, message = fault.reason, f"{fault.describe()} ({message})"
     return stop, message
 
 
@@ -416,10 +422,11 @@ def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
         summary["timing"] = timing_stats(sig, cfg.period, cfg.timing is Timing.REALTIME)
     stop, message = _final_stop(stats, master, interrupt_reason)
     shutdown = master.shutdown_report
-    safe = shutdown is not None and shutdown.safe
     exit_status = stop.exit_status
-    if shutdown is not None and not safe:
+    if shutdown is not None and not shutdown.safe:
         exit_status = 1
+        if stop in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
+            stop, message = StopReason.UNSAFE, f"{message}; then {StopReason.UNSAFE.value}"
     summary["run"] = {
         "status": "finished",
         "stop": stop.name,
