@@ -233,6 +233,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-missed", type=int,
                    help="consecutive missed cycles that stop the loop (default: real time 50 "
                         "ms worth, at least 5 (50 at 1 ms); lockstep 5, each after 1 s)")
+    p.add_argument("--max-miss-rate", type=float, default=0.2, metavar="FRACTION",
+                   help="the fraction of cycles that may be missed within any 100 ms before "
+                        "the run stops (default 0.2; 1 switches the rate limit off)")
     p.add_argument("--log", default="bus.blf", metavar="NAME",
                    help="raw bus log in the run directory; .blf (default), .asc, .csv, .log "
                         "(candump) or .trc by suffix")
@@ -265,6 +268,8 @@ def _run_config(args: argparse.Namespace, drive: Any):
     period = parse_duration(args.period, "--period")
     if args.max_missed is not None and args.max_missed < 1:
         raise UserError(f"--max-missed {args.max_missed}: give a number of cycles >= 1")
+    if not 0.0 < args.max_miss_rate <= 1.0:
+        raise UserError(f"--max-miss-rate {args.max_miss_rate}: give a fraction in (0, 1]")
     return RunConfig(
         law=law, flux=args.flux, estimator=args.estimator, drive_mode=mode,
         sampling=Sampling(period, args.delay, drive.setpoint_frame), timing=args.timing,
@@ -272,6 +277,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
         # real time: 50 ms worth of cycles; lockstep waits 1 s per cycle already: 5
         max_missed=args.max_missed or (max(5, round(0.05 / period))
                                        if args.timing is Timing.REALTIME else 5),
+        max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
     )
 

@@ -298,7 +298,7 @@ class CycleLoop:
                          f"{self._consecutive_missed} consecutive cycles without the drive's "
                          f"TPDOs (missing in cycle {k}: {', '.join(missing)}; drive lost or "
                          "bus overloaded)")
-        elif len(misses) > self.cfg.max_miss_rate * window:
+        elif len(misses) > self.cfg.max_miss_rate * window and self.cfg.max_miss_rate < 1:
             self._finish(StopReason.DRIVE_LOST,
                          f"{len(misses)} of the last {window} cycles missed (more than "
                          f"{self.cfg.max_miss_rate:.0%} within {window * self._T * 1e3:g} ms; "

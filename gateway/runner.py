@@ -75,6 +75,7 @@ class RunConfig:
     gains: Gains = field(default_factory=Gains)
     bus_log: str = "bus.blf"
     max_missed: int = 5
+    max_miss_rate: float = 0.2
     duration: float | None = None
 
     def __post_init__(self) -> None:
@@ -315,7 +316,8 @@ def run_gateway(
     n_cycles = round(duration / cfg.period)
     plausibility, envelope = guards(drive, profile, motor, cfg)
     loop_cfg = LoopConfig(n_cycles=n_cycles, sampling=cfg.sampling, timing=cfg.timing,
-                          max_missed=cfg.max_missed, plausibility=plausibility,
+                          max_missed=cfg.max_missed, max_miss_rate=cfg.max_miss_rate,
+                          plausibility=plausibility,
                           envelope=envelope)
     signals = signals or StopSignals()
     configuration = _configuration(cfg, drive, profile, node_id, bus_label)
