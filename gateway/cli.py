@@ -216,6 +216,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     _add_control_options(p)
     p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
                    "profile's, 1)")
+    p.add_argument("--gateway-node", type=int, metavar="N",
+                   help="the gateway's own node id (its heartbeat, which the drive watches); "
+                        "default: the drive profile's [drive].gateway_node, 127 (0x7F)")
     p.add_argument("--period", default="1ms", help="cycle period (SYNC), e.g. 1ms (default)")
     p.add_argument("--timing", type=Timing, choices=list(Timing), default=Timing.LOCKSTEP,
                    help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
@@ -249,6 +252,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
     from dbc.timing import Sampling
     from gateway.control.controller import FluxSource
     from gateway.loop import Timing
+    from gateway.process_data import process_data
     from gateway.runner import RunConfig
 
     law = args.law
@@ -272,7 +276,8 @@ def _run_config(args: argparse.Namespace, drive: Any):
         raise UserError(f"--max-miss-rate {args.max_miss_rate}: give a fraction in (0, 1]")
     return RunConfig(
         law=law, flux=args.flux, estimator=args.estimator, drive_mode=mode,
-        sampling=Sampling(period, args.delay, drive.setpoint_frame), timing=args.timing,
+        sampling=Sampling(period, args.delay, process_data(drive).setpoint_frame),
+        timing=args.timing,
         gains=_gains(args), bus_log=args.log,
         # real time: 50 ms worth of cycles; lockstep waits 1 s per cycle already: 5
         max_missed=args.max_missed or (max(5, round(0.05 / period))
@@ -323,9 +328,13 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     cfg = _run_config(args, drive)
-    node = args.node or drive.node
+    node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
+    gateway_node = args.gateway_node if args.gateway_node is not None else drive.gateway_node
+    if not 1 <= gateway_node <= 127 or gateway_node == node:
+        raise UserError(f"--gateway-node {gateway_node}: the gateway's node id is 1..127 and "
+                        f"not the drive's ({node})")
     out = _out_dir(args.out, kind)
     signals = StopSignals()
     with signals.installed():
@@ -333,6 +342,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
         try:
             progress = Progress(f"{kind} {label}", True if args.progress else None)
             summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
+                                  gateway_node=args.gateway_node,
                                   own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
                                   progress=progress, signals=signals, bus_label=label)
             progress.done()

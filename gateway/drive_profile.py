@@ -40,7 +40,7 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -49,7 +49,7 @@ from gateway.errors import UserError
 
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
-              "emulator": bool},
+              "emulator": bool, "gateway_node": int, "dbc_node": int},
     "modes": {"current": int, "voltage": int},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
             "truth": str, "remap": bool},
@@ -57,6 +57,7 @@ _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
                "drive_heartbeat_timeout_ms": int,
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
     "limits": {"current_peak_a": (int, float), "dc_link_v": list},
+    "signals": {},  # role = "MESSAGE.signal": any role of dbc/signals.py
 }
 #: Ranges of the timing keys: (low, high, unit, what it is).
 _TIMING_RANGES: dict[str, tuple[float, float, str, str]] = {
@@ -107,11 +108,10 @@ class DriveProfile:
     sdo_timeout_s: float = 0.5
     current_peak_a: float | None = None
     dc_link_v: tuple[float, float] | None = None
+    signals: dict[str, tuple[str, str]] = field(default_factory=dict)
+    gateway_node: int = 0x7F
+    dbc_node: int | None = None
 
-    @property
-    def setpoint_frame(self) -> str:
-        """'ab' when the setpoint message is the (a, b) mapping, else 'dq'."""
-        return "ab" if self.setpoints.upper().endswith("_AB") else "dq"
 
 
 def _builtin(name: str) -> Path:
@@ -153,6 +153,9 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         if not isinstance(value, dict):
             raise UserError(f"{source}: [{section}] must be a table")
         for key, v in value.items():
+            if section == "signals":
+                _check_signal(source, key, v)
+                continue
             types = _SECTIONS[section].get(key)
             if types is None:
                 raise UserError(f"{source}: unknown key [{section}].{key}; the keys of "
@@ -163,7 +166,8 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         if key not in data.get(section, {}):
             raise UserError(f"{source}: [{section}].{key} is missing; add it (see "
                             "gateway/drives/emulator.toml for an example)")
-    d, m, p, t, lim = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing", "limits"))
+    d, m, p, t, lim, sg = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing",
+                                                     "limits", "signals"))
     for key, value in t.items():
         lo, hi, unit, what = _TIMING_RANGES[key]
         if not lo <= value <= hi:  # NaN and inf too
@@ -180,8 +184,13 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         raise UserError(f"{source}: [limits].dc_link_v = {dc!r} must be [low, high] in V with "
                         "0 <= low < high")
     node = d.get("node", 1)
-    if not 1 <= node <= 127:
-        raise UserError(f"{source}: [drive].node = {node}: a CANopen node id is 1..127")
+    for key, value in (("node", node), ("gateway_node", d.get("gateway_node", 0x7F)),
+                       ("dbc_node", d.get("dbc_node", node))):
+        if not 1 <= value <= 127:
+            raise UserError(f"{source}: [drive].{key} = {value}: a CANopen node id is 1..127")
+    if d.get("gateway_node", 0x7F) == node:
+        raise UserError(f"{source}: [drive].gateway_node = {node} is the drive's node id: the "
+                        "gateway's heartbeat would look like the drive's; choose another")
     prof = DriveProfile(
         name=d.get("name", Path(source).stem), source=source,
         eds=_resolve(d["eds"], base), dbc=_resolve(d["dbc"], base), node=node,
@@ -198,6 +207,8 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         sdo_timeout_s=float(t.get("sdo_timeout_s", 0.5)),
         current_peak_a=None if peak is None else float(peak),
         dc_link_v=None if dc is None else (float(dc[0]), float(dc[1])),
+        signals={role: _message_signal(v) for role, v in sg.items()},
+        gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
     )
     for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
         if not path.is_file():
@@ -207,6 +218,23 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
     _check_dbc(prof, [n for n in (prof.control, prof.setpoints, prof.load, prof.currents,
                                   prof.voltages, prof.truth) if n])
     return prof
+
+
+def _message_signal(value: str) -> tuple[str, str]:
+    message, signal = value.split(".", 1)
+    return message, signal
+
+
+def _check_signal(source: str, role: str, value: object) -> None:
+    from dbc.signals import ROLES
+
+    if role not in ROLES:
+        raise UserError(f"{source}: [signals].{role} is not a role of the gateway; the roles "
+                        f"are {', '.join(sorted(ROLES))}")
+    if not isinstance(value, str) or value.count(".") != 1 or value.startswith(".") or \
+            value.endswith("."):
+        raise UserError(f"{source}: [signals].{role} = {value!r}: write \"MESSAGE.signal\" of "
+                        "the profile's DBC, e.g. \"TPDO1.Ia\"")
 
 
 def _check_eds(prof: DriveProfile) -> None:

@@ -28,17 +28,16 @@ class Plausibility:
     u_dc_min: float | None = None
     u_dc_max: float | None = None
 
-    def check(self, tpdo1: Mapping[str, float], tpdo2: Mapping[str, float]) -> str | None:
-        """None, or what is implausible in the decoded TPDO values."""
-        for values in (tpdo1, tpdo2):
-            for name, v in values.items():
-                if not math.isfinite(v):
-                    return f"{name} = {v} is not a number"
-        i = math.hypot(tpdo1["i_sa"], tpdo1["i_sb"])
+    def check(self, measured: Mapping[str, float]) -> str | None:
+        """None, or what is implausible in the drive's decoded role values."""
+        for name, v in measured.items():
+            if not math.isfinite(v):
+                return f"{name} = {v} is not a number"
+        i = math.hypot(measured["i_sa"], measured["i_sb"])
         if i > self.i_peak:
-            return (f"|i_s| = {i:.3f} A (i_sa {tpdo1['i_sa']:.3f}, i_sb {tpdo1['i_sb']:.3f}) "
-                    f"beyond the drive's peak current {self.i_peak:g} A")
-        u_dc = tpdo2.get("u_dc")
+            return (f"|i_s| = {i:.3f} A (i_sa {measured['i_sa']:.3f}, i_sb "
+                    f"{measured['i_sb']:.3f}) beyond the drive's peak current {self.i_peak:g} A")
+        u_dc = measured.get("u_dc")
         if u_dc is not None:
             lo = self.u_dc_min if self.u_dc_min is not None else 0.0
             hi = self.u_dc_max if self.u_dc_max is not None else math.inf

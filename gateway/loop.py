@@ -34,7 +34,7 @@ import math
 import sys
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -44,11 +44,11 @@ import can
 
 from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, sync_counter
 from dbc.cia402 import SW_FAULT, State
-from dbc.signals import SETPOINT_MESSAGE
 from dbc.timing import Sampling
 from gateway.control.controller import Controller
 from gateway.cycle import ControlCycle, CycleRow, ReferenceProfile
 from gateway.guard import Envelope, Plausibility
+from gateway.process_data import ProcessData
 from gateway.report import Record
 from gateway.stop import StopReason
 
@@ -148,17 +148,10 @@ class LoopStats:
     stop: StopReason | None = None
     stop_reason: str = ""
     stop_cycle: int = 0  #: the cycle open when the loop stopped (0: before the first)
+    #: TPDOs not used, with why: '<PDO> late', 'early', 'stale', 'wrong length'
+    tpdo_events: Counter[str] = field(default_factory=Counter)
     last_good_cycle: int = 0  #: the last cycle completed and sent
     wall_time: float = 0.0
-
-
-class PdoNames:
-    """The DBC message names the loop uses (from the drive profile)."""
-
-    def __init__(self, currents: str, voltages: str, truth: str | None, control: str,
-                 setpoints: str, load: str | None) -> None:
-        self.currents, self.voltages, self.truth = currents, voltages, truth
-        self.control, self.setpoints, self.load = control, setpoints, load
 
 
 class CycleLoop:
@@ -168,8 +161,7 @@ class CycleLoop:
         self,
         bus: can.BusABC,
         subscribe: Callable[[int, Callable[[int, bytearray, float], None]], None],
-        codec: Any,
-        names: PdoNames,
+        pd: ProcessData,
         controller: Controller,
         profile: ReferenceProfile,
         cfg: LoopConfig,
@@ -178,8 +170,7 @@ class CycleLoop:
         fault_cause: Callable[[], tuple[StopReason, str] | None] | None = None,
     ) -> None:
         self.bus = bus
-        self.codec = codec
-        self.names = names
+        self.pd = pd
         self.ctl = controller
         self.cycle = ControlCycle(controller, profile, cfg.sampling)
         self.cfg = cfg
@@ -199,11 +190,10 @@ class CycleLoop:
         self._stop = threading.Event()
         self._error: BaseException | None = None
         self._T = cfg.sampling.period
-        # the frames the controller needs, in the order the drive sends them
-        self._expected = [names.currents, names.voltages] + ([names.truth] if names.truth else [])
-        self._ids = {codec.frame_id(n): n for n in self._expected}
-        self._first_name = self._expected[0]
-        self._last_name = self._expected[-1]
+        # the drive's TPDOs: all of them make a cycle's measurement, in any order
+        self._expected = {p.name: p for p in pd.tpdos}
+        self._ids = {p.cob_id: p for p in pd.tpdos}
+        self._echo = pd.pdo("sync_counter") if "sync_counter" in pd.roles else None
         self._stale = False
         self._frames: dict[str, bytes] = {}
         self._tpdo_time = 0.0
@@ -213,20 +203,11 @@ class CycleLoop:
         self._sync_time = math.nan
         self._sync_prev = math.nan
         self._progress_at = time.monotonic()
-        rpdo2_expected = SETPOINT_MESSAGE[cfg.sampling.setpoint_frame]
-        # (COB-ID, DBC message, key of rpdos_from_command's result)
-        self._rpdo: list[tuple[int, str, str]] = [
-            (codec.frame_id(names.control), names.control, "RPDO1"),
-            (codec.frame_id(names.setpoints), names.setpoints, rpdo2_expected),
-        ]
-        if names.load:
-            self._rpdo.append((codec.frame_id(names.load), names.load, "RPDO3"))
-        if names.setpoints != rpdo2_expected:
-            raise ValueError(f"setpoint message {names.setpoints} does not carry the "
-                             f"{cfg.sampling.setpoint_frame} frame ({rpdo2_expected})")
+        if pd.setpoint_frame is not cfg.sampling.setpoint_frame:
+            raise ValueError(f"the drive's setpoints are in the {pd.setpoint_frame} frame, "
+                             f"not {cfg.sampling.setpoint_frame}")
         self._sync_task: Any = None
         self._sync_thread: threading.Thread | None = None
-        self._lengths = {n: codec.messages[n].length for n in self._expected}
         for cob_id in self._ids:
             subscribe(cob_id, self._on_tpdo)
         subscribe(SYNC_ID, self._on_own_sync if own_echo else self._on_foreign_sync)
@@ -305,27 +286,34 @@ class CycleLoop:
                          f"last missing: {', '.join(missing)}): the loop cannot keep its rate")
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """A TPDO of the drive: it belongs to the cycle open since the last SYNC; the cycle
+        is complete when every TPDO is in, in any order."""
         t_arrival = time.perf_counter()
-        name = self._ids.get(can_id)
-        if name is None or self._done.is_set():
+        pdo = self._ids.get(can_id)
+        if pdo is None or self._done.is_set():
             return
         with self._lock:
             self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
-            if len(data) != self._lengths[name]:
+            if len(data) != pdo.length:
+                self.stats.tpdo_events[f"{pdo.name} wrong length"] += 1
                 self._finish(StopReason.BAD_FRAME,
-                             f"{name} (COB-ID 0x{can_id:03X}) of {len(data)} bytes, expected "
-                             f"{self._lengths[name]}: not decoded (a wrong PDO mapping on the "
+                             f"{pdo.name} (COB-ID 0x{can_id:03X}) of {len(data)} bytes, "
+                             f"expected {pdo.length}: not decoded (a wrong PDO mapping on the "
                              "drive, or another node on this COB-ID)")
                 return
             if self._k <= self._k_done:
-                return  # a TPDO outside an open cycle (late, or before the first SYNC)
-            if name == self._first_name and self.cfg.sync_counter:
-                counter = self.codec.decode(name, data).get("sync_counter")
-                self._stale = counter is not None and counter != sync_counter(self._k)
+                # after its cycle (late) or before the first SYNC (early)
+                self.stats.tpdo_events[f"{pdo.name} {'late' if self._k else 'early'}"] += 1
+                return
+            if pdo is self._echo and self.cfg.sync_counter:
+                counter = pdo.codec.decode(data)["sync_counter"]
+                self._stale = counter != sync_counter(self._k)
             if self._stale:
-                return  # the answer to an earlier SYNC, arriving in this cycle: not ours
-            self._frames[name] = bytes(data)
-            if name != self._last_name or len(self._frames) < len(self._expected):
+                # the answer to an earlier SYNC, arriving in this cycle: not ours
+                self.stats.tpdo_events[f"{pdo.name} stale"] += 1
+                return
+            self._frames[pdo.name] = bytes(data)
+            if len(self._frames) < len(self._expected):
                 return
             self._tpdo_time = timestamp
             try:
@@ -341,15 +329,13 @@ class CycleLoop:
         """Check, decode, step, guard, encode, send (lock held)."""
         k = self._k
         cfg = self.cfg
-        codec = self.codec
-        names = self.names
         fr = self._frames
         if self._drive_faulted():
             return
-        tp1 = codec.decode(names.currents, fr[names.currents])
-        tp2 = codec.decode(names.voltages, fr[names.voltages])
-        tp3 = codec.decode(names.truth, fr[names.truth]) if names.truth else None
-        sw = int(tp1["statusword"])
+        measured: dict[str, float] = {}
+        for name, pdo in self._expected.items():
+            measured.update(pdo.codec.decode(fr[name]))
+        sw = int(measured["statusword"])
         state = State.from_statusword(sw)
         if state is not State.OPERATION_ENABLED:
             stop = StopReason.DRIVE_FAULT if sw & SW_FAULT else StopReason.DRIVE_STATE
@@ -358,11 +344,11 @@ class CycleLoop:
                                "Operation enabled")
             return
         if cfg.plausibility is not None:
-            why = cfg.plausibility.check(tp1, tp2)
+            why = cfg.plausibility.check(measured)
             if why:
                 self._finish(StopReason.IMPLAUSIBLE, f"cycle {k}: {why}")
                 return
-        rpdos, row = self.cycle.step(k, tp1, tp2, tp3)
+        setpoints, row = self.cycle.step(k, measured)
         if cfg.envelope is not None:
             why = cfg.envelope.check(row)
             self._outside = self._outside + 1 if why else 0
@@ -371,8 +357,7 @@ class CycleLoop:
                                                   f"{self._outside} cycles in a row")
                 return
         send = self.bus.send
-        for cob_id, name, key in self._rpdo:
-            data = codec.encode(name, rpdos[key])
+        for cob_id, _name, data in self.pd.encode(setpoints):
             send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
             self.recent.append((time.time(), "tx", cob_id, data.hex()))
         t_sent = time.perf_counter()
@@ -383,7 +368,7 @@ class CycleLoop:
         if cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T:
             self.stats.late_rpdo += 1  # the next SYNC was due before the RPDOs went out
         self.record.append(LoopRow(
-            *row, float(sw), float(tp1.get("sync_counter", 0)),
+            *row, float(sw), float(measured.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
             t_sent - t_arrival, float(self.stats.missed),
         ))

@@ -36,16 +36,13 @@ from dataclasses import dataclass, field
 
 import can
 import canopen
+from canopen.pdo.base import PdoMap
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dbc.cia301 import (
     EMCY_BASE,
     HEARTBEAT_BASE,
     NMT_ID,
-    RPDO_COMM,
-    RPDO_MAP,
-    TPDO_COMM,
-    TPDO_MAP,
     Emcy,
     NmtCommand,
     NmtState,
@@ -62,12 +59,11 @@ from dbc.cia402 import (
 )
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
+from gateway.process_data import Pdo, ProcessData
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
 
-#: The gateway's own node id for its heartbeat (0x700 + id); 0x7F is conventional for masters.
-GATEWAY_NODE_ID = 0x7F
 
 
 @dataclass
@@ -120,10 +116,18 @@ POWER_OFF_STATES = (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
 class DriveMaster:
     """NMT, SDO configuration, CiA 402 enable/disable and monitoring of one drive."""
 
-    def __init__(self, bus: can.BusABC, profile: DriveProfile, node_id: int | None = None) -> None:
+    def __init__(self, bus: can.BusABC, profile: DriveProfile, node_id: int | None = None,
+                 gateway_node: int | None = None) -> None:
         self.bus = bus
         self.profile = profile
         self.node_id = node_id or profile.node
+        self.gateway_node = gateway_node or profile.gateway_node
+        if self.gateway_node == self.node_id:
+            raise UserError(f"the gateway's node id {self.gateway_node} (its heartbeat) is the "
+                            f"drive's: choose another with --gateway-node or [drive].gateway_node "
+                            f"in {profile.source}")
+        #: what the configuration left out (objects the drive has not), for the account
+        self.notes: list[str] = []
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1
         try:
@@ -277,59 +281,141 @@ class DriveMaster:
 
     # ------------------------------------------------------------------ configuration
 
-    def configure(self, period: float, pdo_map: dict[str, list[tuple[int, int, int]]],
-                  cob_ids: dict[str, int], mode: int, emulator_objects: dict[str, int | float],
-                  sync_overflow: int = 0) -> None:
-        """PRE-OPERATIONAL configuration by SDO (see the module docstring).
+    def has(self, index: int) -> bool:
+        """The drive's EDS has object ``index``."""
+        return index in self.node.object_dictionary
 
-        pdo_map: for each PDO ('RPDO1', 'TPDO2', ...), the mapped (index, sub, bits).
-        cob_ids: the COB-ID of each PDO. mode: 0x6060 value. emulator_objects: EDS name →
-        value for the emulator's own objects (ignored on drives without them).
+    def _optional(self, index: int, sub: int, value: int, what: str) -> bool:
+        """Write an optional communication object only where the EDS has it; else noted."""
+        if not self.has(index):
+            self.notes.append(f"0x{index:04X} ({what}) not written: the drive's EDS has none")
+            return False
+        self.sdo_write(index, sub, value, what)
+        return True
+
+    def configure(self, period: float, pd: ProcessData, remap: bool, mode: int,
+                  emulator_objects: dict[str, int | float], sync_overflow: int = 0) -> bool:
+        """PRE-OPERATIONAL configuration by SDO (see the module docstring); returns whether
+        SYNC carries a counter (0x1019 written).
+
+        pd: the drive's process data; remap: write each PDO's mapping (else read it back
+        and check it against the DBC). mode: 0x6060 value. emulator_objects: EDS name →
+        value for the emulator's own objects (ignored on drives without them). Optional
+        objects (0x1006, 0x1007, 0x1016, 0x1017, 0x1019) are written only where the EDS has
+        them; what was left out is in :attr:`notes`.
         """
         self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
         p = self.profile
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
             self.write_by_name(name, value)
-        if sync_overflow and 0x1019 in self.node.object_dictionary:
+        counter = False
+        if sync_overflow and self.has(0x1019):
             try:
                 self._entry(0x1019, 0).raw = sync_overflow
             except SdoAbortedError:  # CiA 301: 0x1019 may only change while 0x1006 = 0
                 self.sdo_write(0x1006, 0, 0, "cycle period 0 while 0x1019 changes")
                 self.sdo_write(0x1019, 0, sync_overflow, "SYNC counter overflow value")
-        self.sdo_write(0x1006, 0, round(period * 1e6), "communication cycle period, µs")
-        self.sdo_write(0x1007, 0, 0, "synchronous window length, µs (0 = off)")
-        self.sdo_write(0x1017, 0, p.heartbeat_ms, "producer heartbeat time, ms")
-        self.sdo_write(0x1016, 1, (GATEWAY_NODE_ID << 16) | p.heartbeat_timeout_ms,
+            counter = True
+        elif sync_overflow:
+            self.notes.append("0x1019 (SYNC counter overflow) not written: the drive's EDS has "
+                              "none; SYNC carries no counter")
+        self._optional(0x1006, 0, round(period * 1e6), "communication cycle period, µs")
+        self._optional(0x1007, 0, 0, "synchronous window length, µs (0 = off)")
+        self._optional(0x1017, 0, p.heartbeat_ms, "producer heartbeat time, ms")
+        self._optional(0x1016, 1, (self.gateway_node << 16) | p.heartbeat_timeout_ms,
                        "consumer heartbeat of the gateway")
-        for name, entries in pdo_map.items():
-            self._map_pdo(name, entries, cob_ids[name])
+        for pdo in pd.pdos:
+            if remap:
+                self._map_pdo(pdo)
+            else:
+                self._check_mapping(pdo)
         self.sdo_write(MODES_OF_OPERATION, 0, mode, "modes of operation")
+        return counter
 
-    def _map_pdo(self, name: str, entries: list[tuple[int, int, int]], cob_id: int) -> None:
-        """Write one PDO's communication and mapping parameters (CiA 301 procedure)."""
+    def _pdo_map(self, pdo: Pdo) -> PdoMap:
+        """python-canopen's map object of that PDO (number from the COB-ID)."""
+        rx, n = pdo_of(pdo.cob_id)
+        maps = self.node.rpdo if rx else self.node.tpdo
         try:
-            rx, n = pdo_of(cob_id)
-        except ValueError as exc:
-            raise UserError(f"{name}: {exc}; check the drive profile ({self.profile.source})"
-                            ) from None
-        comm = (RPDO_COMM if rx else TPDO_COMM) + n - 1
-        mapping = (RPDO_MAP if rx else TPDO_MAP) + n - 1
-        self.sdo_write(comm, 1, cob_id | 0x80000000, f"{name} COB-ID, disabled for mapping")
-        self.sdo_write(mapping, 0, 0, f"{name} mapping count 0")
-        for k, (index, sub, bits) in enumerate(entries, start=1):
-            self.sdo_write(mapping, k, (index << 16) | (sub << 8) | bits, f"{name} entry {k}")
-        self.sdo_write(mapping, 0, len(entries), f"{name} mapping count")
-        self.sdo_write(comm, 2, 1, f"{name} transmission type: synchronous, every SYNC")
-        if rx:
-            self.sdo_write(comm, 5, self.profile.rpdo_timeout_ms, f"{name} deadline, ms")
-        self.sdo_write(comm, 1, cob_id, f"{name} COB-ID, enabled")
+            return maps[n]
+        except KeyError:
+            raise UserError(f"{pdo.name}: the drive's EDS has no {'R' if rx else 'T'}PDO {n} "
+                            f"(COB-ID 0x{pdo.cob_id:03X}); check the drive profile "
+                            f"({self.profile.source})") from None
+
+    def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
+        """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and
+        statusword by index)."""
+        entries = []
+        for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
+            if role in ("controlword", "statusword"):
+                var = self.node.object_dictionary[CONTROLWORD if role == "controlword"
+                                                   else STATUSWORD]
+            else:
+                var = self.find_object(signal)
+            if var is None:
+                raise UserError(
+                    f"the drive's EDS ({self.profile.eds}) has no object named {signal!r} for "
+                    f"{pdo.name}.{signal}: name the object like the DBC signal, or set remap = "
+                    "false in the drive profile and configure the mapping on the drive")
+            entries.append((var.index, var.subindex, spec.bits))
+        return entries
+
+    def _map_pdo(self, pdo: Pdo) -> None:
+        """Write one PDO's mapping with python-canopen's map object (CiA 301 procedure:
+        disable, map, enable), synchronous every SYNC, RPDO deadline from the profile."""
+        m = self._pdo_map(pdo)
+        try:
+            m.read(from_od=True)
+            m.clear()
+            for index, sub, bits in self._objects_of(pdo):
+                m.add_variable(index, sub, bits)
+            m.cob_id = pdo.cob_id
+            m.trans_type = 1
+            m.rtr_allowed = True  # leave bit 30 clear, as the EDS defaults have it
+            if not pdo.tx:
+                m.event_timer = self.profile.rpdo_timeout_ms
+            m.enabled = True
+            m.save()
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise UserError(f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
+                            f"0x{pdo.cob_id:03X}) was refused: {exc}. Check the drive profile "
+                            f"({self.profile.source}) against the drive's EDS.") from exc
+        finally:  # the loop decodes PDOs itself: no python-canopen PDO callbacks
+            self.network.unsubscribe(pdo.cob_id, m.on_message)
+
+    def _check_mapping(self, pdo: Pdo) -> None:
+        """remap = false: read the drive's mapping of that PDO and check it carries the DBC
+        message's layout (sizes in order) on its COB-ID."""
+        m = self._pdo_map(pdo)
+        try:
+            m.read(from_od=False)
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id} "
+                            f"failed: {exc}") from exc
+        finally:
+            self.network.unsubscribe(pdo.cob_id, m.on_message)
+        bits = [v.length for v in m.map]
+        want = [s.bits for s in pdo.codec.signals]
+        problems = []
+        if (m.cob_id or 0) & 0x7FF != pdo.cob_id:
+            problems.append(f"COB-ID 0x{(m.cob_id or 0) & 0x7FF:03X}, the DBC says "
+                            f"0x{pdo.cob_id:03X}")
+        if not m.enabled:
+            problems.append("not enabled")
+        if bits != want:
+            problems.append(f"mapped sizes {bits} bits, the DBC's signals {want}")
+        if problems:
+            raise UserError(f"{pdo.name} on node {self.node_id} does not match the drive "
+                            f"profile's DBC ({'; '.join(problems)}): map it on the drive as "
+                            f"the DBC says, or set remap = true ({self.profile.source})")
 
     # ------------------------------------------------------------------ operation
 
     def start(self) -> None:
         """NMT OPERATIONAL and the gateway's heartbeat producer; the watchdog starts."""
         hb_period = max(0.01, self.profile.heartbeat_timeout_ms / 3000.0)
-        msg = can.Message(arbitration_id=HEARTBEAT_BASE + GATEWAY_NODE_ID,
+        msg = can.Message(arbitration_id=HEARTBEAT_BASE + self.gateway_node,
                           data=[NmtState.OPERATIONAL.heartbeat], is_extended_id=False)
         self._heartbeat_task = self.bus.send_periodic(msg, hb_period)
         self.nmt_command(NmtCommand.START)

@@ -16,17 +16,17 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import can
 import numpy as np
 
-from dbc import load_codec
 from dbc.cia301 import SYNC_OVERFLOW
-from dbc.modes import DriveMode
+from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
+from dbc.signals import SETPOINTS
 from dbc.timing import Sampling, internal_rate
 from gateway import report
 from gateway.buslog import LOG_SUFFIXES, write_frame
@@ -43,8 +43,9 @@ from gateway.control.profiles import Profile, demand
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.guard import Envelope, Plausibility
-from gateway.loop import CycleLoop, LoopConfig, PdoNames, Timing
+from gateway.loop import CycleLoop, LoopConfig, Timing
 from gateway.master import DriveMaster
+from gateway.process_data import ProcessData, process_data
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
@@ -242,34 +243,19 @@ def _eds_default(master: DriveMaster, name: str) -> float:
     return float(var.default)
 
 
-def pdo_layout(
-    master: DriveMaster, codec: Any, names: list[str]
-) -> dict[str, list[tuple[int, int, int]]]:
-    """Each PDO's mapping entries from its DBC signals and the EDS objects of the same name."""
-    from dbc import signal_specs
-
-    specs = signal_specs()
-    od = master.node.object_dictionary
-    layout: dict[str, list[tuple[int, int, int]]] = {}
-    for name in names:
-        entries = []
-        for sig in codec.messages[name].names:
-            if sig == "controlword":
-                obj = od[0x6040]
-            elif sig == "statusword":
-                obj = od[0x6041]
-            else:
-                try:
-                    obj = od[sig]
-                except KeyError as exc:
-                    raise UserError(
-                        f"the drive's EDS ({master.profile.eds}) has no object named {sig!r} "
-                        f"for signal {sig} of {name}: name the object like the DBC signal, or "
-                        "set remap = false in the drive profile and configure the mapping on "
-                        "the drive") from exc
-            entries.append((obj.index, obj.subindex, specs[sig].bits))
-        layout[name] = entries
-    return layout
+def required_roles(cfg: RunConfig, pd: ProcessData) -> tuple[str, ...]:
+    """The roles a run needs of the drive: CiA 402 words, the measured currents and applied
+    voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, and the
+    true flux only for ``--flux true``."""
+    frame = pd.setpoint_frame
+    i1, i2, u1, u2 = SETPOINTS[frame]
+    roles = ["controlword", "statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
+    if frame is SetpointFrame.DQ:
+        roles += ["eps_0", "w_0"]
+    roles += [u1, u2] if cfg.drive_mode is DriveMode.VOLTAGE else [i1, i2]
+    if cfg.flux is FluxSource.TRUE:
+        roles += ["psi_ra", "psi_rb"]
+    return tuple(roles)
 
 
 def guards(drive: DriveProfile, profile: Profile, motor: MotorParams, cfg: RunConfig
@@ -298,6 +284,7 @@ def run_gateway(
     progress: Callable[[float], None] | None = None,
     signals: StopSignals | None = None,
     bus_label: str = "",
+    gateway_node: int | None = None,
 ) -> dict[str, Any]:
     """Run the loop against the drive on ``bus``; returns the summary (also written to out/).
 
@@ -306,12 +293,10 @@ def run_gateway(
     bus log is flushed every second.
     """
     node_id = node or drive.node
-    codec = load_codec(node_id)
-    if cfg.sampling.setpoint_frame != drive.setpoint_frame:
+    pd = process_data(drive, node_id)
+    if cfg.sampling.setpoint_frame != pd.setpoint_frame:
         raise UserError(f"the run's setpoint frame {cfg.sampling.setpoint_frame} is not the "
-                        f"drive profile's ({drive.setpoint_frame}, {drive.source})")
-    names = PdoNames(currents=drive.currents, voltages=drive.voltages, truth=drive.truth,
-                     control=drive.control, setpoints=drive.setpoints, load=drive.load)
+                        f"drive profile's ({pd.setpoint_frame}, {drive.source})")
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / cfg.period)
     plausibility, envelope = guards(drive, profile, motor, cfg)
@@ -322,15 +307,15 @@ def run_gateway(
     signals = signals or StopSignals()
     configuration = _configuration(cfg, drive, profile, node_id, bus_label)
     recorder = BusRecorder(out / cfg.bus_log)
-    master = DriveMaster(bus, drive, node_id)
+    master = DriveMaster(bus, drive, node_id, gateway_node)
     loop: CycleLoop | None = None
     stats = None
     error: BaseException | None = None
     t_start = time.time()
     try:
         master.connect(listeners=[recorder])
-        pdos = [names.control, names.setpoints, names.currents, names.voltages]
-        pdos += [n for n in (names.load, names.truth) if n]
+        pd.require(required_roles(cfg, pd), f"the {cfg.law} law with a {cfg.drive_mode} drive",
+                   master.node.object_dictionary.indices)
         mode = (drive.mode_voltage if cfg.drive_mode is DriveMode.VOLTAGE
                 else drive.mode_current)
         emulator: dict[str, int | float] = {}
@@ -341,9 +326,9 @@ def run_gateway(
         elif cfg.sampling.delay != 1:
             raise UserError("--delay 0 (RPDOs applied on receipt) is an emulator option; a "
                             "CiA 402 drive applies synchronous RPDOs at the next SYNC (--delay 1)")
-        layout = pdo_layout(master, codec, pdos) if drive.remap else {}
-        master.configure(cfg.period, layout, {n: codec.frame_id(n) for n in pdos}, mode,
-                         emulator, sync_overflow=SYNC_OVERFLOW)
+        counter = master.configure(cfg.period, pd, drive.remap, mode, emulator,
+                                   sync_overflow=SYNC_OVERFLOW)
+        loop_cfg = replace(loop_cfg, sync_counter=counter)
         master.start()
         master.enable()
         ctl = Controller(motor, cfg.controller_config())
@@ -352,7 +337,7 @@ def run_gateway(
             f = master.first_fault
             return None if f is None else (f.reason, f.describe())
 
-        loop = CycleLoop(bus, master.network.subscribe, codec, names, ctl, profile, loop_cfg,
+        loop = CycleLoop(bus, master.network.subscribe, pd, ctl, profile, loop_cfg,
                          own_echo=own_echo, fault=master.fault, fault_cause=fault_cause)
         _write_summary_noting(out, {"run": {"status": "running", "started": t_start},
                                     "configuration": configuration}, [])
@@ -387,7 +372,7 @@ def _configuration(cfg: RunConfig, drive: DriveProfile, profile: Profile, node_i
         "profile": profile.source,
         **{k: v for k, v in asdict(cfg).items() if k not in ("gains", "sampling")},
         "period": cfg.period, "delay": cfg.sampling.delay,
-        "gains": asdict(cfg.gains), "setpoint_frame": drive.setpoint_frame,
+        "gains": asdict(cfg.gains), "setpoint_frame": cfg.sampling.setpoint_frame,
     }
 
 
@@ -447,6 +432,7 @@ def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
             {"time": t, "dir": d, "cob_id": f"0x{c:03X}", "data": data}
             for t, d, c, data in loop.recent]
     summary["shutdown"] = None if shutdown is None else asdict(shutdown)
+    summary["configuration_notes"] = list(master.notes)
     summary["faults"] = [{"time": f.time, "kind": f.kind, "code": f.code, "text": f.text,
                           "reason": f.reason.name} for f in master.state.faults]
     summary["configuration"] = configuration

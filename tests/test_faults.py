@@ -25,6 +25,7 @@ from gateway.cycle import CycleRow
 from gateway.drive_profile import load_drive_profile
 from gateway.guard import Envelope, Plausibility
 from gateway.master import DriveMaster
+from gateway.process_data import ProcessData
 from gateway.report import read_csv
 from gateway.runner import RunConfig, StopSignals
 from gateway.stop import StopReason
@@ -81,7 +82,7 @@ def test_shutdown_reaches_a_safe_drive_from_every_state(emulator, nmt, drive_sta
     master = DriveMaster(bus, load_drive_profile(None), 1)
     try:
         master.connect()
-        master.configure(1e-3, {}, {}, DriveMode.IDEAL.mode_of_operation, {})
+        master.configure(1e-3, ProcessData([]), False, DriveMode.IDEAL.mode_of_operation, {})
         master.start()
         master.enable()
         dev = emu.device
@@ -122,7 +123,7 @@ def test_silent_drive_is_not_called_safe_and_keeps_its_supervision(emulator):
     master = DriveMaster(bus, load_drive_profile(None), 1)
     try:
         master.connect()
-        master.configure(1e-3, {}, {}, -1, {})
+        master.configure(1e-3, ProcessData([]), False, -1, {})
         master.start()
         master.enable()
         emu.device.stop()  # gone: no SDO, no boot-up after a reset
@@ -233,12 +234,12 @@ def test_implausible_currents_stop_the_run_before_any_setpoint(tmp_path):
 
 def test_plausibility_and_envelope_checks():
     p = Plausibility(i_peak=25.0, u_dc_min=400.0, u_dc_max=700.0)
-    ok1, ok2 = {"i_sa": 3.0, "i_sb": -4.0}, {"u_sa": 1.0, "u_sb": 2.0, "u_dc": 560.0}
-    assert p.check(ok1, ok2) is None
-    assert "not a number" in p.check({"i_sa": math.nan, "i_sb": 0.0}, ok2)
-    assert "peak current" in p.check({"i_sa": 32.767, "i_sb": 0.0}, ok2)
-    assert "DC link" in p.check(ok1, {**ok2, "u_dc": 1310.7})
-    assert "DC link" in p.check(ok1, {**ok2, "u_dc": 0.0})
+    ok = {"i_sa": 3.0, "i_sb": -4.0, "u_sa": 1.0, "u_sb": 2.0, "u_dc": 560.0}
+    assert p.check(ok) is None
+    assert "not a number" in p.check({**ok, "i_sa": math.nan})
+    assert "peak current" in p.check({**ok, "i_sa": 32.767, "i_sb": 0.0})
+    assert "DC link" in p.check({**ok, "u_dc": 1310.7})
+    assert "DC link" in p.check({**ok, "u_dc": 0.0})
     env = Envelope.from_demand(w_peak=200.0, i_peak=8.2, psi_peak=1.16, u_peak=209.0,
                                i_limit=20.0)
     row = CycleRow(*([0.0] * len(CycleRow._fields)))
