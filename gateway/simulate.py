@@ -36,9 +36,9 @@ from gateway.control.controller import (
     as_enum,
 )
 from gateway.control.laws import Gains, current_fed, full_order
-from gateway.control.profiles import Profile
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.errors import UserError
+from gateway.reference import Profile
 from gateway.report import Record
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
