@@ -53,7 +53,7 @@ def _out_dir(arg: str | None, kind: str) -> Path:
 
 
 def _load_profile(path: str | None):
-    from gateway.control.profiles import ProfileError, load_profile, paper_profile
+    from gateway.reference import ProfileError, load_profile, paper_profile
 
     try:
         return paper_profile() if path is None else load_profile(path)
@@ -391,7 +391,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_profile_check(args: argparse.Namespace) -> int:
     """`hil-gateway profile check FILE`: validate and show the set points and demands."""
-    from gateway.control.profiles import demand
+    from gateway.reference import demand
 
     profile = _load_profile(args.file)
     motor = _load_motor(args.motor)

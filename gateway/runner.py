@@ -39,13 +39,13 @@ from gateway.control.controller import (
     as_enum,
 )
 from gateway.control.laws import Gains
-from gateway.control.profiles import Profile, demand
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.guard import Envelope, Plausibility
 from gateway.loop import CycleLoop, LoopConfig, Timing
 from gateway.master import DriveMaster
 from gateway.process_data import ProcessData, process_data
+from gateway.reference import Profile, demand
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)

@@ -35,11 +35,11 @@ from gateway.control.controller import (
     as_enum,
 )
 from gateway.control.laws import Gains, current_fed, full_order
-from gateway.control.profiles import Profile
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import load_drive_profile
 from gateway.errors import UserError
 from gateway.process_data import process_data
+from gateway.reference import Profile
 from gateway.report import Record
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full

@@ -13,8 +13,8 @@ import can
 from dbc.cia402 import State
 from dbc.motor import MotorParams
 from gateway.cli import main
-from gateway.control.profiles import paper_profile
 from gateway.drive_profile import load_drive_profile
+from gateway.reference import paper_profile
 from gateway.runner import RunConfig, StopSignals, run_gateway
 from plant.device import DriveDevice
 from plant.params import DriveParams

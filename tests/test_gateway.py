@@ -21,8 +21,8 @@ from gw_support import (
 from dbc import load_codec
 from dbc.timing import Sampling
 from gateway.cli import main
-from gateway.control.profiles import paper_profile
 from gateway.errors import UserError
+from gateway.reference import paper_profile
 from gateway.report import read_csv
 from gateway.runner import RunConfig, StopSignals
 from gateway.simulate import SimConfig, run
