@@ -30,7 +30,10 @@ Law = Literal["current-fed", "full-order"]
 FluxSource = Literal["estimated", "true"]
 EstimatorKind = Literal["open-loop", "drift-free"]
 
+Discretisation = Literal["euler", "exact"]
+
 LAWS: tuple[str, ...] = ("current-fed", "full-order")
+DISCRETISATIONS: tuple[str, ...] = ("euler", "exact")
 FLUX_SOURCES: tuple[str, ...] = ("estimated", "true")
 ESTIMATORS: tuple[str, ...] = ("open-loop", "drift-free")
 TWO_PI = 2.0 * math.pi
@@ -49,6 +52,13 @@ class ControllerConfig:
     period: sampling period T, s.
     delay: 0 or 1 periods between the sample and the interval the setpoints act on.
     gains: :class:`Gains`.
+    discretisation: "euler" (this module's :class:`Controller`, the laws sampled with forward
+        Euler) or "exact" (the sampled-data design of :mod:`gateway.control.sampled`); pick
+        the class with :func:`gateway.control.sampled.make_controller`.
+    setpoint_frame: "dq" or "ab", the frame the drive receives its setpoints in (only the
+        "exact" design uses it, to model the current the drive applies).
+    current_lag: time constant of the drive's current response to a setpoint step, s
+        (0: ideal current source; only the "exact" design uses it).
     """
 
     law: Law = "current-fed"
@@ -58,8 +68,18 @@ class ControllerConfig:
     period: float = 1e-3
     delay: int = 1
     gains: Gains = field(default_factory=Gains)
+    discretisation: Discretisation = "euler"
+    setpoint_frame: str = "dq"
+    current_lag: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.discretisation not in DISCRETISATIONS:
+            raise ValueError(f"unknown discretisation {self.discretisation!r}; use "
+                             f"{' or '.join(DISCRETISATIONS)}")
+        if self.setpoint_frame not in ("dq", "ab"):
+            raise ValueError(f"unknown setpoint frame {self.setpoint_frame!r}; use dq or ab")
+        if not self.current_lag >= 0.0:
+            raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
         if self.law not in LAWS:
             raise ValueError(f"unknown law {self.law!r}; use one of {', '.join(LAWS)}")
         if self.flux not in FLUX_SOURCES:

@@ -1,0 +1,323 @@
+"""The sampled-data controller: the laws designed for the bus's timing contract.
+
+The plain :class:`gateway.control.controller.Controller` is a forward-Euler copy of the
+continuous laws. This one is designed for what the drive does between two samples
+(docs/ARCHITECTURE.md, "Sampled timing"; the derivation is docs/sampled-control.md):
+
+* **the frame follows the drive** — over interval I_j = (t_j, t_{j+1}] the drive turns its
+  frame from ε_j at the ω0 of that interval's command, so the controller's frame angle is
+  ε_{j+1} = ε_j + T·ω0_j with the ω0 the drive *applies* in I_j, and the next command carries
+  ε_{j+1}: the frame angle is continuous, piecewise linear;
+* **every quantity is predicted for the interval it acts on** — the command computed at t_k
+  acts on I_{k+d} (d = delay): ω̂ is predicted to that interval's midpoint through the
+  intervals already committed, the references (15) are evaluated at the midpoint, and
+  ω0 = ω̂ + αM·i_sq*/ψ* (15) is the midpoint frame speed;
+* **the observer (16), (20) is integrated exactly over each interval** — in the frame of an
+  interval the rotor-flux model (first three rows of (2)) with the applied current is
+  linear time-invariant (rotor speed taken constant at its estimate), so ψ_r(τ), ∫ψ_r and
+  ∫ψ_r×i have closed forms; the measured flux at the interval's end corrects the model's
+  trajectory linearly;
+* **the flux estimator** (24) integrates the stator flux with the average applied voltage
+  and the integral of the current the drive applied (:class:`IntervalFluxEstimator`).
+
+Interface: like :class:`~gateway.control.controller.Controller` — ``step(refs, sample) ->
+Command`` once per cycle, ``coast()`` for a missed one — so the cycle code calls both the
+same way. It needs the references at times other than the sample's: ``refs_at(t)`` (the
+profile's ``at``) is given at construction; the controller counts its own cycles (t_k = k·T).
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from gateway.control.controller import Command, Controller, ControllerConfig, Sample, wrap_angle
+from gateway.control.estimator import IntervalFluxEstimator
+from gateway.control.laws import Refs, sat_tanh
+
+
+@dataclass(frozen=True, slots=True)
+class Interval:
+    """What the drive applies over one interval, as the controller commanded it.
+
+    i_dq: current setpoint in the interval's frame, A. u_dq: voltage setpoint, V.
+    eps: frame angle at the interval's start, rad. w_0: frame speed, rad/s.
+    """
+
+    i_dq: complex
+    u_dq: complex
+    eps: float
+    w_0: float
+
+
+def phi(s: complex, T: float) -> complex:
+    """∫_0^T e^{sτ} dτ = (e^{sT} − 1)/s, continuous at s = 0 (series below |sT| = 1e-4)."""
+    x = s * T
+    if abs(x) < 1e-4:
+        return T * (1.0 + x / 2.0 + x * x / 6.0)
+    return (cmath.exp(x) - 1.0) / s
+
+
+class SampledController:
+    """The sampled-data current-fed controller (15), (16), (20) (see the module docstring)."""
+
+    def __init__(
+        self,
+        motor,
+        config: ControllerConfig,
+        refs_at: Callable[[float], Refs],
+        eps_0: float = 0.0,
+        w_hat: float = 0.0,
+    ) -> None:
+        if config.law != "current-fed":
+            raise ValueError("SampledController implements the current-fed law only")
+        self.motor = motor
+        self.config = config
+        self.refs_at = refs_at
+        self._T = config.period
+        self._d = config.delay
+        self._g = config.gains
+        self._true_flux = config.flux == "true"
+        self._ab = config.setpoint_frame == "ab"
+        self._lag = config.current_lag
+        m = motor
+        self._aM = m.alpha * m.M
+        self.estimator = IntervalFluxEstimator(
+            motor, config.w_c if config.estimator == "drift-free" else 0.0)
+        self._k = 0  # samples taken (t_k = k·T)
+        self.eps_0 = wrap_angle(eps_0)
+        self.w_hat = w_hat  # ω̂ at t_k
+        zero = Interval(0j, 0j, self.eps_0, 0.0)
+        # The decided commands for I_{k−1}, I_k, …, I_{k+d−1} at the start of step k (the
+        # drive holds zero setpoints until the first command arrives; the frame is kept
+        # continuous from the start).
+        self._hist: deque[Interval] = deque([zero] * (self._d + 1))
+        self._psi_prev: complex | None = None  # ψ_r at t_{k−1}, frame of I_{k−1}
+        self._w_prev = w_hat  # ω̂ at t_{k−1}
+        self._i_prev_ab = 0j  # measured current at t_{k−1}
+        self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
+
+    # ------------------------------------------------------------------ the model
+
+    def _terms(self, c: Interval, i0_ab: complex) -> list[tuple[complex, complex]]:
+        """The applied current over interval ``c`` in its turning frame, Σ I_n·e^{s_n·τ}.
+
+        (d, q) setpoints are constant in the frame; (a, b) setpoints are held, so in the frame
+        they turn back, I·e^{−jω0τ}. A current loop (``current_lag`` τc > 0) reaches the
+        setpoint from the current at the interval's start i0 as e^{−τ/τc}.
+        """
+        T = self._T
+        if self._ab:
+            i_ab = c.i_dq * cmath.exp(0.5j * c.w_0 * T)  # the held vector, frame at τ = 0
+            terms = [(i_ab, complex(0.0, -c.w_0))]
+        else:
+            i_ab = c.i_dq
+            terms = [(c.i_dq, 0j)]
+        if self._lag > 0.0:
+            s_ref = terms[0][1]
+            delta = i0_ab * cmath.exp(-1j * c.eps) - i_ab
+            terms.append((delta, s_ref - 1.0 / self._lag))
+        return terms
+
+    def _interval(self, c: Interval, psi0: complex, w_m: float,
+                  terms: list[tuple[complex, complex]]):
+        """The rotor-flux model over one interval, in its turning frame, from ψ0.
+
+        With the rotor speed constant at w_m the first three rows of (2) are linear
+        time-invariant in the frame: dψ/dτ = −a·ψ + αM·i(τ), a = α + j(ω0 − ω). For
+        i(τ) = Σ I_n·e^{s_n·τ}: ψ(τ) = Σ P_n·e^{s_n·τ} + C·e^{−aτ}, P_n = αM·I_n/(a + s_n),
+        C = ψ0 − Σ P_n. Returns (ψ(T), ∫ψ dτ, ∫conj(ψ)·i dτ, the current's terms).
+        """
+        T = self._T
+        aM = self._aM
+        a = complex(self.motor.alpha, c.w_0 - w_m)
+        ps = [(aM * big_i / (a + s_n), s_n) for big_i, s_n in terms]
+        coef = psi0 - sum(p for p, _ in ps)
+        psi_end = coef * cmath.exp(-a * T)
+        int_psi = coef * phi(-a, T)
+        int_ci = 0j
+        a_c = a.conjugate()
+        for p, s_p in ps:
+            psi_end += p * cmath.exp(s_p * T)
+            int_psi += p * phi(s_p, T)
+        for big_i, s_n in terms:
+            int_ci += coef.conjugate() * big_i * phi(s_n - a_c, T)
+            for p, s_p in ps:
+                int_ci += p.conjugate() * big_i * phi(s_p.conjugate() + s_n, T)
+        return psi_end, int_psi, int_ci, terms
+
+    def _current(self, c: Interval, terms: list[tuple[complex, complex]]
+                 ) -> tuple[complex, complex]:
+        """(∫i_ab dt over the interval, i_ab at its end) of the applied current."""
+        T = self._T
+        rot0 = cmath.exp(1j * c.eps)
+        jw = 1j * c.w_0
+        int_i = 0j
+        i_end = 0j
+        for big_i, s_n in terms:
+            int_i += big_i * phi(s_n + jw, T)
+            i_end += big_i * cmath.exp(s_n * T)
+        return rot0 * int_i, rot0 * cmath.exp(jw * T) * i_end
+
+    def _dw(self, int_psi: complex, int_ci: complex, T_L: float, r_mid: Refs) -> float:
+        """∫ of (16) with (20) over an interval: μ∫(ψ_rd i_sq − ψ_rq i_sd) − ∫T_L/J + ψ*∫ψ_rq/γ1.
+
+        The load is the one the timing contract applies over the interval: T_L at its start,
+        held (docs/ARCHITECTURE.md); ψ* at the midpoint.
+        """
+        m = self.motor
+        return (m.mu * int_ci.imag - self._T * T_L / m.J
+                + r_mid.psi_ref * int_psi.imag / self._g.gamma_1)
+
+    def _rate(self, psi: complex, i_dq: complex, r: Refs, T_L: float) -> float:
+        """dω̂/dt of (16), (20) at one instant with the load T_L."""
+        m = self.motor
+        return (m.mu * (psi.real * i_dq.imag - psi.imag * i_dq.real) - T_L / m.J
+                + r.psi_ref * psi.imag / self._g.gamma_1)
+
+    def _advance(self, c: Interval, psi0: complex, w0: float, t0: float,
+                 terms: list[tuple[complex, complex]], psi_end_meas: complex | None = None,
+                 di: complex = 0j) -> tuple[complex, float]:
+        """ψ_r (frame at the end) and ω̂ at the end of interval ``c`` (starting at t0).
+
+        ω̂ integrates (16), (20) over the interval exactly for the model; with the measured
+        flux at the end, the model's trajectory is corrected linearly, δ·τ/T; ``di`` is the
+        mean difference between the measured and the modelled current over the interval
+        (a drive that could not follow: voltage limit), added to the torque integral.
+        """
+        T = self._T
+        r_mid = self.refs_at(t0 + 0.5 * T)
+        T_L = self.refs_at(t0).T_L  # the load applied over the interval
+        w_m = w0 + 0.5 * T * self._rate(psi0, c.i_dq, r_mid, T_L)  # speed at the midpoint
+        psi_end, int_psi, int_ci, _ = self._interval(c, psi0, w_m, terms)
+        if psi_end_meas is not None:
+            delta = psi_end_meas - psi_end
+            int_psi += 0.5 * T * delta
+            int_ci += 0.5 * T * delta.conjugate() * terms[0][0]
+            psi_end = psi_end_meas
+        if di:
+            int_ci += int_psi.conjugate() * di
+        return psi_end, w0 + self._dw(int_psi, int_ci, T_L, r_mid)
+
+    # ------------------------------------------------------------------ a cycle
+
+    def step(self, refs: Refs, sample: Sample) -> Command:
+        """One sample at t_k: ω̂ over I_{k−1} with the measured flux, predict to I_{k+d},
+        command it."""
+        T = self._T
+        self._k += 1
+        t_k = self._k * T
+        hist = self._hist
+        prev = hist[0]  # I_{k−1}, ended at t_k
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)  # the drive's frame at t_k
+        # flux at t_k: the stator flux integrated over I_{k−1} with the applied current
+        terms = self._terms(prev, self._i_prev_ab)
+        int_i_ab, i_end_ab = self._current(prev, terms)
+        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
+                                           i_end_ab, eps_k, refs.psi_ref)
+        if self._true_flux:
+            if sample.psi_r_ab is None:
+                raise ValueError("flux='true' needs the true rotor flux in the sample")
+            psi_ab = sample.psi_r_ab
+        else:
+            psi_ab = psi_hat_ab
+        psi_k = psi_ab * cmath.exp(-1j * eps_k)
+        # ω̂ at t_k: (16), (20) integrated over I_{k−1}, model corrected by the measured end
+        psi0 = self._psi_prev
+        if psi0 is None:
+            psi0 = psi_k * cmath.exp(1j * prev.w_0 * T)
+        di_k = (sample.i_s_ab - i_end_ab) * cmath.exp(-1j * eps_k)
+        di = 0.5 * (self._di_prev + di_k)
+        self._di_prev = di_k
+        _, w_k = self._advance(prev, psi0, self._w_prev, t_k - T, terms, psi_k, di)
+        self.w_hat = w_k
+        # predict through the committed intervals I_k … I_{k+d−1}
+        psi, w, t0, i0 = psi_k, w_k, t_k, sample.i_s_ab
+        for j in range(1, self._d + 1):
+            terms = self._terms(hist[j], i0)
+            psi, w = self._advance(hist[j], psi, w, t0, terms)
+            if self._lag > 0.0:
+                i0 = self._current(hist[j], terms)[1]
+            t0 += T
+        last = hist[-1]
+        eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
+        # the command for I_{k+d}: references and ω̂ at its midpoint
+        r = self.refs_at(t_k + (self._d + 0.5) * T)
+        T_L = self.refs_at(t_k + self._d * T).T_L  # the load the drive will apply
+        i_guess = last.i_dq
+        for _ in range(2):
+            w_mid = w + 0.5 * T * self._rate(psi, i_guess, r, T_L)
+            i_sd, i_sq, limited = self._currents(r, w_mid, T_L)
+            i_guess = complex(i_sd, i_sq)
+        m = self.motor
+        w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
+        k_r = m.beta * m.sigma
+        u_sd = m.R_s * i_sd + k_r * r.dpsi_ref - w_0 * m.sigma * i_sq
+        u_sq = m.R_s * i_sq + w_0 * (m.sigma * i_sd + k_r * r.psi_ref)
+        new = Interval(complex(i_sd, i_sq), complex(u_sd, u_sq), eps_app, w_0)
+        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        hist.append(new)
+        hist.popleft()
+        self._psi_prev = psi_k
+        self._w_prev = w_k
+        self._i_prev_ab = sample.i_s_ab
+        self.eps_0 = eps_k
+        return Command(
+            i_s_dq_ref=new.i_dq, u_s_dq_ref=new.u_dq, eps_0=eps_app, w_0=w_0,
+            i_s_ab_ref=new.i_dq * to_ab, u_s_ab_ref=new.u_dq * to_ab,
+            w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
+        )
+
+    def _currents(self, r: Refs, w_hat: float, T_L: float) -> tuple[float, float, bool]:
+        """i_sd*, i_sq* of (15) with the current limit (as :mod:`gateway.control.laws`)."""
+        m, g = self.motor, self._g
+        psi_ref = r.psi_ref
+        s = sat_tanh(w_hat - r.w_ref)
+        i_sd = psi_ref / m.M + r.dpsi_ref / (m.alpha * m.M)
+        i_sq = (-g.k_w * s + T_L / m.J + r.dw_ref) / (m.mu * psi_ref)
+        q2 = g.i_max * g.i_max - i_sd * i_sd
+        q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
+        limited = abs(i_sq) > q_max
+        if limited:
+            i_sq = math.copysign(q_max, i_sq)
+        return i_sd, i_sq, limited
+
+    def coast(self) -> None:
+        """A cycle without measurements: the drive keeps the last setpoints, turning on.
+
+        ω̂ and the rotor flux are carried over I_{k−1} by the model alone; the flux
+        estimator takes the model's stator flux at t_k (that interval's voltage is never
+        reported).
+        """
+        T = self._T
+        self._k += 1
+        t_k = self._k * T
+        hist = self._hist
+        prev = hist[0]
+        psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        terms = self._terms(prev, self._i_prev_ab)
+        psi_k, w_k = self._advance(prev, psi0, self._w_prev, t_k - T, terms)
+        i_end_ab = self._current(prev, terms)[1]
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
+        self._i_prev_ab = i_end_ab
+        last = hist[-1]
+        hist.append(Interval(last.i_dq, last.u_dq, wrap_angle(last.eps + T * last.w_0),
+                             last.w_0))
+        hist.popleft()
+        self._psi_prev = psi_k
+        self._w_prev = w_k
+        self.w_hat = w_k
+        self.eps_0 = eps_k
+
+
+def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
+                    eps_0: float = 0.0, w_hat: float = 0.0):
+    """The controller ``config.discretisation`` names: the Euler :class:`Controller` or the
+    sampled-data design. Both have ``step(refs, sample) -> Command`` and ``coast()``."""
+    if config.discretisation == "exact" and config.law == "current-fed":
+        return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)
+    return Controller(motor, config, eps_0=eps_0, w_hat=w_hat)
