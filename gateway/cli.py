@@ -100,7 +100,7 @@ class Progress:
 
 
 def _add_control_options(p: argparse.ArgumentParser) -> None:
-    from gateway.control.controller import ESTIMATORS, FLUX_SOURCES, LAWS
+    from gateway.control.controller import DISCRETISATIONS, ESTIMATORS, FLUX_SOURCES, LAWS
     from gateway.control.laws import Gains
 
     g = Gains()
@@ -113,6 +113,11 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "true flux (the paper's 'flux measurements available' comparison)")
     p.add_argument("--estimator", choices=ESTIMATORS, default="open-loop",
                    help="flux estimator: the paper's open-loop integrator or the drift-free one")
+    p.add_argument("--discretisation", choices=DISCRETISATIONS, default="exact",
+                   help="sampled controller: exact (the sampled-data design of "
+                        "docs/sampled-control.md, default) or euler (the continuous laws "
+                        "stepped with forward Euler, the earlier design); the full-order law "
+                        "runs euler either way")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
@@ -154,6 +159,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         delay=args.delay, setpoint_frame=args.setpoint_frame, quantize=not args.no_quantize,
         gains=_gains(args), drive_params=DriveParams(mode=drive),
         duration=args.duration and parse_duration(args.duration, "--duration"),
+        discretisation=args.discretisation,
     )
     out = _out_dir(args.out, f"simulate-{args.law}")
     label = "continuous" if period is None else format_duration(period)
@@ -260,6 +266,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
         max_missed=args.max_missed or (max(5, round(0.05 / period))
                                        if args.timing == "realtime" else 5),
         duration=args.duration and parse_duration(args.duration, "--duration"),
+        discretisation=args.discretisation,
     )
 
 

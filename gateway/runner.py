@@ -16,7 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,14 +26,15 @@ import numpy as np
 from dbc import load_codec
 from gateway import report
 from gateway.buslog import write_frame
-from gateway.control.controller import Controller, ControllerConfig
+from gateway.control.controller import ControllerConfig
 from gateway.control.laws import Gains
 from gateway.control.profiles import Profile
+from gateway.control.sampled import make_controller
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.loop import SYNC_OVERFLOW, CycleLoop, LoopConfig, PdoNames
 from gateway.master import DriveMaster
-from gateway.simulate import DRIVES, drive_params_for_period
+from gateway.simulate import DRIVES, current_lag, drive_params_for_period
 from plant.params import DriveParams, MotorParams
 
 log = logging.getLogger(__name__)
@@ -49,7 +50,8 @@ class RunConfig:
         vector mode; on the emulator also its model of the current loop) or "voltage"
         (voltage vector mode). delay: 1 = synchronous RPDOs (CiA 301 default), 0 = the
         emulator applies RPDOs on receipt. bus_log: file name of the raw bus log in the run
-        directory; its suffix picks the python-can writer.
+        directory; its suffix picks the python-can writer. discretisation: "exact" (the
+        sampled-data design, docs/sampled-control.md) or "euler".
     """
 
     law: str = "current-fed"
@@ -63,6 +65,7 @@ class RunConfig:
     bus_log: str = "bus.blf"
     max_missed: int = 5
     duration: float | None = None
+    discretisation: str = "exact"
 
     def __post_init__(self) -> None:
         if self.drive_mode not in DRIVES:
@@ -73,7 +76,8 @@ class RunConfig:
 
     def controller_config(self) -> ControllerConfig:
         return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,  # type: ignore[arg-type]
-                                period=self.period, delay=self.delay, gains=self.gains)
+                                period=self.period, delay=self.delay, gains=self.gains,
+                                discretisation=self.discretisation)  # type: ignore[arg-type]
 
 
 class BusRecorder(can.Listener):
@@ -238,7 +242,11 @@ def run_gateway(
                          emulator, sync_overflow=SYNC_OVERFLOW)
         master.start()
         master.enable()
-        ctl = Controller(motor, cfg.controller_config())
+        # the exact design models what the drive applies: its setpoint frame and, for the
+        # emulator's PI current loop, its response time (a real drive: taken as ideal)
+        lag = current_lag(cfg.drive_mode, DriveParams()) if drive.emulator else 0.0
+        ctl = make_controller(motor, replace(cfg.controller_config(), setpoint_frame=frame,
+                                             current_lag=lag), profile.at)
         loop = CycleLoop(bus, master.network.subscribe, codec, names, ctl, profile, loop_cfg,
                          own_echo=own_echo, fault=master.fault)
         signals.on_stop = loop.request_stop

@@ -22,14 +22,15 @@ from typing import Any
 import numpy as np
 
 from gateway.control.controller import (
+    DISCRETISATIONS,
     ESTIMATORS,
     FLUX_SOURCES,
     LAWS,
-    Controller,
     ControllerConfig,
 )
 from gateway.control.laws import Gains, current_fed, full_order
 from gateway.control.profiles import Profile
+from gateway.control.sampled import make_controller
 from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos, sync_counter
 from gateway.errors import UserError
 from gateway.report import BASE_COLUMNS, Record
@@ -64,6 +65,8 @@ class SimConfig:
     record_step: sampling of the continuous-time record, s.
     initial: the motor's state at t = 0 (the paper: all zero).
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
+    discretisation: sampled runs only: "exact" (the sampled-data design,
+        docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
     """
 
     law: str = "current-fed"
@@ -82,10 +85,12 @@ class SimConfig:
     initial: MotorState = field(default_factory=MotorState)
     w_hat_0: float = 0.0
     eps_0: float = 0.0
+    discretisation: str = "exact"
 
     def __post_init__(self) -> None:
         checks = (("law", LAWS), ("flux", FLUX_SOURCES), ("estimator", ESTIMATORS),
-                  ("drive", DRIVES), ("setpoint_frame", SETPOINT_FRAMES))
+                  ("drive", DRIVES), ("setpoint_frame", SETPOINT_FRAMES),
+                  ("discretisation", DISCRETISATIONS))
         for name, allowed in checks:
             if getattr(self, name) not in allowed:
                 raise UserError(f"unknown {name.replace('_', ' ')} {getattr(self, name)!r}: "
@@ -108,6 +113,8 @@ class SimConfig:
         return ControllerConfig(
             law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,  # type: ignore[arg-type]
             period=self.period or self.record_step, delay=self.delay, gains=self.gains,
+            discretisation=self.discretisation, setpoint_frame=self.setpoint_frame,  # type: ignore[arg-type]
+            current_lag=current_lag(self.drive, self.drive_params),
         )
 
     def describe(self) -> dict[str, Any]:
@@ -119,6 +126,12 @@ class SimConfig:
         d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
                              for k, v in asdict(self.drive_params).items()}
         return d
+
+
+def current_lag(drive: str, params: DriveParams) -> float:
+    """The time constant the sampled-data controller assumes for the drive's current
+    response: 1/bandwidth of the PI current loop, 0 for an ideal source (or voltage-fed)."""
+    return 1.0 / params.current_loop_bw if drive == "current-loop" else 0.0
 
 
 Progress = Callable[[float], None]
@@ -181,7 +194,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     n_cycles = round(duration / T)
     drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive), cfg.initial)
     drive.enable(True)
-    ctl = Controller(motor, cfg.controller_config(), eps_0=cfg.eps_0, w_hat=cfg.w_hat_0)
+    ctl = make_controller(motor, cfg.controller_config(), profile.at, eps_0=cfg.eps_0,
+                          w_hat=cfg.w_hat_0)
     link = PdoLink(cfg.quantize)
     rec = Record(COLUMNS)
     delay = cfg.delay
