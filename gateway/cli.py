@@ -117,7 +117,7 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="sampled controller: exact (the sampled-data design of "
                         "docs/sampled-control.md, default) or euler (the continuous laws "
                         "stepped with forward Euler, the earlier design); the full-order law "
-                        "runs euler either way")
+                        "has an exact design for voltage-fed (d, q) drives only")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")

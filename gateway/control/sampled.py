@@ -32,7 +32,7 @@ import cmath
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from gateway.control.controller import Command, Controller, ControllerConfig, Sample, wrap_angle
 from gateway.control.estimator import IntervalFluxEstimator
@@ -45,12 +45,17 @@ class Interval:
 
     i_dq: current setpoint in the interval's frame, A. u_dq: voltage setpoint, V.
     eps: frame angle at the interval's start, rad. w_0: frame speed, rad/s.
+    i_ref0, i_ref1: full-order law: the current references (25) the command assumed at the
+    interval's start and end (the current error (28) over the interval is taken against
+    their linear interpolation).
     """
 
     i_dq: complex
     u_dq: complex
     eps: float
     w_0: float
+    i_ref0: complex = 0j
+    i_ref1: complex = 0j
 
 
 def phi(s: complex, T: float) -> complex:
@@ -314,10 +319,215 @@ class SampledController:
         self.eps_0 = eps_k
 
 
+Mat2 = tuple[complex, complex, complex, complex]
+
+
+def expm2(a: Mat2, tau: float) -> Mat2:
+    """e^{A·τ} of a complex 2×2 matrix (row-major), by its two eigenvalues (Sylvester)."""
+    a11, a12, a21, a22 = a
+    half_tr = 0.5 * (a11 + a22)
+    disc = cmath.sqrt(half_tr * half_tr - (a11 * a22 - a12 * a21))
+    l1, l2 = half_tr + disc, half_tr - disc
+    e1, e2 = cmath.exp(l1 * tau), cmath.exp(l2 * tau)
+    if abs(l1 - l2) * tau < 1e-9:  # (nearly) repeated eigenvalue: e^{λτ}(I + (A − λI)τ)
+        return (e1 * (1 + (a11 - l1) * tau), e1 * a12 * tau, e1 * a21 * tau,
+                e1 * (1 + (a22 - l1) * tau))
+    f = (e1 - e2) / (l1 - l2)  # coefficient of A
+    g = (l1 * e2 - l2 * e1) / (l1 - l2)  # coefficient of I
+    return (g + f * a11, f * a12, f * a21, g + f * a22)
+
+
+class FullOrderSampledController(SampledController):
+    """The sampled-data full-order law (25)–(27), (32) for a voltage-fed drive.
+
+    Over an interval the drive holds u_dq in the frame turning at ω0; with the rotor speed
+    at its estimate the stator-current and rotor-flux rows of (2) are linear time-invariant
+    in that frame, x = (i_s, ψ_r): dx/dτ = A·x + (u/σ, 0), solved with e^{Aτ}. The voltage
+    of the interval is the one that brings the modelled current error (28) at the
+    interval's end to what (34) would give, e(T) = e^{−ke·T}·e(0) − (1 − e^{−ke·T})/ke·αM·ψ̃_rd
+    (the unknown e_ω term dropped). ω0 is (26) at the midpoint; the observer (27) with w of
+    (32) is integrated with Simpson's rule on the model's trajectory.
+    """
+
+    def __init__(self, motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
+                 eps_0: float = 0.0, w_hat: float = 0.0) -> None:
+        if config.law != "full-order":
+            raise ValueError("FullOrderSampledController implements the full-order law only")
+        SampledController.__init__(self, motor, replace(config, law="current-fed"), refs_at,
+                                   eps_0, w_hat)
+        self.config = config
+        m = motor
+        self._c1 = m.R_s / m.sigma + m.beta * self._aM
+        self._i_prev = 0j  # measured current at t_{k−1}, frame at t_{k−1}
+
+    # ------------------------------------------------------------------ the model
+
+    def _matrix(self, w_0: float, w_m: float) -> Mat2:
+        m = self.motor
+        return (complex(-self._c1, -w_0), m.beta * complex(m.alpha, -w_m),
+                complex(self._aM, 0.0), complex(-m.alpha, w_m - w_0))
+
+    def _flow(self, a: Mat2, u: complex, i0: complex, psi0: complex, tau: float
+              ) -> tuple[complex, complex]:
+        """(i_s, ψ_r) after τ from (i0, ψ0) with u held in the turning frame."""
+        a11, a12, a21, a22 = a
+        det = a11 * a22 - a12 * a21
+        b = u / self.motor.sigma
+        i_ss, p_ss = -a22 * b / det, a21 * b / det  # x_ss = −A⁻¹·(b, 0)
+        e11, e12, e21, e22 = expm2(a, tau)
+        di, dp = i0 - i_ss, psi0 - p_ss
+        return i_ss + e11 * di + e12 * dp, p_ss + e21 * di + e22 * dp
+
+    def _fo_rate(self, psi: complex, i: complex, i_ref: complex, r: Refs, T_L: float
+                 ) -> float:
+        """dω̂/dt of (27) with w of (32), the current error (28) against ``i_ref``.
+
+        Over an interval the reference is the one the command aimed at (interpolated between
+        its start and end), not i*(ω̂) re-evaluated with the updated ω̂: that would feed the
+        observer's own prediction error back through kω/(μψ*) ≈ 6 A per rad/s and β·ψ/γ2,
+        a loop gain near 1 per period at 1 ms (ERRATA 10).
+        """
+        m, g = self.motor, self._g
+        e_d, e_q = i.real - i_ref.real, i.imag - i_ref.imag
+        w = (r.psi_ref * psi.imag + m.beta * (psi.imag * e_d - psi.real * e_q)) / g.gamma_2
+        return m.mu * (psi.real * i.imag - psi.imag * i.real) - T_L / m.J + w
+
+    def _fo_advance(self, c: Interval, i0: complex, psi0: complex, w0: float, t0: float,
+                    end: tuple[complex, complex] | None = None):
+        """(i, ψ, ω̂) at the end of interval ``c``, and the model's (i(T/2), i(T)).
+
+        ``end``: the measured (i, ψ) at the end, which correct the model's mid-point by half
+        the end's mismatch. ω̂: Simpson's rule on the model's trajectory.
+        """
+        T = self._T
+        r0, rh, r1 = self.refs_at(t0), self.refs_at(t0 + 0.5 * T), self.refs_at(t0 + T)
+        T_L = r0.T_L
+        f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, T_L)
+        a = self._matrix(c.w_0, w0 + 0.5 * T * f0)
+        i_h, p_h = self._flow(a, c.u_dq, i0, psi0, 0.5 * T)
+        i_1, p_1 = self._flow(a, c.u_dq, i0, psi0, T)
+        model = (i_h, i_1)
+        if end is not None:
+            i_h += 0.5 * (end[0] - i_1)
+            p_h += 0.5 * (end[1] - p_1)
+            i_1, p_1 = end
+        f_h = self._fo_rate(p_h, i_h, 0.5 * (c.i_ref0 + c.i_ref1), rh, T_L)
+        f_1 = self._fo_rate(p_1, i_1, c.i_ref1, r1, T_L)
+        return i_1, p_1, w0 + T / 6.0 * (f0 + 4.0 * f_h + f_1), model
+
+    # ------------------------------------------------------------------ a cycle
+
+    def step(self, refs: Refs, sample: Sample) -> Command:
+        """One sample at t_k (see the class docstring)."""
+        T = self._T
+        m, g = self.motor, self._g
+        self._k += 1
+        t_k = self._k * T
+        hist = self._hist
+        prev = hist[0]
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        rot_k = cmath.exp(-1j * eps_k)
+        i_k = sample.i_s_ab * rot_k
+        psi0 = self._psi_prev
+        # the past interval by the model (for the estimator's current integral)
+        psi0_m = psi0 if psi0 is not None else 0j
+        _, _, _, (i_h, i_1) = self._fo_advance(prev, self._i_prev, psi0_m, self._w_prev,
+                                               t_k - T)
+        rot_s = cmath.exp(1j * prev.eps)
+        turn_h = cmath.exp(0.5j * prev.w_0 * T)
+        turn_1 = turn_h * turn_h
+        int_i_ab = T / 6.0 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
+        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
+                                           rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
+        if self._true_flux:
+            if sample.psi_r_ab is None:
+                raise ValueError("flux='true' needs the true rotor flux in the sample")
+            psi_ab = sample.psi_r_ab
+        else:
+            psi_ab = psi_hat_ab
+        psi_k = psi_ab * rot_k
+        if psi0 is None:
+            psi0 = psi_k
+        _, _, w_k, _ = self._fo_advance(prev, self._i_prev, psi0, self._w_prev, t_k - T,
+                                        (i_k, psi_k))
+        self.w_hat = w_k
+        i, psi, w, t0 = i_k, psi_k, w_k, t_k
+        for j in range(1, self._d + 1):
+            i, psi, w, _ = self._fo_advance(hist[j], i, psi, w, t0)
+            t0 += T
+        last = hist[-1]
+        eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
+        # the command for I_{k+d} = (t0, t0 + T]
+        r0, rh, r1 = self.refs_at(t0), self.refs_at(t0 + 0.5 * T), self.refs_at(t0 + T)
+        T_L = r0.T_L
+        i_ref0 = last.i_ref1 if self._k > self._d + 1 else complex(
+            *self._currents(r0, w, T_L)[:2])
+        i_sd0, i_sq0 = i_ref0.real, i_ref0.imag
+        f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
+        i_sd1, i_sq1, limited = self._currents(r1, w + T * f0, T_L)
+        decay = math.exp(-g.k_e * T)
+        e0 = i - complex(i_sd0, i_sq0)
+        e1 = decay * e0 - (1.0 - decay) / g.k_e * self._aM * (psi.real - r0.psi_ref)
+        target = complex(i_sd1, i_sq1) + e1
+        w_mid = w + 0.5 * T * f0
+        w_0 = w_mid + self._aM * 0.5 * (i.imag + target.imag) / rh.psi_ref  # (26)
+        a = self._matrix(w_0, w_mid)
+        a11, a12, a21, a22 = a
+        det = a11 * a22 - a12 * a21
+        e11, e12, _, _ = expm2(a, T)
+        free = e11 * i + e12 * psi  # i(T) with u = 0
+        # i(T) = free − (u/σ)·[(I − E)·A⁻¹·e1]_0, A⁻¹·e1 = (a22, −a21)/det
+        gain = ((1.0 - e11) * a22 + e12 * a21) / det
+        u = m.sigma * (free - target) / gain
+        new = Interval(target, u, eps_app, w_0, complex(i_sd0, i_sq0), complex(i_sd1, i_sq1))
+        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        hist.append(new)
+        hist.popleft()
+        self._psi_prev = psi_k
+        self._i_prev = i_k
+        self._w_prev = w_k
+        self._i_prev_ab = sample.i_s_ab
+        self.eps_0 = eps_k
+        return Command(
+            i_s_dq_ref=target, u_s_dq_ref=u, eps_0=eps_app, w_0=w_0,
+            i_s_ab_ref=target * to_ab, u_s_ab_ref=u * to_ab,
+            w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
+        )
+
+    def coast(self) -> None:
+        """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
+        T = self._T
+        self._k += 1
+        t_k = self._k * T
+        hist = self._hist
+        prev = hist[0]
+        psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        i_k, psi_k, w_k, _ = self._fo_advance(prev, self._i_prev, psi0, self._w_prev, t_k - T)
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        rot = cmath.exp(1j * eps_k)
+        self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
+        last = hist[-1]
+        hist.append(Interval(last.i_dq, last.u_dq, wrap_angle(last.eps + T * last.w_0),
+                             last.w_0, last.i_ref1, last.i_ref1))
+        hist.popleft()
+        self._psi_prev, self._i_prev, self._w_prev = psi_k, i_k, w_k
+        self._i_prev_ab = i_k * rot
+        self.w_hat = w_k
+        self.eps_0 = eps_k
+
+
 def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
                     eps_0: float = 0.0, w_hat: float = 0.0):
     """The controller ``config.discretisation`` names: the Euler :class:`Controller` or the
-    sampled-data design. Both have ``step(refs, sample) -> Command`` and ``coast()``."""
-    if config.discretisation == "exact" and config.law == "current-fed":
-        return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)
+    sampled-data design. Both have ``step(refs, sample) -> Command`` and ``coast()``.
+
+    The sampled-data full-order law models a voltage-fed drive with (d, q) setpoints; with a
+    current-loop drive or (a, b) setpoints the full-order law runs the Euler design.
+    """
+    if config.discretisation == "exact":
+        if config.law == "current-fed":
+            return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)
+        if config.current_lag == 0.0 and config.setpoint_frame == "dq":  # voltage-fed
+            return FullOrderSampledController(motor, config, refs_at, eps_0=eps_0,
+                                              w_hat=w_hat)
     return Controller(motor, config, eps_0=eps_0, w_hat=w_hat)
