@@ -252,11 +252,7 @@ class SampledController:
         # the command for I_{k+d}: references and ω̂ at its midpoint
         r = self.refs_at(t_k + (self._d + 0.5) * T)
         T_L = self.refs_at(t_k + self._d * T).T_L  # the load the drive will apply
-        i_guess = last.i_dq
-        for _ in range(2):
-            w_mid = w + 0.5 * T * self._rate(psi, i_guess, r, T_L)
-            i_sd, i_sq, limited = self._currents(r, w_mid, T_L)
-            i_guess = complex(i_sd, i_sq)
+        w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
         m = self.motor
         w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
         k_r = m.beta * m.sigma
@@ -275,6 +271,44 @@ class SampledController:
             i_s_ab_ref=new.i_dq * to_ab, u_s_ab_ref=new.u_dq * to_ab,
             w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
         )
+
+    def _midpoint(self, psi: complex, w: float, r: Refs, T_L: float
+                  ) -> tuple[float, float, float, bool]:
+        """ω̂ at the midpoint of the commanded interval and the currents (15) for it.
+
+        The interval's current acts on ω̂ itself, so the midpoint estimate is implicit:
+        s = ω̂_mid − ω*_mid solves s = ω̂0 − ω*_mid + (T/2)·(c0 − c1·sat(s)) (Newton; the
+        right-hand side is (16), (20) with i_sq* of (15), c1 = k′·ψ_rd/ψ*). That is the
+        implicit midpoint rule for the speed-error dynamics ṡ = −kω·sat(s): stable for any
+        kω·T. The gain is pre-warped, k′ = (2/T)·tanh(kω·T/2), so that in the linear range the
+        error decays by e^{−kω·T} per period like the continuous loop (k′ → kω as T → 0).
+        Returns (ω̂_mid, i_sd*, i_sq*, limited).
+        """
+        m, g = self.motor, self._g
+        T = self._T
+        psi_ref = r.psi_ref
+        i_sd = psi_ref / m.M + r.dpsi_ref / (m.alpha * m.M)
+        k_w = 2.0 / T * math.tanh(0.5 * g.k_w * T)
+        ff = T_L / m.J + r.dw_ref
+        c1 = k_w * psi.real / psi_ref
+        c0 = (psi.real * ff / psi_ref - m.mu * psi.imag * i_sd - T_L / m.J
+              + psi_ref * psi.imag / g.gamma_1)
+        b = w - r.w_ref + 0.5 * T * c0
+        h = 0.5 * T * c1
+        x = b / (1.0 + h) if h > -1.0 else b
+        for _ in range(4):  # Newton on x + h·sat(x) − b = 0 (monotone for h > −1)
+            th = math.tanh(x)
+            x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        i_sq = (-k_w * math.tanh(x) + ff) / (m.mu * psi_ref)
+        q2 = g.i_max * g.i_max - i_sd * i_sd
+        q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
+        limited = abs(i_sq) > q_max
+        if limited:
+            i_sq = math.copysign(q_max, i_sq)
+            w_mid = w + 0.5 * T * self._rate(psi, complex(i_sd, i_sq), r, T_L)
+        else:
+            w_mid = r.w_ref + x
+        return w_mid, i_sd, i_sq, limited
 
     def _currents(self, r: Refs, w_hat: float, T_L: float) -> tuple[float, float, bool]:
         """i_sd*, i_sq* of (15) with the current limit (as :mod:`gateway.control.laws`)."""
