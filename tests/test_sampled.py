@@ -175,7 +175,8 @@ def test_missed_cycles_coast_with_the_drive():
     e = _run_manual(make_controller(MOTOR, cfg, paper_profile().at), T, 1.2, missed_every=20)
     base = _run_manual(make_controller(MOTOR, cfg, paper_profile().at), T, 1.2)
     assert np.sqrt(np.mean(base * base)) < 0.01
-    assert np.max(np.abs(e)) < 0.5
+    assert np.sqrt(np.mean(e * e)) < 0.03  # measured 0.018 (Euler: 1.4)
+    assert np.max(np.abs(e)) < 0.15
     assert abs(e[-1]) < 0.05
 
 
