@@ -93,6 +93,7 @@ class SampledController:
         self.estimator = IntervalFluxEstimator(
             motor, config.w_c if config.estimator == "drift-free" else 0.0)
         self._k = 0  # samples taken (t_k = k·T)
+        self._refs_cache: dict[int, Refs] = {}
         self.eps_0 = wrap_angle(eps_0)
         self.w_hat = w_hat  # ω̂ at t_k
         zero = Interval(0j, 0j, self.eps_0, 0.0)
@@ -106,6 +107,17 @@ class SampledController:
         self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
 
     # ------------------------------------------------------------------ the model
+
+    def _at(self, t: float) -> Refs:
+        """refs_at(t), cached per half period (each instant is asked for several times)."""
+        key = round(2.0 * t / self._T)
+        cache = self._refs_cache
+        r = cache.get(key)
+        if r is None:
+            if len(cache) > 16:
+                cache.clear()
+            r = cache[key] = self.refs_at(0.5 * key * self._T)
+        return r
 
     def _terms(self, c: Interval, i0_ab: complex) -> list[tuple[complex, complex]]:
         """The applied current over interval ``c`` in its turning frame, Σ I_n·e^{s_n·τ}.
@@ -194,8 +206,8 @@ class SampledController:
         (a drive that could not follow: voltage limit), added to the torque integral.
         """
         T = self._T
-        r_mid = self.refs_at(t0 + 0.5 * T)
-        T_L = self.refs_at(t0).T_L  # the load applied over the interval
+        r_mid = self._at(t0 + 0.5 * T)
+        T_L = self._at(t0).T_L  # the load applied over the interval
         w_m = w0 + 0.5 * T * self._rate(psi0, c.i_dq, r_mid, T_L)  # speed at the midpoint
         psi_end, int_psi, int_ci, _ = self._interval(c, psi0, w_m, terms)
         if psi_end_meas is not None:
@@ -250,8 +262,8 @@ class SampledController:
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
         # the command for I_{k+d}: references and ω̂ at its midpoint
-        r = self.refs_at(t_k + (self._d + 0.5) * T)
-        T_L = self.refs_at(t_k + self._d * T).T_L  # the load the drive will apply
+        r = self._at(t_k + (self._d + 0.5) * T)
+        T_L = self._at(t_k + self._d * T).T_L  # the load the drive will apply
         w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
         m = self.motor
         w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
@@ -401,16 +413,18 @@ class FullOrderSampledController(SampledController):
         return (complex(-self._c1, -w_0), m.beta * complex(m.alpha, -w_m),
                 complex(self._aM, 0.0), complex(-m.alpha, w_m - w_0))
 
-    def _flow(self, a: Mat2, u: complex, i0: complex, psi0: complex, tau: float
-              ) -> tuple[complex, complex]:
-        """(i_s, ψ_r) after τ from (i0, ψ0) with u held in the turning frame."""
+    def _flow2(self, a: Mat2, u: complex, i0: complex, psi0: complex, tau: float
+               ) -> tuple[complex, complex, complex, complex]:
+        """(i_s, ψ_r) after τ and after 2τ (e^{2Aτ} = e^{Aτ}·e^{Aτ})."""
         a11, a12, a21, a22 = a
         det = a11 * a22 - a12 * a21
         b = u / self.motor.sigma
-        i_ss, p_ss = -a22 * b / det, a21 * b / det  # x_ss = −A⁻¹·(b, 0)
+        i_ss, p_ss = -a22 * b / det, a21 * b / det
         e11, e12, e21, e22 = expm2(a, tau)
         di, dp = i0 - i_ss, psi0 - p_ss
-        return i_ss + e11 * di + e12 * dp, p_ss + e21 * di + e22 * dp
+        di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
+        di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
+        return i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1
 
     def _fo_rate(self, psi: complex, i: complex, i_ref: complex, r: Refs, T_L: float
                  ) -> float:
@@ -426,28 +440,29 @@ class FullOrderSampledController(SampledController):
         w = (r.psi_ref * psi.imag + m.beta * (psi.imag * e_d - psi.real * e_q)) / g.gamma_2
         return m.mu * (psi.real * i.imag - psi.imag * i.real) - T_L / m.J + w
 
-    def _fo_advance(self, c: Interval, i0: complex, psi0: complex, w0: float, t0: float,
-                    end: tuple[complex, complex] | None = None):
-        """(i, ψ, ω̂) at the end of interval ``c``, and the model's (i(T/2), i(T)).
-
-        ``end``: the measured (i, ψ) at the end, which correct the model's mid-point by half
-        the end's mismatch. ω̂: Simpson's rule on the model's trajectory.
-        """
+    def _fo_model(self, c: Interval, i0: complex, psi0: complex, w0: float, t0: float):
+        """The model over interval ``c`` from (i0, ψ0, ω̂0): the references at its start,
+        middle and end, the rate at the start and (i, ψ) at the middle and the end."""
         T = self._T
-        r0, rh, r1 = self.refs_at(t0), self.refs_at(t0 + 0.5 * T), self.refs_at(t0 + T)
-        T_L = r0.T_L
-        f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, T_L)
+        r0, rh, r1 = self._at(t0), self._at(t0 + 0.5 * T), self._at(t0 + T)
+        f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
         a = self._matrix(c.w_0, w0 + 0.5 * T * f0)
-        i_h, p_h = self._flow(a, c.u_dq, i0, psi0, 0.5 * T)
-        i_1, p_1 = self._flow(a, c.u_dq, i0, psi0, T)
-        model = (i_h, i_1)
+        return (c, w0, r0, rh, r1, f0, *self._flow2(a, c.u_dq, i0, psi0, 0.5 * T))
+
+    def _fo_finish(self, model, end: tuple[complex, complex] | None = None
+                   ) -> tuple[complex, complex, float]:
+        """(i, ψ, ω̂) at the end of the modelled interval; ``end``: the measured (i, ψ) at
+        the end, which also correct the mid-point by half the end's mismatch. ω̂: Simpson's
+        rule on the trajectory."""
+        c, w0, r0, rh, r1, f0, i_h, p_h, i_1, p_1 = model
         if end is not None:
             i_h += 0.5 * (end[0] - i_1)
             p_h += 0.5 * (end[1] - p_1)
             i_1, p_1 = end
+        T_L = r0.T_L
         f_h = self._fo_rate(p_h, i_h, 0.5 * (c.i_ref0 + c.i_ref1), rh, T_L)
         f_1 = self._fo_rate(p_1, i_1, c.i_ref1, r1, T_L)
-        return i_1, p_1, w0 + T / 6.0 * (f0 + 4.0 * f_h + f_1), model
+        return i_1, p_1, w0 + self._T / 6.0 * (f0 + 4.0 * f_h + f_1)
 
     # ------------------------------------------------------------------ a cycle
 
@@ -462,11 +477,10 @@ class FullOrderSampledController(SampledController):
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot_k = cmath.exp(-1j * eps_k)
         i_k = sample.i_s_ab * rot_k
-        psi0 = self._psi_prev
-        # the past interval by the model (for the estimator's current integral)
-        psi0_m = psi0 if psi0 is not None else 0j
-        _, _, _, (i_h, i_1) = self._fo_advance(prev, self._i_prev, psi0_m, self._w_prev,
-                                               t_k - T)
+        # the past interval by the model: the estimator's current integral, then ω̂
+        psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, t_k - T)
+        i_h, i_1 = model[6], model[8]
         rot_s = cmath.exp(1j * prev.eps)
         turn_h = cmath.exp(0.5j * prev.w_0 * T)
         turn_1 = turn_h * turn_h
@@ -480,19 +494,16 @@ class FullOrderSampledController(SampledController):
         else:
             psi_ab = psi_hat_ab
         psi_k = psi_ab * rot_k
-        if psi0 is None:
-            psi0 = psi_k
-        _, _, w_k, _ = self._fo_advance(prev, self._i_prev, psi0, self._w_prev, t_k - T,
-                                        (i_k, psi_k))
+        _, _, w_k = self._fo_finish(model, (i_k, psi_k))
         self.w_hat = w_k
         i, psi, w, t0 = i_k, psi_k, w_k, t_k
         for j in range(1, self._d + 1):
-            i, psi, w, _ = self._fo_advance(hist[j], i, psi, w, t0)
+            i, psi, w = self._fo_finish(self._fo_model(hist[j], i, psi, w, t0))
             t0 += T
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
         # the command for I_{k+d} = (t0, t0 + T]
-        r0, rh, r1 = self.refs_at(t0), self.refs_at(t0 + 0.5 * T), self.refs_at(t0 + T)
+        r0, rh, r1 = self._at(t0), self._at(t0 + 0.5 * T), self._at(t0 + T)
         T_L = r0.T_L
         i_ref0 = last.i_ref1 if self._k > self._d + 1 else complex(
             *self._currents(r0, w, T_L)[:2])
@@ -536,7 +547,8 @@ class FullOrderSampledController(SampledController):
         hist = self._hist
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
-        i_k, psi_k, w_k, _ = self._fo_advance(prev, self._i_prev, psi0, self._w_prev, t_k - T)
+        i_k, psi_k, w_k = self._fo_finish(
+            self._fo_model(prev, self._i_prev, psi0, self._w_prev, t_k - T))
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot = cmath.exp(1j * eps_k)
         self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
