@@ -193,7 +193,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
           f"period {label}" + ("" if period is None else
                               f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
-                              f"{args.setpoint_frame[1]})"))
+                              f"{args.setpoint_frame[1]}), {args.discretisation} design"))
     print(report.summary_table(summary))
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
           + (", " + ", ".join(p.name for p in figures) if figures else
@@ -319,7 +319,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
             close()
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
           f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
-          f"{format_duration(cfg.period)}, delay {cfg.delay}")
+          f"{format_duration(cfg.period)}, delay {cfg.delay}, {cfg.discretisation} design")
     _print_run(kind, summary, out, profile)
     return _finish_run(summary)
 
