@@ -10,7 +10,9 @@ continuous laws. This one is designed for what the drive does between two sample
   ε_{j+1}: the frame angle is continuous, piecewise linear;
 * **every quantity is predicted for the interval it acts on** — the command computed at t_k
   acts on I_{k+d} (d = delay): ω̂ is predicted to that interval's midpoint through the
-  intervals already committed, the references (15) are evaluated at the midpoint, and
+  intervals already committed (and, implicitly, through the interval's own current: the
+  implicit midpoint rule, with kω pre-warped to e^{−kω·T}), the references (15) are evaluated
+  at the midpoint, the load is the T_L(t_{k+d}) the dynamometer holds, and
   ω0 = ω̂ + αM·i_sq*/ψ* (15) is the midpoint frame speed;
 * **the observer (16), (20) is integrated exactly over each interval** — in the frame of an
   interval the rotor-flux model (first three rows of (2)) with the applied current is
@@ -19,6 +21,11 @@ continuous laws. This one is designed for what the drive does between two sample
   trajectory linearly;
 * **the flux estimator** (24) integrates the stator flux with the average applied voltage
   and the integral of the current the drive applied (:class:`IntervalFluxEstimator`).
+
+:class:`SampledController` is the current-fed law (15), (16), (20) (ideal or PI current-loop
+drive, (d, q) or (a, b) setpoints); :class:`FullOrderSampledController` the full-order law
+(25)–(27), (32) for a voltage-fed drive with (d, q) setpoints; :func:`make_controller`
+picks the design named by ``ControllerConfig.discretisation``.
 
 Interface: like :class:`~gateway.control.controller.Controller` — ``step(refs, sample) ->
 Command`` once per cycle, ``coast()`` for a missed one — so the cycle code calls both the
