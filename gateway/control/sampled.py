@@ -115,15 +115,14 @@ class SampledController:
 
     # ------------------------------------------------------------------ the model
 
-    def _at(self, t: float) -> Refs:
-        """refs_at(t), cached per half period (each instant is asked for several times)."""
-        key = round(2.0 * t / self._T)
+    def _at(self, n: int) -> Refs:
+        """refs_at(n·T/2), cached (each instant is asked for several times)."""
         cache = self._refs_cache
-        r = cache.get(key)
+        r = cache.get(n)
         if r is None:
             if len(cache) > 16:
                 cache.clear()
-            r = cache[key] = self.refs_at(0.5 * key * self._T)
+            r = cache[n] = self.refs_at(0.5 * n * self._T)
         return r
 
     def _terms(self, c: Interval, i0_ab: complex) -> list[tuple[complex, complex]]:
@@ -202,10 +201,10 @@ class SampledController:
         return (m.mu * (psi.real * i_dq.imag - psi.imag * i_dq.real) - T_L / m.J
                 + r.psi_ref * psi.imag / self._g.gamma_1)
 
-    def _advance(self, c: Interval, psi0: complex, w0: float, t0: float,
+    def _advance(self, c: Interval, psi0: complex, w0: float, j: int,
                  terms: list[tuple[complex, complex]], psi_end_meas: complex | None = None,
                  di: complex = 0j) -> tuple[complex, float]:
-        """ψ_r (frame at the end) and ω̂ at the end of interval ``c`` (starting at t0).
+        """ψ_r (frame at the end) and ω̂ at the end of interval ``c`` = I_j.
 
         ω̂ integrates (16), (20) over the interval exactly for the model; with the measured
         flux at the end, the model's trajectory is corrected linearly, δ·τ/T; ``di`` is the
@@ -213,8 +212,8 @@ class SampledController:
         (a drive that could not follow: voltage limit), added to the torque integral.
         """
         T = self._T
-        r_mid = self._at(t0 + 0.5 * T)
-        T_L = self._at(t0).T_L  # the load applied over the interval
+        r_mid = self._at(2 * j + 1)
+        T_L = self._at(2 * j).T_L  # the load applied over the interval
         w_m = w0 + 0.5 * T * self._rate(psi0, c.i_dq, r_mid, T_L)  # speed at the midpoint
         psi_end, int_psi, int_ci, _ = self._interval(c, psi0, w_m, terms)
         if psi_end_meas is not None:
@@ -233,7 +232,7 @@ class SampledController:
         command it."""
         T = self._T
         self._k += 1
-        t_k = self._k * T
+        k = self._k
         hist = self._hist
         prev = hist[0]  # I_{k−1}, ended at t_k
         eps_k = wrap_angle(prev.eps + T * prev.w_0)  # the drive's frame at t_k
@@ -256,21 +255,20 @@ class SampledController:
         di_k = (sample.i_s_ab - i_end_ab) * cmath.exp(-1j * eps_k)
         di = 0.5 * (self._di_prev + di_k)
         self._di_prev = di_k
-        _, w_k = self._advance(prev, psi0, self._w_prev, t_k - T, terms, psi_k, di)
+        _, w_k = self._advance(prev, psi0, self._w_prev, k - 1, terms, psi_k, di)
         self.w_hat = w_k
         # predict through the committed intervals I_k … I_{k+d−1}
-        psi, w, t0, i0 = psi_k, w_k, t_k, sample.i_s_ab
+        psi, w, i0 = psi_k, w_k, sample.i_s_ab
         for j in range(1, self._d + 1):
             terms = self._terms(hist[j], i0)
-            psi, w = self._advance(hist[j], psi, w, t0, terms)
+            psi, w = self._advance(hist[j], psi, w, k - 1 + j, terms)
             if self._lag > 0.0:
                 i0 = self._current(hist[j], terms)[1]
-            t0 += T
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
         # the command for I_{k+d}: references and ω̂ at its midpoint
-        r = self._at(t_k + (self._d + 0.5) * T)
-        T_L = self._at(t_k + self._d * T).T_L  # the load the drive will apply
+        r = self._at(2 * (k + self._d) + 1)
+        T_L = self._at(2 * (k + self._d)).T_L  # the load the drive will apply
         w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
         m = self.motor
         w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
@@ -352,12 +350,11 @@ class SampledController:
         """
         T = self._T
         self._k += 1
-        t_k = self._k * T
         hist = self._hist
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         terms = self._terms(prev, self._i_prev_ab)
-        psi_k, w_k = self._advance(prev, psi0, self._w_prev, t_k - T, terms)
+        psi_k, w_k = self._advance(prev, psi0, self._w_prev, self._k - 1, terms)
         i_end_ab = self._current(prev, terms)[1]
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
@@ -447,11 +444,11 @@ class FullOrderSampledController(SampledController):
         w = (r.psi_ref * psi.imag + m.beta * (psi.imag * e_d - psi.real * e_q)) / g.gamma_2
         return m.mu * (psi.real * i.imag - psi.imag * i.real) - T_L / m.J + w
 
-    def _fo_model(self, c: Interval, i0: complex, psi0: complex, w0: float, t0: float):
-        """The model over interval ``c`` from (i0, ψ0, ω̂0): the references at its start,
+    def _fo_model(self, c: Interval, i0: complex, psi0: complex, w0: float, j: int):
+        """The model over interval ``c`` = I_j from (i0, ψ0, ω̂0): the references at its start,
         middle and end, the rate at the start and (i, ψ) at the middle and the end."""
         T = self._T
-        r0, rh, r1 = self._at(t0), self._at(t0 + 0.5 * T), self._at(t0 + T)
+        r0, rh, r1 = self._at(2 * j), self._at(2 * j + 1), self._at(2 * j + 2)
         f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
         a = self._matrix(c.w_0, w0 + 0.5 * T * f0)
         return (c, w0, r0, rh, r1, f0, *self._flow2(a, c.u_dq, i0, psi0, 0.5 * T))
@@ -478,7 +475,7 @@ class FullOrderSampledController(SampledController):
         T = self._T
         m, g = self.motor, self._g
         self._k += 1
-        t_k = self._k * T
+        k = self._k
         hist = self._hist
         prev = hist[0]
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
@@ -486,7 +483,7 @@ class FullOrderSampledController(SampledController):
         i_k = sample.i_s_ab * rot_k
         # the past interval by the model: the estimator's current integral, then ω̂
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
-        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, t_k - T)
+        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, k - 1)
         i_h, i_1 = model[6], model[8]
         rot_s = cmath.exp(1j * prev.eps)
         turn_h = cmath.exp(0.5j * prev.w_0 * T)
@@ -503,14 +500,14 @@ class FullOrderSampledController(SampledController):
         psi_k = psi_ab * rot_k
         _, _, w_k = self._fo_finish(model, (i_k, psi_k))
         self.w_hat = w_k
-        i, psi, w, t0 = i_k, psi_k, w_k, t_k
+        i, psi, w = i_k, psi_k, w_k
         for j in range(1, self._d + 1):
-            i, psi, w = self._fo_finish(self._fo_model(hist[j], i, psi, w, t0))
-            t0 += T
+            i, psi, w = self._fo_finish(self._fo_model(hist[j], i, psi, w, k - 1 + j))
+        n = 2 * (k + self._d)  # I_{k+d} starts at n·T/2
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
         # the command for I_{k+d} = (t0, t0 + T]
-        r0, rh, r1 = self._at(t0), self._at(t0 + 0.5 * T), self._at(t0 + T)
+        r0, rh, r1 = self._at(n), self._at(n + 1), self._at(n + 2)
         T_L = r0.T_L
         i_ref0 = last.i_ref1 if self._k > self._d + 1 else complex(
             *self._currents(r0, w, T_L)[:2])
@@ -550,12 +547,11 @@ class FullOrderSampledController(SampledController):
         """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
         T = self._T
         self._k += 1
-        t_k = self._k * T
         hist = self._hist
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         i_k, psi_k, w_k = self._fo_finish(
-            self._fo_model(prev, self._i_prev, psi0, self._w_prev, t_k - T))
+            self._fo_model(prev, self._i_prev, psi0, self._w_prev, self._k - 1))
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot = cmath.exp(1j * eps_k)
         self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
