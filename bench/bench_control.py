@@ -17,7 +17,8 @@ import sys
 import time
 
 from dbc.motor import MotorParams
-from gateway.control.controller import Controller, ControllerConfig, Sample
+from gateway.control.controller import ControllerConfig, Sample
+from gateway.control.sampled import make_controller
 from gateway.reference import paper_profile
 from gateway.simulate import SimConfig, run
 
@@ -39,12 +40,14 @@ def _samples(law: str, n: int) -> list[tuple[object, Sample]]:
     return out
 
 
-def bench_step(law: str, flux: str, samples, repeats: int) -> float:
+def bench_step(law: str, flux: str, samples, repeats: int, disc: str = "euler") -> float:
     """Median over repeats of the mean µs per step."""
     motor = MotorParams.paper()
+    prof = paper_profile()
     times = []
     for _ in range(repeats):
-        ctl = Controller(motor, ControllerConfig(law=law, flux=flux))  # type: ignore[arg-type]
+        cfg = ControllerConfig(law=law, flux=flux, discretisation=disc)
+        ctl = make_controller(motor, cfg, prof.at)
         step = ctl.step
         t0 = time.perf_counter()
         for refs, s in samples:
@@ -88,14 +91,15 @@ def main(argv: list[str] | None = None) -> int:
     n, repeats = (500, 3) if args.quick else (2500, 7)
     print(f"Python {sys.version.split()[0]}; controller step, median of {repeats} repeats "
           f"over {n} steps of the paper scenario (budget: {TARGET_US:g} us, period 1000 us)")
-    print(f"{'law':12s} {'flux':10s} {'us/step':>8s} {'vs target':>10s}")
+    print(f"{'law':12s} {'flux':10s} {'design':7s} {'us/step':>8s} {'vs target':>10s}")
     worst = 0.0
     for law in ("current-fed", "full-order"):
         samples = _samples(law, n)
         for flux in ("estimated", "true"):
-            us = bench_step(law, flux, samples, repeats)
-            worst = max(worst, us)
-            print(f"{law:12s} {flux:10s} {us:8.2f} {us / TARGET_US:9.2f}x")
+            for disc in ("euler", "exact"):
+                us = bench_step(law, flux, samples, repeats, disc)
+                worst = max(worst, us)
+                print(f"{law:12s} {flux:10s} {disc:7s} {us:8.2f} {us / TARGET_US:9.2f}x")
     print(f"Profile.at: {bench_profile(repeats):.2f} us per call")
     print("sampled closed loop (plant + controller + INT16 PDO codec), 1 ms period, "
           "drive inner loop 10 kHz:")

@@ -104,7 +104,7 @@ def _choices(enum: Any) -> list[str]:
 
 
 def _add_control_options(p: argparse.ArgumentParser) -> None:
-    from gateway.control.controller import EstimatorKind, FluxSource, Law
+    from gateway.control.controller import Discretisation, EstimatorKind, FluxSource, Law
     from gateway.control.laws import Gains
 
     g = Gains()
@@ -120,6 +120,12 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimator", type=EstimatorKind, choices=list(EstimatorKind),
                    default=EstimatorKind.OPEN_LOOP,
                    help="flux estimator: the paper's open-loop integrator or the drift-free one")
+    p.add_argument("--discretisation", type=Discretisation, choices=list(Discretisation),
+                   default=Discretisation.EXACT,
+                   help="sampled controller: exact (the sampled-data design of "
+                        "docs/sampled-control.md, default) or euler (the continuous laws "
+                        "stepped with forward Euler, the earlier design); the full-order law "
+                        "has an exact design for voltage-fed (d, q) drives only")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
@@ -161,6 +167,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args),
         duration=args.duration and parse_duration(args.duration, "--duration"),
+        discretisation=args.discretisation,
     )
     out = _out_dir(args.out, f"simulate-{args.law}")
     label = "continuous" if period is None else format_duration(period)
@@ -194,7 +201,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
           f"period {label}" + ("" if period is None else
                               f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
-                              f"{args.setpoint_frame[1]})"))
+                              f"{args.setpoint_frame[1]}), {args.discretisation} design"))
     print(report.summary_table(summary))
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
           + (", " + ", ".join(p.name for p in figures) if figures else
@@ -284,6 +291,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
                                        if args.timing is Timing.REALTIME else 5),
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
+        discretisation=args.discretisation,
     )
 
 
@@ -350,7 +358,8 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
             close()
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
           f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
-          f"{format_duration(cfg.period)}, delay {cfg.sampling.delay}")
+          f"{format_duration(cfg.period)}, delay {cfg.sampling.delay}, {cfg.discretisation} "
+          "design")
     _print_run(kind, summary, out, profile)
     return _finish_run(summary)
 

@@ -31,14 +31,15 @@ from dbc.timing import Sampling, internal_rate
 from gateway import report
 from gateway.buslog import LOG_SUFFIXES, write_frame
 from gateway.control.controller import (
-    Controller,
     ControllerConfig,
+    Discretisation,
     EstimatorKind,
     FluxSource,
     Law,
     as_enum,
 )
 from gateway.control.laws import Gains
+from gateway.control.sampled import make_controller
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.guard import Envelope, Plausibility
@@ -64,7 +65,8 @@ class RunConfig:
         or VOLTAGE (voltage vector mode). sampling: period, delay (1 = synchronous RPDOs,
         CiA 301 default; 0 = the emulator applies RPDOs on receipt) and the setpoint frame
         (the drive profile's). bus_log: file name of the raw bus log in the run directory;
-        its suffix picks the python-can writer. Strings are accepted for the enums.
+        its suffix picks the python-can writer. discretisation: EXACT (the sampled-data
+        design, docs/sampled-control.md) or EULER. Strings are accepted for the enums.
     """
 
     law: Law = Law.CURRENT_FED
@@ -78,13 +80,15 @@ class RunConfig:
     max_missed: int = 5
     max_miss_rate: float = 0.2
     duration: float | None = None
+    discretisation: Discretisation = Discretisation.EXACT
 
     def __post_init__(self) -> None:
         try:
             for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),
                                      ("estimator", EstimatorKind, "estimator"),
                                      ("drive_mode", DriveMode, "drive mode"),
-                                     ("timing", Timing, "timing")):
+                                     ("timing", Timing, "timing"),
+                                     ("discretisation", Discretisation, "discretisation")):
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
         except ValueError as exc:
             raise UserError(str(exc)) from None
@@ -97,9 +101,11 @@ class RunConfig:
         """The cycle period T, s (from :attr:`sampling`)."""
         return self.sampling.period
 
-    def controller_config(self) -> ControllerConfig:
+    def controller_config(self, current_lag: float = 0.0) -> ControllerConfig:
+        """The controller's part; ``current_lag``: the drive's current response time, s."""
         return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,
-                                sampling=self.sampling, gains=self.gains)
+                                sampling=self.sampling, gains=self.gains,
+                                discretisation=self.discretisation, current_lag=current_lag)
 
 
 class BusRecorder(can.Listener):
@@ -331,7 +337,11 @@ def run_gateway(
         loop_cfg = replace(loop_cfg, sync_counter=counter)
         master.start()
         master.enable()
-        ctl = Controller(motor, cfg.controller_config())
+        # the exact design models what the drive applies: for the emulator's PI current loop
+        # its response time (1/bandwidth, from its EDS); a real drive is taken as ideal
+        lag = (1.0 / _eds_default(master, "current_loop_bw")
+               if drive.emulator and cfg.drive_mode is DriveMode.CURRENT_LOOP else 0.0)
+        ctl = make_controller(motor, cfg.controller_config(lag), profile.at)
 
         def fault_cause() -> tuple[StopReason, str] | None:
             f = master.first_fault

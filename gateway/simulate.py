@@ -27,14 +27,15 @@ from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
 from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
-    Controller,
     ControllerConfig,
+    Discretisation,
     EstimatorKind,
     FluxSource,
     Law,
     as_enum,
 )
 from gateway.control.laws import Gains, current_fed, full_order
+from gateway.control.sampled import make_controller
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import load_drive_profile
 from gateway.errors import UserError
@@ -60,6 +61,8 @@ class SimConfig:
     record_step: sampling of the continuous-time record, s.
     initial: the motor's state at t = 0 (the paper: all zero).
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
+    discretisation: sampled runs only: "exact" (the sampled-data design,
+        docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
     """
 
     law: Law = Law.CURRENT_FED
@@ -76,12 +79,14 @@ class SimConfig:
     initial: MotorState = field(default_factory=MotorState)
     w_hat_0: float = 0.0
     eps_0: float = 0.0
+    discretisation: Discretisation = Discretisation.EXACT
 
     def __post_init__(self) -> None:
         try:
             for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),
                                      ("estimator", EstimatorKind, "estimator"),
-                                     ("drive_mode", DriveMode, "drive mode")):
+                                     ("drive_mode", DriveMode, "drive mode"),
+                                     ("discretisation", Discretisation, "discretisation")):
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
         except ValueError as exc:
             raise UserError(str(exc)) from None
@@ -106,6 +111,8 @@ class SimConfig:
         return ControllerConfig(
             law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,
             sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
+            discretisation=self.discretisation,
+            current_lag=current_lag(self.drive_mode, self.drive_params),
         )
 
     def describe(self) -> dict[str, Any]:
@@ -121,6 +128,12 @@ class SimConfig:
         d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
                              for k, v in asdict(self.drive_params).items()}
         return d
+
+
+def current_lag(drive: DriveMode, params: DriveParams) -> float:
+    """The time constant the sampled-data controller assumes for the drive's current
+    response: 1/bandwidth of the PI current loop, 0 for an ideal source (or voltage-fed)."""
+    return 1.0 / params.current_loop_bw if drive is DriveMode.CURRENT_LOOP else 0.0
 
 
 Progress = Callable[[float], None]
@@ -181,7 +194,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive_mode),
                   cfg.initial)
     drive.enable(True)
-    ctl = Controller(motor, cfg.controller_config(), eps_0=cfg.eps_0, w_hat=cfg.w_hat_0)
+    ctl = make_controller(motor, cfg.controller_config(), profile.at, eps_0=cfg.eps_0,
+                          w_hat=cfg.w_hat_0)
     cycle = ControlCycle(ctl, profile, sampling)
     link = PdoLink(cfg.quantize, sampling.setpoint_frame)
     rec = Record(CycleRow)

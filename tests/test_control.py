@@ -197,9 +197,11 @@ def test_sampled_approaches_continuous_as_period_shrinks():
 
 
 def test_sampled_paper_run_shows_delay_and_frame_effects():
+    """The forward-Euler design (tests/test_sampled.py covers the exact one, which removes
+    these effects)."""
     from gateway.reference import paper_profile
 
-    base = dict(flux="estimated", drive_mode="ideal")
+    base = dict(flux="estimated", drive_mode="ideal", discretisation="euler")
     rms = {}
     for key, kw in {"dq0": dict(delay=0), "dq1": dict(delay=1),
                     "ab1": dict(delay=1, setpoint_frame="ab")}.items():

@@ -60,6 +60,14 @@ class EstimatorKind(StrEnum):
     DRIFT_FREE = "drift-free"
 
 
+class Discretisation(StrEnum):
+    """EULER: the laws sampled with forward Euler (:class:`Controller`); EXACT: the
+    sampled-data design of :mod:`gateway.control.sampled` (docs/sampled-control.md)."""
+
+    EULER = "euler"
+    EXACT = "exact"
+
+
 TWO_PI = 2.0 * math.pi
 
 
@@ -78,8 +86,14 @@ class ControllerConfig:
 
     law: :class:`Law`. flux: :class:`FluxSource`. estimator: :class:`EstimatorKind` (see
     :mod:`gateway.control.estimator`). w_c: corner of the drift-free estimator, rad/s.
-    sampling: period T and the delay between the sample and the interval the setpoints act
-    on (:class:`dbc.timing.Sampling`). gains: :class:`Gains`.
+    sampling: period T, the delay between the sample and the interval the setpoints act
+    on, and the frame the drive receives its setpoints in (:class:`dbc.timing.Sampling`).
+    gains: :class:`Gains`.
+    discretisation: :class:`Discretisation` — EULER (this module's :class:`Controller`) or
+        EXACT (:mod:`gateway.control.sampled`); pick the class with
+        :func:`gateway.control.sampled.make_controller`.
+    current_lag: time constant of the drive's current response to a setpoint step, s
+        (0: ideal current source; only the exact design uses it).
     Strings are accepted for the enums (the command-line words) and converted.
     """
 
@@ -89,12 +103,18 @@ class ControllerConfig:
     w_c: float = 2.0
     sampling: Sampling = field(default_factory=Sampling)
     gains: Gains = field(default_factory=Gains)
+    discretisation: Discretisation = Discretisation.EULER
+    current_lag: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "law", as_enum(Law, self.law, "law"))
         object.__setattr__(self, "flux", as_enum(FluxSource, self.flux, "flux source"))
         object.__setattr__(self, "estimator",
                            as_enum(EstimatorKind, self.estimator, "estimator"))
+        object.__setattr__(self, "discretisation",
+                           as_enum(Discretisation, self.discretisation, "discretisation"))
+        if not self.current_lag >= 0.0:
+            raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
 
 
 @dataclass(frozen=True, slots=True)

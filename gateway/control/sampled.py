@@ -1,0 +1,593 @@
+"""The sampled-data controller: the laws designed for the bus's timing contract.
+
+The plain :class:`gateway.control.controller.Controller` is a forward-Euler copy of the
+continuous laws. This one is designed for what the drive does between two samples
+(docs/ARCHITECTURE.md, "Sampled timing"; the derivation is docs/sampled-control.md):
+
+* **the frame follows the drive** — over interval I_j = (t_j, t_{j+1}] the drive turns its
+  frame from ε_j at the ω0 of that interval's command, so the controller's frame angle is
+  ε_{j+1} = ε_j + T·ω0_j with the ω0 the drive *applies* in I_j, and the next command carries
+  ε_{j+1}: the frame angle is continuous, piecewise linear;
+* **every quantity is predicted for the interval it acts on** — the command computed at t_k
+  acts on I_{k+d} (d = delay): ω̂ is predicted to that interval's midpoint through the
+  intervals already committed (and, implicitly, through the interval's own current: the
+  implicit midpoint rule, with kω pre-warped to e^{−kω·T}), the references (15) are evaluated
+  at the midpoint, the load is the T_L(t_{k+d}) the dynamometer holds, and
+  ω0 = ω̂ + αM·i_sq*/ψ* (15) is the midpoint frame speed;
+* **the observer (16), (20) is integrated exactly over each interval** — in the frame of an
+  interval the rotor-flux model (first three rows of (2)) with the applied current is
+  linear time-invariant (rotor speed taken constant at its estimate), so ψ_r(τ), ∫ψ_r and
+  ∫ψ_r×i have closed forms; the measured flux at the interval's end corrects the model's
+  trajectory linearly;
+* **the flux estimator** (24) integrates the stator flux with the average applied voltage
+  and the integral of the current the drive applied (:class:`IntervalFluxEstimator`).
+
+:class:`SampledController` is the current-fed law (15), (16), (20) (ideal or PI current-loop
+drive, (d, q) or (a, b) setpoints); :class:`FullOrderSampledController` the full-order law
+(25)–(27), (32) for a voltage-fed drive with (d, q) setpoints; :func:`make_controller`
+picks the design named by ``ControllerConfig.discretisation``.
+
+Interface: like :class:`~gateway.control.controller.Controller` — ``step(refs, sample) ->
+Command`` once per cycle, ``coast()`` for a missed one — so the cycle code calls both the
+same way. It needs the references at times other than the sample's: ``refs_at(t)`` (the
+profile's ``at``) is given at construction; the controller counts its own cycles (t_k = k·T).
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from dbc.modes import SetpointFrame
+from gateway.control.controller import (
+    Command,
+    Controller,
+    ControllerConfig,
+    Discretisation,
+    EstimatorKind,
+    FluxSource,
+    Law,
+    Sample,
+    wrap_angle,
+)
+from gateway.control.estimator import IntervalFluxEstimator
+from gateway.control.laws import Refs, sat_tanh
+
+
+@dataclass(frozen=True, slots=True)
+class Interval:
+    """What the drive applies over one interval, as the controller commanded it.
+
+    i_dq: current setpoint in the interval's frame, A. u_dq: voltage setpoint, V.
+    eps: frame angle at the interval's start, rad. w_0: frame speed, rad/s.
+    i_ref0, i_ref1: full-order law: the current references (25) the command assumed at the
+    interval's start and end (the current error (28) over the interval is taken against
+    their linear interpolation).
+    """
+
+    i_dq: complex
+    u_dq: complex
+    eps: float
+    w_0: float
+    i_ref0: complex = 0j
+    i_ref1: complex = 0j
+
+
+def phi(s: complex, T: float) -> complex:
+    """∫_0^T e^{sτ} dτ = (e^{sT} − 1)/s, continuous at s = 0 (series below |sT| = 1e-4)."""
+    x = s * T
+    if abs(x) < 1e-4:
+        return T * (1.0 + x / 2.0 + x * x / 6.0)
+    return (cmath.exp(x) - 1.0) / s
+
+
+class SampledController:
+    """The sampled-data current-fed controller (15), (16), (20) (see the module docstring)."""
+
+    def __init__(
+        self,
+        motor,
+        config: ControllerConfig,
+        refs_at: Callable[[float], Refs],
+        eps_0: float = 0.0,
+        w_hat: float = 0.0,
+    ) -> None:
+        if config.law is not Law.CURRENT_FED:
+            raise ValueError("SampledController implements the current-fed law only")
+        self.motor = motor
+        self.config = config
+        self.refs_at = refs_at
+        self._T = config.sampling.period
+        self._d = config.sampling.delay
+        self._g = config.gains
+        self._true_flux = config.flux is FluxSource.TRUE
+        self._ab = config.sampling.setpoint_frame is SetpointFrame.AB
+        self._lag = config.current_lag
+        m = motor
+        self._aM = m.alpha * m.M
+        self.estimator = IntervalFluxEstimator(
+            motor, config.w_c if config.estimator is EstimatorKind.DRIFT_FREE else 0.0)
+        self._k = 0  # samples taken (t_k = k·T)
+        self._refs_cache: dict[int, Refs] = {}
+        self.eps_0 = wrap_angle(eps_0)
+        self.w_hat = w_hat  # ω̂ at t_k
+        zero = Interval(0j, 0j, self.eps_0, 0.0)
+        # The decided commands for I_{k−1}, I_k, …, I_{k+d−1} at the start of step k (the
+        # drive holds zero setpoints until the first command arrives; the frame is kept
+        # continuous from the start).
+        self._hist: deque[Interval] = deque([zero] * (self._d + 1))
+        self._psi_prev: complex | None = None  # ψ_r at t_{k−1}, frame of I_{k−1}
+        self._w_prev = w_hat  # ω̂ at t_{k−1}
+        self._i_prev_ab = 0j  # measured current at t_{k−1}
+        self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
+
+    # ------------------------------------------------------------------ the model
+
+    def _at(self, n: int) -> Refs:
+        """refs_at(n·T/2), cached (each instant is asked for several times)."""
+        cache = self._refs_cache
+        r = cache.get(n)
+        if r is None:
+            if len(cache) > 16:
+                cache.clear()
+            r = cache[n] = self.refs_at(0.5 * n * self._T)
+        return r
+
+    def _terms(self, c: Interval, i0_ab: complex) -> list[tuple[complex, complex]]:
+        """The applied current over interval ``c`` in its turning frame, Σ I_n·e^{s_n·τ}.
+
+        (d, q) setpoints are constant in the frame; (a, b) setpoints are held, so in the frame
+        they turn back, I·e^{−jω0τ}. A current loop (``current_lag`` τc > 0) reaches the
+        setpoint from the current at the interval's start i0 as e^{−τ/τc}.
+        """
+        T = self._T
+        if self._ab:
+            i_ab = c.i_dq * cmath.exp(0.5j * c.w_0 * T)  # the held vector, frame at τ = 0
+            terms = [(i_ab, complex(0.0, -c.w_0))]
+        else:
+            i_ab = c.i_dq
+            terms = [(c.i_dq, 0j)]
+        if self._lag > 0.0:
+            s_ref = terms[0][1]
+            delta = i0_ab * cmath.exp(-1j * c.eps) - i_ab
+            terms.append((delta, s_ref - 1.0 / self._lag))
+        return terms
+
+    def _interval(self, c: Interval, psi0: complex, w_m: float,
+                  terms: list[tuple[complex, complex]]):
+        """The rotor-flux model over one interval, in its turning frame, from ψ0.
+
+        With the rotor speed constant at w_m the first three rows of (2) are linear
+        time-invariant in the frame: dψ/dτ = −a·ψ + αM·i(τ), a = α + j(ω0 − ω). For
+        i(τ) = Σ I_n·e^{s_n·τ}: ψ(τ) = Σ P_n·e^{s_n·τ} + C·e^{−aτ}, P_n = αM·I_n/(a + s_n),
+        C = ψ0 − Σ P_n. Returns (ψ(T), ∫ψ dτ, ∫conj(ψ)·i dτ, the current's terms).
+        """
+        T = self._T
+        aM = self._aM
+        a = complex(self.motor.alpha, c.w_0 - w_m)
+        ps = [(aM * big_i / (a + s_n), s_n) for big_i, s_n in terms]
+        coef = psi0 - sum(p for p, _ in ps)
+        psi_end = coef * cmath.exp(-a * T)
+        int_psi = coef * phi(-a, T)
+        int_ci = 0j
+        a_c = a.conjugate()
+        for p, s_p in ps:
+            psi_end += p * cmath.exp(s_p * T)
+            int_psi += p * phi(s_p, T)
+        for big_i, s_n in terms:
+            int_ci += coef.conjugate() * big_i * phi(s_n - a_c, T)
+            for p, s_p in ps:
+                int_ci += p.conjugate() * big_i * phi(s_p.conjugate() + s_n, T)
+        return psi_end, int_psi, int_ci, terms
+
+    def _current(self, c: Interval, terms: list[tuple[complex, complex]]
+                 ) -> tuple[complex, complex]:
+        """(∫i_ab dt over the interval, i_ab at its end) of the applied current."""
+        T = self._T
+        rot0 = cmath.exp(1j * c.eps)
+        jw = 1j * c.w_0
+        int_i = 0j
+        i_end = 0j
+        for big_i, s_n in terms:
+            int_i += big_i * phi(s_n + jw, T)
+            i_end += big_i * cmath.exp(s_n * T)
+        return rot0 * int_i, rot0 * cmath.exp(jw * T) * i_end
+
+    def _dw(self, int_psi: complex, int_ci: complex, T_L: float, r_mid: Refs) -> float:
+        """∫ of (16) with (20) over an interval: μ∫(ψ_rd i_sq − ψ_rq i_sd) − ∫T_L/J + ψ*∫ψ_rq/γ1.
+
+        The load is the one the timing contract applies over the interval: T_L at its start,
+        held (docs/ARCHITECTURE.md); ψ* at the midpoint.
+        """
+        m = self.motor
+        return (m.mu * int_ci.imag - self._T * T_L / m.J
+                + r_mid.psi_ref * int_psi.imag / self._g.gamma_1)
+
+    def _rate(self, psi: complex, i_dq: complex, r: Refs, T_L: float) -> float:
+        """dω̂/dt of (16), (20) at one instant with the load T_L."""
+        m = self.motor
+        return (m.mu * (psi.real * i_dq.imag - psi.imag * i_dq.real) - T_L / m.J
+                + r.psi_ref * psi.imag / self._g.gamma_1)
+
+    def _advance(self, c: Interval, psi0: complex, w0: float, j: int,
+                 terms: list[tuple[complex, complex]], psi_end_meas: complex | None = None,
+                 di: complex = 0j) -> tuple[complex, float]:
+        """ψ_r (frame at the end) and ω̂ at the end of interval ``c`` = I_j.
+
+        ω̂ integrates (16), (20) over the interval exactly for the model; with the measured
+        flux at the end, the model's trajectory is corrected linearly, δ·τ/T; ``di`` is the
+        mean difference between the measured and the modelled current over the interval
+        (a drive that could not follow: voltage limit), added to the torque integral.
+        """
+        T = self._T
+        r_mid = self._at(2 * j + 1)
+        T_L = self._at(2 * j).T_L  # the load applied over the interval
+        w_m = w0 + 0.5 * T * self._rate(psi0, c.i_dq, r_mid, T_L)  # speed at the midpoint
+        psi_end, int_psi, int_ci, _ = self._interval(c, psi0, w_m, terms)
+        if psi_end_meas is not None:
+            delta = psi_end_meas - psi_end
+            int_psi += 0.5 * T * delta
+            int_ci += 0.5 * T * delta.conjugate() * terms[0][0]
+            psi_end = psi_end_meas
+        if di:
+            int_ci += int_psi.conjugate() * di
+        return psi_end, w0 + self._dw(int_psi, int_ci, T_L, r_mid)
+
+    # ------------------------------------------------------------------ a cycle
+
+    def step(self, refs: Refs, sample: Sample) -> Command:
+        """One sample at t_k: ω̂ over I_{k−1} with the measured flux, predict to I_{k+d},
+        command it."""
+        T = self._T
+        self._k += 1
+        k = self._k
+        hist = self._hist
+        prev = hist[0]  # I_{k−1}, ended at t_k
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)  # the drive's frame at t_k
+        # flux at t_k: the stator flux integrated over I_{k−1} with the applied current
+        terms = self._terms(prev, self._i_prev_ab)
+        int_i_ab, i_end_ab = self._current(prev, terms)
+        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
+                                           i_end_ab, eps_k, refs.psi_ref)
+        if self._true_flux:
+            if sample.psi_r_ab is None:
+                raise ValueError("flux='true' needs the true rotor flux in the sample")
+            psi_ab = sample.psi_r_ab
+        else:
+            psi_ab = psi_hat_ab
+        psi_k = psi_ab * cmath.exp(-1j * eps_k)
+        # ω̂ at t_k: (16), (20) integrated over I_{k−1}, model corrected by the measured end
+        psi0 = self._psi_prev
+        if psi0 is None:
+            psi0 = psi_k * cmath.exp(1j * prev.w_0 * T)
+        di_k = (sample.i_s_ab - i_end_ab) * cmath.exp(-1j * eps_k)
+        di = 0.5 * (self._di_prev + di_k)
+        self._di_prev = di_k
+        _, w_k = self._advance(prev, psi0, self._w_prev, k - 1, terms, psi_k, di)
+        self.w_hat = w_k
+        # predict through the committed intervals I_k … I_{k+d−1}
+        psi, w, i0 = psi_k, w_k, sample.i_s_ab
+        for j in range(1, self._d + 1):
+            terms = self._terms(hist[j], i0)
+            psi, w = self._advance(hist[j], psi, w, k - 1 + j, terms)
+            if self._lag > 0.0:
+                i0 = self._current(hist[j], terms)[1]
+        last = hist[-1]
+        eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
+        # the command for I_{k+d}: references and ω̂ at its midpoint
+        r = self._at(2 * (k + self._d) + 1)
+        T_L = self._at(2 * (k + self._d)).T_L  # the load the drive will apply
+        w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
+        m = self.motor
+        w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
+        k_r = m.beta * m.sigma
+        u_sd = m.R_s * i_sd + k_r * r.dpsi_ref - w_0 * m.sigma * i_sq
+        u_sq = m.R_s * i_sq + w_0 * (m.sigma * i_sd + k_r * r.psi_ref)
+        new = Interval(complex(i_sd, i_sq), complex(u_sd, u_sq), eps_app, w_0)
+        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        hist.append(new)
+        hist.popleft()
+        self._psi_prev = psi_k
+        self._w_prev = w_k
+        self._i_prev_ab = sample.i_s_ab
+        self.eps_0 = eps_k
+        return Command(
+            i_s_dq_ref=new.i_dq, u_s_dq_ref=new.u_dq, eps_0=eps_app, w_0=w_0,
+            i_s_ab_ref=new.i_dq * to_ab, u_s_ab_ref=new.u_dq * to_ab,
+            w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
+        )
+
+    def _midpoint(self, psi: complex, w: float, r: Refs, T_L: float
+                  ) -> tuple[float, float, float, bool]:
+        """ω̂ at the midpoint of the commanded interval and the currents (15) for it.
+
+        The interval's current acts on ω̂ itself, so the midpoint estimate is implicit:
+        s = ω̂_mid − ω*_mid solves s = ω̂0 − ω*_mid + (T/2)·(c0 − c1·sat(s)) (Newton; the
+        right-hand side is (16), (20) with i_sq* of (15), c1 = k′·ψ_rd/ψ*). That is the
+        implicit midpoint rule for the speed-error dynamics ṡ = −kω·sat(s): stable for any
+        kω·T. The gain is pre-warped, k′ = (2/T)·tanh(kω·T/2), so that in the linear range the
+        error decays by e^{−kω·T} per period like the continuous loop (k′ → kω as T → 0).
+        Returns (ω̂_mid, i_sd*, i_sq*, limited).
+        """
+        m, g = self.motor, self._g
+        T = self._T
+        psi_ref = r.psi_ref
+        i_sd = psi_ref / m.M + r.dpsi_ref / (m.alpha * m.M)
+        k_w = 2.0 / T * math.tanh(0.5 * g.k_w * T)
+        ff = T_L / m.J + r.dw_ref
+        c1 = k_w * psi.real / psi_ref
+        c0 = (psi.real * ff / psi_ref - m.mu * psi.imag * i_sd - T_L / m.J
+              + psi_ref * psi.imag / g.gamma_1)
+        b = w - r.w_ref + 0.5 * T * c0
+        h = 0.5 * T * c1
+        x = b / (1.0 + h) if h > -1.0 else b
+        for _ in range(4):  # Newton on x + h·sat(x) − b = 0 (monotone for h > −1)
+            th = math.tanh(x)
+            x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        i_sq = (-k_w * math.tanh(x) + ff) / (m.mu * psi_ref)
+        q2 = g.i_max * g.i_max - i_sd * i_sd
+        q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
+        limited = abs(i_sq) > q_max
+        if limited:
+            i_sq = math.copysign(q_max, i_sq)
+            w_mid = w + 0.5 * T * self._rate(psi, complex(i_sd, i_sq), r, T_L)
+        else:
+            w_mid = r.w_ref + x
+        return w_mid, i_sd, i_sq, limited
+
+    def _currents(self, r: Refs, w_hat: float, T_L: float) -> tuple[float, float, bool]:
+        """i_sd*, i_sq* of (15) with the current limit (as :mod:`gateway.control.laws`)."""
+        m, g = self.motor, self._g
+        psi_ref = r.psi_ref
+        s = sat_tanh(w_hat - r.w_ref)
+        i_sd = psi_ref / m.M + r.dpsi_ref / (m.alpha * m.M)
+        i_sq = (-g.k_w * s + T_L / m.J + r.dw_ref) / (m.mu * psi_ref)
+        q2 = g.i_max * g.i_max - i_sd * i_sd
+        q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
+        limited = abs(i_sq) > q_max
+        if limited:
+            i_sq = math.copysign(q_max, i_sq)
+        return i_sd, i_sq, limited
+
+    def coast(self) -> None:
+        """A cycle without measurements: the drive keeps the last setpoints, turning on.
+
+        ω̂ and the rotor flux are carried over I_{k−1} by the model alone; the flux
+        estimator takes the model's stator flux at t_k (that interval's voltage is never
+        reported).
+        """
+        T = self._T
+        self._k += 1
+        hist = self._hist
+        prev = hist[0]
+        psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        terms = self._terms(prev, self._i_prev_ab)
+        psi_k, w_k = self._advance(prev, psi0, self._w_prev, self._k - 1, terms)
+        i_end_ab = self._current(prev, terms)[1]
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
+        self._i_prev_ab = i_end_ab
+        last = hist[-1]
+        hist.append(Interval(last.i_dq, last.u_dq, wrap_angle(last.eps + T * last.w_0),
+                             last.w_0))
+        hist.popleft()
+        self._psi_prev = psi_k
+        self._w_prev = w_k
+        self.w_hat = w_k
+        self.eps_0 = eps_k
+
+
+Mat2 = tuple[complex, complex, complex, complex]
+
+
+def expm2(a: Mat2, tau: float) -> Mat2:
+    """e^{A·τ} of a complex 2×2 matrix (row-major), by its two eigenvalues (Sylvester)."""
+    a11, a12, a21, a22 = a
+    half_tr = 0.5 * (a11 + a22)
+    disc = cmath.sqrt(half_tr * half_tr - (a11 * a22 - a12 * a21))
+    l1, l2 = half_tr + disc, half_tr - disc
+    e1, e2 = cmath.exp(l1 * tau), cmath.exp(l2 * tau)
+    if abs(l1 - l2) * tau < 1e-9:  # (nearly) repeated eigenvalue: e^{λτ}(I + (A − λI)τ)
+        return (e1 * (1 + (a11 - l1) * tau), e1 * a12 * tau, e1 * a21 * tau,
+                e1 * (1 + (a22 - l1) * tau))
+    f = (e1 - e2) / (l1 - l2)  # coefficient of A
+    g = (l1 * e2 - l2 * e1) / (l1 - l2)  # coefficient of I
+    return (g + f * a11, f * a12, f * a21, g + f * a22)
+
+
+class FullOrderSampledController(SampledController):
+    """The sampled-data full-order law (25)–(27), (32) for a voltage-fed drive.
+
+    Over an interval the drive holds u_dq in the frame turning at ω0; with the rotor speed
+    at its estimate the stator-current and rotor-flux rows of (2) are linear time-invariant
+    in that frame, x = (i_s, ψ_r): dx/dτ = A·x + (u/σ, 0), solved with e^{Aτ}. The voltage
+    of the interval is the one that brings the modelled current error (28) at the
+    interval's end to what (34) would give, e(T) = e^{−ke·T}·e(0) − (1 − e^{−ke·T})/ke·αM·ψ̃_rd
+    (the unknown e_ω term dropped). ω0 is (26) at the midpoint; the observer (27) with w of
+    (32) is integrated with Simpson's rule on the model's trajectory.
+    """
+
+    def __init__(self, motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
+                 eps_0: float = 0.0, w_hat: float = 0.0) -> None:
+        if config.law is not Law.FULL_ORDER:
+            raise ValueError("FullOrderSampledController implements the full-order law only")
+        SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED), refs_at,
+                                   eps_0, w_hat)
+        self.config = config
+        m = motor
+        self._c1 = m.R_s / m.sigma + m.beta * self._aM
+        self._i_prev = 0j  # measured current at t_{k−1}, frame at t_{k−1}
+
+    # ------------------------------------------------------------------ the model
+
+    def _matrix(self, w_0: float, w_m: float) -> Mat2:
+        m = self.motor
+        return (complex(-self._c1, -w_0), m.beta * complex(m.alpha, -w_m),
+                complex(self._aM, 0.0), complex(-m.alpha, w_m - w_0))
+
+    def _flow2(self, a: Mat2, u: complex, i0: complex, psi0: complex, tau: float
+               ) -> tuple[complex, complex, complex, complex]:
+        """(i_s, ψ_r) after τ and after 2τ (e^{2Aτ} = e^{Aτ}·e^{Aτ})."""
+        a11, a12, a21, a22 = a
+        det = a11 * a22 - a12 * a21
+        b = u / self.motor.sigma
+        i_ss, p_ss = -a22 * b / det, a21 * b / det
+        e11, e12, e21, e22 = expm2(a, tau)
+        di, dp = i0 - i_ss, psi0 - p_ss
+        di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
+        di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
+        return i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1
+
+    def _fo_rate(self, psi: complex, i: complex, i_ref: complex, r: Refs, T_L: float
+                 ) -> float:
+        """dω̂/dt of (27) with w of (32), the current error (28) against ``i_ref``.
+
+        Over an interval the reference is the one the command aimed at (interpolated between
+        its start and end), not i*(ω̂) re-evaluated with the updated ω̂: that would feed the
+        observer's own prediction error back through kω/(μψ*) ≈ 6 A per rad/s and β·ψ/γ2,
+        a loop gain near 1 per period at 1 ms (ERRATA 10).
+        """
+        m, g = self.motor, self._g
+        e_d, e_q = i.real - i_ref.real, i.imag - i_ref.imag
+        w = (r.psi_ref * psi.imag + m.beta * (psi.imag * e_d - psi.real * e_q)) / g.gamma_2
+        return m.mu * (psi.real * i.imag - psi.imag * i.real) - T_L / m.J + w
+
+    def _fo_model(self, c: Interval, i0: complex, psi0: complex, w0: float, j: int):
+        """The model over interval ``c`` = I_j from (i0, ψ0, ω̂0): the references at its start,
+        middle and end, the rate at the start and (i, ψ) at the middle and the end."""
+        T = self._T
+        r0, rh, r1 = self._at(2 * j), self._at(2 * j + 1), self._at(2 * j + 2)
+        f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
+        a = self._matrix(c.w_0, w0 + 0.5 * T * f0)
+        return (c, w0, r0, rh, r1, f0, *self._flow2(a, c.u_dq, i0, psi0, 0.5 * T))
+
+    def _fo_finish(self, model, end: tuple[complex, complex] | None = None
+                   ) -> tuple[complex, complex, float]:
+        """(i, ψ, ω̂) at the end of the modelled interval; ``end``: the measured (i, ψ) at
+        the end, which also correct the mid-point by half the end's mismatch. ω̂: Simpson's
+        rule on the trajectory."""
+        c, w0, r0, rh, r1, f0, i_h, p_h, i_1, p_1 = model
+        if end is not None:
+            i_h += 0.5 * (end[0] - i_1)
+            p_h += 0.5 * (end[1] - p_1)
+            i_1, p_1 = end
+        T_L = r0.T_L
+        f_h = self._fo_rate(p_h, i_h, 0.5 * (c.i_ref0 + c.i_ref1), rh, T_L)
+        f_1 = self._fo_rate(p_1, i_1, c.i_ref1, r1, T_L)
+        return i_1, p_1, w0 + self._T / 6.0 * (f0 + 4.0 * f_h + f_1)
+
+    # ------------------------------------------------------------------ a cycle
+
+    def step(self, refs: Refs, sample: Sample) -> Command:
+        """One sample at t_k (see the class docstring)."""
+        T = self._T
+        m, g = self.motor, self._g
+        self._k += 1
+        k = self._k
+        hist = self._hist
+        prev = hist[0]
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        rot_k = cmath.exp(-1j * eps_k)
+        i_k = sample.i_s_ab * rot_k
+        # the past interval by the model: the estimator's current integral, then ω̂
+        psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, k - 1)
+        i_h, i_1 = model[6], model[8]
+        rot_s = cmath.exp(1j * prev.eps)
+        turn_h = cmath.exp(0.5j * prev.w_0 * T)
+        turn_1 = turn_h * turn_h
+        int_i_ab = T / 6.0 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
+        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
+                                           rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
+        if self._true_flux:
+            if sample.psi_r_ab is None:
+                raise ValueError("flux='true' needs the true rotor flux in the sample")
+            psi_ab = sample.psi_r_ab
+        else:
+            psi_ab = psi_hat_ab
+        psi_k = psi_ab * rot_k
+        _, _, w_k = self._fo_finish(model, (i_k, psi_k))
+        self.w_hat = w_k
+        i, psi, w = i_k, psi_k, w_k
+        for j in range(1, self._d + 1):
+            i, psi, w = self._fo_finish(self._fo_model(hist[j], i, psi, w, k - 1 + j))
+        n = 2 * (k + self._d)  # I_{k+d} starts at n·T/2
+        last = hist[-1]
+        eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
+        # the command for I_{k+d} = (t0, t0 + T]
+        r0, rh, r1 = self._at(n), self._at(n + 1), self._at(n + 2)
+        T_L = r0.T_L
+        i_ref0 = last.i_ref1 if self._k > self._d + 1 else complex(
+            *self._currents(r0, w, T_L)[:2])
+        i_sd0, i_sq0 = i_ref0.real, i_ref0.imag
+        f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
+        i_sd1, i_sq1, limited = self._currents(r1, w + T * f0, T_L)
+        decay = math.exp(-g.k_e * T)
+        e0 = i - complex(i_sd0, i_sq0)
+        e1 = decay * e0 - (1.0 - decay) / g.k_e * self._aM * (psi.real - r0.psi_ref)
+        target = complex(i_sd1, i_sq1) + e1
+        w_mid = w + 0.5 * T * f0
+        w_0 = w_mid + self._aM * 0.5 * (i.imag + target.imag) / rh.psi_ref  # (26)
+        a = self._matrix(w_0, w_mid)
+        a11, a12, a21, a22 = a
+        det = a11 * a22 - a12 * a21
+        e11, e12, _, _ = expm2(a, T)
+        free = e11 * i + e12 * psi  # i(T) with u = 0
+        # i(T) = free − (u/σ)·[(I − E)·A⁻¹·e1]_0, A⁻¹·e1 = (a22, −a21)/det
+        gain = ((1.0 - e11) * a22 + e12 * a21) / det
+        u = m.sigma * (free - target) / gain
+        new = Interval(target, u, eps_app, w_0, complex(i_sd0, i_sq0), complex(i_sd1, i_sq1))
+        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        hist.append(new)
+        hist.popleft()
+        self._psi_prev = psi_k
+        self._i_prev = i_k
+        self._w_prev = w_k
+        self._i_prev_ab = sample.i_s_ab
+        self.eps_0 = eps_k
+        return Command(
+            i_s_dq_ref=target, u_s_dq_ref=u, eps_0=eps_app, w_0=w_0,
+            i_s_ab_ref=target * to_ab, u_s_ab_ref=u * to_ab,
+            w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
+        )
+
+    def coast(self) -> None:
+        """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
+        T = self._T
+        self._k += 1
+        hist = self._hist
+        prev = hist[0]
+        psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        i_k, psi_k, w_k = self._fo_finish(
+            self._fo_model(prev, self._i_prev, psi0, self._w_prev, self._k - 1))
+        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        rot = cmath.exp(1j * eps_k)
+        self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
+        last = hist[-1]
+        hist.append(Interval(last.i_dq, last.u_dq, wrap_angle(last.eps + T * last.w_0),
+                             last.w_0, last.i_ref1, last.i_ref1))
+        hist.popleft()
+        self._psi_prev, self._i_prev, self._w_prev = psi_k, i_k, w_k
+        self._i_prev_ab = i_k * rot
+        self.w_hat = w_k
+        self.eps_0 = eps_k
+
+
+def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
+                    eps_0: float = 0.0, w_hat: float = 0.0):
+    """The controller ``config.discretisation`` names: the Euler :class:`Controller` or the
+    sampled-data design. Both have ``step(refs, sample) -> Command`` and ``coast()``.
+
+    The sampled-data full-order law models a voltage-fed drive with (d, q) setpoints; with a
+    current-loop drive or (a, b) setpoints the full-order law runs the Euler design.
+    """
+    if config.discretisation is Discretisation.EXACT:
+        if config.law is Law.CURRENT_FED:
+            return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)
+        if config.current_lag == 0.0 and config.sampling.setpoint_frame is SetpointFrame.DQ:
+            return FullOrderSampledController(motor, config, refs_at, eps_0=eps_0,
+                                              w_hat=w_hat)
+    return Controller(motor, config, eps_0=eps_0, w_hat=w_hat)
