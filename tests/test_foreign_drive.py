@@ -1,0 +1,86 @@
+"""A drive that shares nothing with the emulator but the standard (tests/foreign_drive.py),
+described by a drive profile file alone: another node id (127 included), another PDO layout
+and scaling, no SYNC-counter echo, TPDOs in reversed order. It runs the quick reference
+profile to the emulator's result (within the bus quantisation)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import time
+
+import can
+import pytest
+
+from foreign_drive import ForeignDrive, write_files
+from gateway.cli import main
+
+_channels = itertools.count()
+
+
+@pytest.fixture
+def foreign(tmp_path):
+    drives = []
+
+    def make(node: int, gateway_node: int = 0x7F):
+        channel = f"foreign-{next(_channels)}-{time.monotonic_ns()}"
+        bus = can.Bus(interface="virtual", channel=channel)
+        profile = write_files(tmp_path, node, gateway_node)
+        drive = ForeignDrive(bus, node, tmp_path / "foreign.eds")
+        drive.start()
+        drives.append((drive, bus))
+        return drive, channel, profile
+
+    yield make
+    for drive, bus in drives:
+        drive.stop()
+        bus.shutdown()
+
+
+def _run(channel: str, profile, out, *args: str) -> tuple[int, dict]:
+    rc = main(["run", "-i", "virtual", "-c", channel, "--drive", str(profile),
+               "--reference", "profiles/quick.toml", "--out", str(out), *args])
+    return rc, json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("node, gateway_node", [(42, 0x7F), (127, 100)])
+def test_foreign_drive_runs_the_quick_profile_like_the_emulator(foreign, tmp_path, node,
+                                                                 gateway_node):
+    drive, channel, profile = foreign(node, gateway_node)
+    rc, s = _run(channel, profile, tmp_path / "foreign")
+    assert rc == 0, s["run"]
+    assert s["run"]["cycles"] == 500 and s["run"]["missed_cycles"] == 0
+    # no 0x1019, 0x1007, 0x1016 on this drive: not written, and said so
+    notes = " ".join(s["configuration_notes"])
+    assert "0x1019" in notes and "0x1007" in notes and "0x1016" in notes
+    assert drive.state != 0x0237 and drive.nmt == "PRE-OPERATIONAL"  # shut down
+    assert s["shutdown"]["safe"]
+    # the emulator on the same reference profile, ideal current source like this drive
+    ref_rc = main(["sim", "--drive-mode", "ideal", "--reference", "profiles/quick.toml",
+                   "--out", str(tmp_path / "emulator")])
+    ref = json.loads((tmp_path / "emulator" / "summary.json").read_text())
+    assert ref_rc == 0
+    # the truth crosses the bus at 1/16 rad/s here (1/32 on the emulator): equal to that
+    assert abs(s["speed_error"]["rms"] - ref["speed_error"]["rms"]) < 0.04
+    assert abs(s["speed_error"]["final"]) < 0.07 and abs(ref["speed_error"]["final"]) < 0.05
+    assert abs(s["flux_error"]["final"] - ref["flux_error"]["final"]) < 2e-3
+    assert s["peak_current"] == pytest.approx(ref["peak_current"], abs=0.05)
+
+
+def test_gateway_node_equal_to_the_drive_is_refused(foreign, tmp_path, capsys):
+    _, channel, profile = foreign(42)
+    rc = main(["run", "-i", "virtual", "-c", channel, "--drive", str(profile),
+               "--gateway-node", "42", "--out", str(tmp_path / "x")])
+    assert rc == 2 and "gateway" in capsys.readouterr().err
+
+
+def test_a_drive_without_the_laws_signals_is_refused_by_name(foreign, tmp_path, capsys):
+    """A profile that maps only standard objects: refused at bring-up, naming the roles."""
+    _, channel, profile = foreign(42)
+    text = profile.read_text()
+    text = text.replace('i_sa = "TX1.Ia"\n', "").replace('i_sb = "TX1.Ib"\n', "")
+    profile.write_text(text)
+    rc = main(["run", "-i", "virtual", "-c", channel, "--drive", str(profile),
+               "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "i_sa" in err and "i_sb" in err and "phase a" in err
