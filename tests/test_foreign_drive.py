@@ -11,8 +11,8 @@ import time
 
 import can
 import pytest
-
 from foreign_drive import ForeignDrive, write_files
+
 from gateway.cli import main
 
 _channels = itertools.count()
