@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,25 @@ def _load_motor(path: str | None):
         return MotorParams.from_toml(path)
     except ParamsError as exc:
         raise UserError(str(exc)) from exc
+
+
+def _load_scenario(arg: str | None):
+    """``--plant``: a scenario file or a shipped scenario's name; nominal when not given."""
+    from plant.scenario import PlantScenario, ScenarioError, resolve_scenario
+
+    if arg is None:
+        return PlantScenario()
+    try:
+        return resolve_scenario(arg)
+    except ScenarioError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def _add_plant_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--plant", metavar="SCENARIO",
+                   help="plant scenario (TOML file, or a shipped name such as rs+10): how the "
+                        "emulated motor, sensors, inverter and load differ from the "
+                        "controller's model (issue 14); default: the nominal plant")
 
 
 class Progress:
@@ -147,13 +167,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
+    plant = _load_scenario(args.plant)
     period = None if args.period == "continuous" else parse_duration(args.period, "--period")
     drive = args.drive or DEFAULT_DRIVE[args.law]
     cfg = SimConfig(
         law=args.law, flux=args.flux, estimator=args.estimator, drive=drive, period=period,
         delay=args.delay, setpoint_frame=args.setpoint_frame, quantize=not args.no_quantize,
         gains=_gains(args), drive_params=DriveParams(mode=drive),
-        duration=args.duration and parse_duration(args.duration, "--duration"),
+        duration=args.duration and parse_duration(args.duration, "--duration"), plant=plant,
     )
     out = _out_dir(args.out, f"simulate-{args.law}")
     label = "continuous" if period is None else format_duration(period)
@@ -167,7 +188,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     with signals.installed():
         try:
             rec = run(profile, motor, cfg, progress, stop)
-        except ValueError as exc:
+        except ValueError as exc:  # also a plant scenario's error (ScenarioError)
             raise UserError(f"the simulation could not run: {exc}") from exc
     progress.done()
     wall = time.perf_counter() - t0
@@ -185,7 +206,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     rec.write_csv(out / "signals.csv")
     figures = report.plot_figures(sig, out, f"({args.law}, {label})")
     print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
-          f"period {label}" + ("" if period is None else
+          f"plant {plant.name}, period {label}" + ("" if period is None else
                               f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
                               f"{args.setpoint_frame[1]})"))
     print(report.summary_table(summary))
@@ -284,7 +305,8 @@ def _finish_run(summary: dict[str, Any]) -> int:
 
 
 def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
-                     open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]]) -> int:
+                     open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]],
+                     plant: dict[str, Any] | None = None) -> int:
     """What `run` and `sim` share: inputs, signals, the run, the report, the exit status.
 
     ``open_buses(cfg)`` → (gateway bus, bus label, close): opens whatever the command needs
@@ -294,7 +316,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    cfg = _run_config(args, drive)
+    cfg = replace(_run_config(args, drive), plant_scenario=plant)
     node = args.node or drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -347,6 +369,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from plant.device import DriveDevice
     from plant.params import DriveParams
 
+    plant = _load_scenario(args.plant)
+    profile_load = _load_profile(args.profile).load
+
     def open_buses(ctx: Any) -> tuple[Any, str, Callable[[], None]]:
         cfg, motor, node = ctx
         if args.transport == "virtual":
@@ -357,8 +382,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
             medium = InProcessChannel("hil-sim")
             channel = medium.name
             bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
-        device = DriveDevice(bus_dev, node_id=node, motor=motor,
-                             drive_params=DriveParams(mode=cfg.drive_mode))
+        try:  # the plant: the controller's motor × the scenario (issue 14)
+            device = DriveDevice(
+                bus_dev, node_id=node, motor=plant.plant_motor(motor),
+                drive_params=plant.drive_params(DriveParams(mode=cfg.drive_mode)),
+                drive_options=plant.drive_options(lambda t: profile_load.at(t)[0]))
+        except ValueError as exc:
+            bus_gw.shutdown()
+            bus_dev.shutdown()
+            raise UserError(str(exc)) from exc
 
         def close() -> None:
             device.stop()
@@ -372,7 +404,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
             raise
         return bus_gw, f"{args.transport}:{channel}", close
 
-    return _gateway_session(args, "sim", load_drive_profile(None), open_buses)
+    return _gateway_session(args, "sim", load_drive_profile(None), open_buses,
+                            plant.describe())
 
 
 # ---------------------------------------------------------------------------- profile
@@ -474,6 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "in the fixed frame over the period")
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
                    help="periods between a sample and its setpoints acting (1 = CANopen SYNC)")
+    _add_plant_option(p)
     p.add_argument("--no-quantize", action="store_true",
                    help="skip the INT16 quantisation of the PDO signals")
     p.add_argument("--duration", help="simulate this long instead of the profile's duration")
@@ -491,6 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="inprocess (default): a python-can bus that hands each receiver the "
                         "same frame; virtual: python-can's virtual interface, which deep-copies "
                         "every frame per receiver (about half the cycles per second)")
+    _add_plant_option(p)
     p.set_defaults(func=cmd_sim)
 
     from gateway.bus import add_bus_options

@@ -49,7 +49,8 @@ class RunConfig:
         vector mode; on the emulator also its model of the current loop) or "voltage"
         (voltage vector mode). delay: 1 = synchronous RPDOs (CiA 301 default), 0 = the
         emulator applies RPDOs on receipt. bus_log: file name of the raw bus log in the run
-        directory; its suffix picks the python-can writer.
+        directory; its suffix picks the python-can writer. plant_scenario: the resolved
+        plant scenario of `sim` (issue 14), None when the plant is not ours to know (`run`).
     """
 
     law: str = "current-fed"
@@ -63,6 +64,7 @@ class RunConfig:
     bus_log: str = "bus.blf"
     max_missed: int = 5
     duration: float | None = None
+    plant_scenario: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.drive_mode not in DRIVES:

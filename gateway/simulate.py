@@ -38,6 +38,7 @@ from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams, MotorParams
 from plant.rpdo import setpoints_from_rpdos, tpdo_signals
+from plant.scenario import PlantScenario
 
 DRIVES: tuple[str, ...] = ("ideal", "current-loop", "voltage")
 #: The drive each law is meant for when none is given.
@@ -64,6 +65,9 @@ class SimConfig:
     record_step: sampling of the continuous-time record, s.
     initial: the motor's state at t = 0 (the paper: all zero).
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
+    plant: how the plant differs from the controller's model (issue 14,
+        :mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
+        motor factors and the load only.
     """
 
     law: str = "current-fed"
@@ -82,6 +86,7 @@ class SimConfig:
     initial: MotorState = field(default_factory=MotorState)
     w_hat_0: float = 0.0
     eps_0: float = 0.0
+    plant: PlantScenario = field(default_factory=PlantScenario)
 
     def __post_init__(self) -> None:
         checks = (("law", LAWS), ("flux", FLUX_SOURCES), ("estimator", ESTIMATORS),
@@ -102,6 +107,10 @@ class SimConfig:
                             "a sampling --period such as 1ms for the current-loop drive")
         if self.delay not in (0, 1):
             raise UserError(f"delay {self.delay!r}: use 0 or 1 periods")
+        if self.period is None and not self.plant.continuous_time_ok:
+            raise UserError(f"plant scenario {self.plant.source}: continuous time models the "
+                            "motor factors and the load only (no sensors, inverter or drifts); "
+                            "choose a sampling --period such as 1ms")
 
     def controller_config(self) -> ControllerConfig:
         """The controller's part of this configuration."""
@@ -118,6 +127,8 @@ class SimConfig:
                         for k, v in asdict(self.initial).items()}
         d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
                              for k, v in asdict(self.drive_params).items()}
+        del d["plant"]
+        d["plant_scenario"] = self.plant.describe()
         return d
 
 
@@ -179,7 +190,10 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     assert T is not None
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / T)
-    drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive), cfg.initial)
+    plant = cfg.plant  # issue 14: the plant is the controller's model × the scenario
+    drive = Drive(plant.plant_motor(motor),
+                  plant.drive_params(drive_params_for_period(cfg.drive_params, T, cfg.drive)),
+                  cfg.initial, **plant.drive_options(lambda t: profile.load.at(t)[0]))
     drive.enable(True)
     ctl = Controller(motor, cfg.controller_config(), eps_0=cfg.eps_0, w_hat=cfg.w_hat_0)
     link = PdoLink(cfg.quantize)
@@ -252,7 +266,10 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     n = round(duration / h)
     t_eval = np.arange(n + 1) * h
     m, g = motor, cfg.gains
+    pm = cfg.plant.plant_motor(motor)  # the plant's motor (issue 14); m is the controller's
+    load = cfg.plant.load_function(lambda t: profile.load.at(t)[0])
     k_r = m.M / m.L_r
+    pk_r = pm.M / pm.L_r
     full = cfg.law == "full-order"
     estimated = full and cfg.flux == "estimated"
     last = [0.0]
@@ -278,15 +295,16 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         if progress is not None and t - last[0] > duration / 100:
             last[0] = t
             progress(min(t / duration, 1.0))
+        T_L = r.T_L if load is None else load(t, r.T_L)
         if full:
             u = complex(out.u_sd_ref, out.u_sq_ref) * to_ab
-            dx = rhs_full(t, x[:5], m, u, r.T_L)
+            dx = rhs_full(t, x[:5], pm, u, T_L)
             dx += [out.w_0, out.dw_hat]
             if estimated:
                 dx += [u.real - m.R_s * x[3], u.imag - m.R_s * x[4]]  # (24)
             return dx
         i = complex(out.i_sd_ref, out.i_sq_ref) * to_ab
-        return [*rhs_current_fed(t, x[:3], m, i, r.T_L), out.w_0, out.dw_hat]
+        return [*rhs_current_fed(t, x[:3], pm, i, T_L), out.w_0, out.dw_hat]
 
     x0 = np.zeros((9 if estimated else 7) if full else 5)
     s0 = cfg.initial
@@ -294,7 +312,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     if full:
         x0[3:7] = (s0.i_s_ab.real, s0.i_s_ab.imag, cfg.eps_0, cfg.w_hat_0)
         if estimated:  # the integrator starts from the true stator flux
-            psi_s0 = m.sigma * s0.i_s_ab + k_r * s0.psi_r_ab
+            psi_s0 = pm.sigma * s0.i_s_ab + pk_r * s0.psi_r_ab
             x0[7:9] = (psi_s0.real, psi_s0.imag)
     else:
         x0[3:5] = (cfg.eps_0, cfg.w_hat_0)
@@ -311,14 +329,14 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         to_ab = cmath.exp(1j * eps)
         psi_r = complex(x[1], x[2])
         i = complex(x[3], x[4]) if full else complex(out.i_sd_ref, out.i_sq_ref) * to_ab
-        psi_s = m.sigma * i + k_r * psi_r
+        psi_s = pm.sigma * i + pk_r * psi_r
         if psi_s_prev is None:
             u = 0j
         else:
-            u = (psi_s - psi_s_prev) / h + m.R_s * 0.5 * (i + i_prev)
+            u = (psi_s - psi_s_prev) / h + pm.R_s * 0.5 * (i + i_prev)
         psi_s_prev, i_prev = psi_s, i
         psi_hat = psi_r_used(x) * cmath.exp(-1j * eps)
-        T_e = m.J * m.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
+        T_e = pm.J * pm.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
         rec.append((
             t, r.w_ref, r.psi_ref, r.T_L, x[0], abs(psi_r), x[6 if full else 4], abs(psi_hat),
             i.real, i.imag, u.real, u.imag, out.i_sd_ref, out.i_sq_ref, out.u_sd_ref,
