@@ -135,6 +135,11 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="flux estimator: the paper's open-loop integrator or the drift-free one")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
+    p.add_argument("--load", choices=("known", "observed"),
+                   help="the load torque for the laws: known (the profile's T_L, the paper, "
+                        "ERRATA 6) or observed (estimated by the load observer, issue 14; "
+                        "current-fed law); default: the plant scenario's [load].known, else "
+                        "known against the emulator and observed against a real drive")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
@@ -144,6 +149,15 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="current-error gain ke of (32), 1/s (%(default)s)")
     p.add_argument("--i-max", type=float, default=g.i_max,
                    help="current-vector limit of the setpoints, A (%(default)s)")
+
+
+def _load_mode(args: argparse.Namespace, plant: Any, emulator: bool, law: str) -> str:
+    """--load, else the scenario's [load].known, else known on the emulator and observed
+    against a real drive (where the observer runs: the current-fed law)."""
+    if args.load:
+        return args.load
+    default = emulator or law != "current-fed"
+    return "known" if plant.known(default) else "observed"
 
 
 def _gains(args: argparse.Namespace):
@@ -175,6 +189,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         delay=args.delay, setpoint_frame=args.setpoint_frame, quantize=not args.no_quantize,
         gains=_gains(args), drive_params=DriveParams(mode=drive),
         duration=args.duration and parse_duration(args.duration, "--duration"), plant=plant,
+        load=_load_mode(args, plant, True, args.law),
     )
     out = _out_dir(args.out, f"simulate-{args.law}")
     label = "continuous" if period is None else format_duration(period)
@@ -206,7 +221,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     rec.write_csv(out / "signals.csv")
     figures = report.plot_figures(sig, out, f"({args.law}, {label})")
     print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
-          f"plant {plant.name}, period {label}" + ("" if period is None else
+          f"plant {plant.name}, load {cfg.load}, period {label}" + ("" if period is None else
                               f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
                               f"{args.setpoint_frame[1]})"))
     print(report.summary_table(summary))
@@ -306,7 +321,7 @@ def _finish_run(summary: dict[str, Any]) -> int:
 
 def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
                      open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]],
-                     plant: dict[str, Any] | None = None) -> int:
+                     plant: Any = None) -> int:
     """What `run` and `sim` share: inputs, signals, the run, the report, the exit status.
 
     ``open_buses(cfg)`` → (gateway bus, bus label, close): opens whatever the command needs
@@ -316,7 +331,15 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    cfg = replace(_run_config(args, drive), plant_scenario=plant)
+    from plant.scenario import PlantScenario
+
+    cfg = _run_config(args, drive)
+    load = _load_mode(args, plant or PlantScenario(), drive.emulator, cfg.law)
+    try:
+        cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load)
+        cfg.controller_config()
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
     node = args.node or drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -333,7 +356,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
         finally:
             close()
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
-          f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
+          f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, load {cfg.load}, {cfg.timing}, period "
           f"{format_duration(cfg.period)}, delay {cfg.delay}")
     _print_run(kind, summary, out, profile)
     return _finish_run(summary)
@@ -404,8 +427,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             raise
         return bus_gw, f"{args.transport}:{channel}", close
 
-    return _gateway_session(args, "sim", load_drive_profile(None), open_buses,
-                            plant.describe())
+    return _gateway_session(args, "sim", load_drive_profile(None), open_buses, plant)
 
 
 # ---------------------------------------------------------------------------- profile

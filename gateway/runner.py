@@ -33,7 +33,7 @@ from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.loop import SYNC_OVERFLOW, CycleLoop, LoopConfig, PdoNames
 from gateway.master import DriveMaster
-from gateway.simulate import DRIVES, drive_params_for_period
+from gateway.simulate import DRIVES, _load_tuning, drive_params_for_period
 from plant.params import DriveParams, MotorParams
 
 log = logging.getLogger(__name__)
@@ -65,6 +65,7 @@ class RunConfig:
     max_missed: int = 5
     duration: float | None = None
     plant_scenario: dict[str, Any] | None = None
+    load: str = "known"
 
     def __post_init__(self) -> None:
         if self.drive_mode not in DRIVES:
@@ -75,7 +76,8 @@ class RunConfig:
 
     def controller_config(self) -> ControllerConfig:
         return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,  # type: ignore[arg-type]
-                                period=self.period, delay=self.delay, gains=self.gains)
+                                period=self.period, delay=self.delay, gains=self.gains,
+                                load=self.load, **_load_tuning(self.load, self.drive_mode))
 
 
 class BusRecorder(can.Listener):

@@ -25,10 +25,12 @@ from gateway.control.controller import (
     ESTIMATORS,
     FLUX_SOURCES,
     LAWS,
+    LOADS,
     Controller,
     ControllerConfig,
 )
 from gateway.control.laws import Gains, current_fed, full_order
+from gateway.control.load_observer import tuning as load_tuning
 from gateway.control.profiles import Profile
 from gateway.cycle import SETPOINT_FRAMES, rpdos_from_command, sample_from_tpdos, sync_counter
 from gateway.errors import UserError
@@ -65,6 +67,7 @@ class SimConfig:
     record_step: sampling of the continuous-time record, s.
     initial: the motor's state at t = 0 (the paper: all zero).
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
+    load: "known" (the paper) or "observed": the controller's T_L (issue 14).
     plant: how the plant differs from the controller's model (issue 14,
         :mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
         motor factors and the load only.
@@ -87,9 +90,10 @@ class SimConfig:
     w_hat_0: float = 0.0
     eps_0: float = 0.0
     plant: PlantScenario = field(default_factory=PlantScenario)
+    load: str = "known"
 
     def __post_init__(self) -> None:
-        checks = (("law", LAWS), ("flux", FLUX_SOURCES), ("estimator", ESTIMATORS),
+        checks = (("law", LAWS), ("flux", FLUX_SOURCES), ("estimator", ESTIMATORS), ("load", LOADS),
                   ("drive", DRIVES), ("setpoint_frame", SETPOINT_FRAMES))
         for name, allowed in checks:
             if getattr(self, name) not in allowed:
@@ -107,6 +111,14 @@ class SimConfig:
                             "a sampling --period such as 1ms for the current-loop drive")
         if self.delay not in (0, 1):
             raise UserError(f"delay {self.delay!r}: use 0 or 1 periods")
+        if self.load != "known":
+            if self.period is None:
+                raise UserError("the load observer is discrete-time: with --load observed "
+                                "choose a sampling --period such as 1ms")
+            try:
+                load_tuning(self.drive)
+            except ValueError as exc:
+                raise UserError(str(exc)) from None
         if self.period is None and not self.plant.continuous_time_ok:
             raise UserError(f"plant scenario {self.plant.source}: continuous time models the "
                             "motor factors and the load only (no sensors, inverter or drifts); "
@@ -117,6 +129,7 @@ class SimConfig:
         return ControllerConfig(
             law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,  # type: ignore[arg-type]
             period=self.period or self.record_step, delay=self.delay, gains=self.gains,
+            load=self.load, **_load_tuning(self.load, self.drive),
         )
 
     def describe(self) -> dict[str, Any]:
@@ -133,6 +146,14 @@ class SimConfig:
 
 
 Progress = Callable[[float], None]
+
+
+def _load_tuning(load: str, drive: str) -> dict[str, float]:
+    """ControllerConfig's load-observer fields for the drive mode (issue 14)."""
+    if load == "known":
+        return {}
+    p, k_s, rho = load_tuning(drive)
+    return {"load_bandwidth": p, "load_speed_gain": k_s, "load_current_rise": rho}
 
 
 def run(profile: Profile, motor: MotorParams, cfg: SimConfig,

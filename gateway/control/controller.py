@@ -25,12 +25,14 @@ from typing import Literal
 
 from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
 from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
+from gateway.control.load_observer import LoadObserver
 
 Law = Literal["current-fed", "full-order"]
 FluxSource = Literal["estimated", "true"]
 EstimatorKind = Literal["open-loop", "drift-free"]
 
 LAWS: tuple[str, ...] = ("current-fed", "full-order")
+LOADS: tuple[str, ...] = ("known", "observed")
 FLUX_SOURCES: tuple[str, ...] = ("estimated", "true")
 ESTIMATORS: tuple[str, ...] = ("open-loop", "drift-free")
 TWO_PI = 2.0 * math.pi
@@ -49,6 +51,10 @@ class ControllerConfig:
     period: sampling period T, s.
     delay: 0 or 1 periods between the sample and the interval the setpoints act on.
     gains: :class:`Gains`.
+    load: "known" (the laws get the profile's T_L, dT_L/dt: the paper, ERRATA 6) or
+        "observed" (issue 14: T̂_L, dT̂_L/dt of :class:`LoadObserver` instead).
+    load_bandwidth, load_speed_gain, load_current_rise: the load observer's tuning
+        (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).
     """
 
     law: Law = "current-fed"
@@ -58,8 +64,14 @@ class ControllerConfig:
     period: float = 1e-3
     delay: int = 1
     gains: Gains = field(default_factory=Gains)
+    load: str = "known"
+    load_bandwidth: float = 300.0
+    load_speed_gain: float = 300.0
+    load_current_rise: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.load not in LOADS:
+            raise ValueError(f"unknown load mode {self.load!r}; use {' or '.join(LOADS)}")
         if self.law not in LAWS:
             raise ValueError(f"unknown law {self.law!r}; use one of {', '.join(LAWS)}")
         if self.flux not in FLUX_SOURCES:
@@ -143,6 +155,11 @@ class Controller:
         # the commands in flight (the drive holds zero before it receives anything).
         self._in_flight: deque[tuple[float, float]] = deque([(0.0, 0.0)] * self._delay)
         self._last = (0.0, 0.0)  # (ω0, dω̂/dt) of the last step, for coast()
+        # issue 14: the load torque estimated instead of known (None: known)
+        c = self.config
+        self.load_observer = (LoadObserver(motor, self._T, c.load_bandwidth, c.load_speed_gain,
+                                           c.load_current_rise)
+                              if c.load == "observed" else None)
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
@@ -156,6 +173,8 @@ class Controller:
             psi_r_ab = self.estimator.update(
                 sample.i_s_ab, sample.u_s_ab, T, eps_0, refs.psi_ref
             )
+        if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt
+            refs = self.load_observer.refs(refs, sample.i_s_ab, sample.u_s_ab, eps_0)
         to_dq = cmath.exp(-1j * eps_0)
         psi_r_dq = psi_r_ab * to_dq
         if self._full:
@@ -190,9 +209,12 @@ class Controller:
             psi_r_dq=psi_r_dq,
             i_limited=out.i_limited,
         )
-        self.w_hat += T * out.dw_hat  # (16)/(27), forward Euler
+        dw_hat = out.dw_hat
+        if self.load_observer is not None:  # issue 14: ω̂ also pulled to the observer's ω̂_m
+            dw_hat += self.load_observer.speed_injection(self.w_hat)
+        self.w_hat += T * dw_hat  # (16)/(27), forward Euler
         self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0
-        self._last = (w_0, out.dw_hat)
+        self._last = (w_0, dw_hat)
         return cmd
 
     def coast(self) -> None:
