@@ -39,6 +39,7 @@ CONTROLLERS = {
     "true flux": {"flux": "true"},
     "open-loop": {"estimator": "open-loop"},
     "drift-free": {"estimator": "drift-free"},
+    "rs-adaptive": {"estimator": "rs-adaptive"},
 }
 
 
@@ -54,6 +55,7 @@ class Case:
     final: float = math.nan
     t: np.ndarray | None = None
     e: np.ndarray | None = None
+    row: str = ""  # the table row, default the scenario
 
     @property
     def runaway(self) -> bool:
@@ -74,16 +76,16 @@ def blocks() -> dict[str, list[Case]]:
     out["full-order"] = [Case("full-order", "paper", s, c, {**fo, **kw})
                          for s in ("nominal", "rs+5", "rs-5")
                          for c, kw in (("true flux", {"flux": "true"}),
-                                       ("open-loop", {}), ("drift-free",
-                                                           {"estimator": "drift-free"}))]
-    out["load"] = [Case("load", "paper", "continuous-load", f"{c}, T_L {load}",
-                        {**kw, "load": load, **drive})
-                   for drive in ({}, {"drive": "current-loop"})
-                   for c, kw in (("open-loop", {}), ("drift-free", {"estimator": "drift-free"}))
+                                       ("open-loop", {}),
+                                       ("drift-free", {"estimator": "drift-free"}),
+                                       ("rs-adaptive", {"estimator": "rs-adaptive"}))]
+    out["load"] = [Case("load", "paper", "continuous-load", f"T_L {load}",
+                        {**kw, "load": load, "drive": drive},
+                        row=f"{c}, {drive} drive")
+                   for drive in ("ideal", "current-loop")
+                   for c, kw in (("drift-free", {"estimator": "drift-free"}),
+                                 ("rs-adaptive", {"estimator": "rs-adaptive"}))
                    for load in ("known", "observed")]
-    for c in out["load"]:
-        if c.kw.get("drive") == "current-loop":
-            c.controller += ", current loop"
     return out
 
 
@@ -114,8 +116,8 @@ def fmt(x: float) -> str:
 def table(cases: list[Case], markdown: bool) -> str:
     """One row per scenario, one column group per controller."""
     ctls = list(dict.fromkeys(c.controller for c in cases))
-    scns = list(dict.fromkeys(c.scenario for c in cases))
-    by = {(c.scenario, c.controller): c for c in cases}
+    scns = list(dict.fromkeys(c.row or c.scenario for c in cases))
+    by = {(c.row or c.scenario, c.controller): c for c in cases}
     head = ["plant"] + [f"{k}: RMS / max / final" for k in ctls]
     rows = []
     for s in scns:
@@ -147,6 +149,9 @@ TITLES = {
 }
 
 
+PAPER_PLOT = ("rs+10", "rs-10", "offset10mA-rs+10", "offset10mA-rs-10", "rr+20", "rr-20")
+
+
 def plot(all_cases: dict[str, list[Case]], path: Path) -> None:
     import matplotlib
 
@@ -157,11 +162,17 @@ def plot(all_cases: dict[str, list[Case]], path: Path) -> None:
     fig, axes = plt.subplots(len(names), 1, figsize=(11, 3.2 * len(names)),
                              layout="constrained", squeeze=False)
     for ax, b in zip(axes[:, 0], names, strict=True):
+        k = 0
         for c in all_cases[b]:
-            if c.e is None or (c.controller == "true flux" and b != "paper"):
+            if c.e is None or c.controller in ("true flux", "open-loop"):
+                continue  # before (drift-free, dotted) and after (solid)
+            if b == "paper" and c.scenario not in PAPER_PLOT:
                 continue
-            ax.semilogy(c.t, np.abs(c.e) + 1e-4, lw=0.7,
-                        label=f"{c.scenario}, {c.controller}")
+            after = "rs-adaptive" in c.controller or "observed" in c.controller
+            ax.semilogy(c.t, np.abs(c.e) + 1e-4, lw=0.8 if after else 0.6,
+                        ls="-" if after else ":", color=f"C{k // 2 % 10}",
+                        label=f"{c.row or c.scenario}, {c.controller}")
+            k += 1
         ax.set_title(TITLES[b], fontsize="medium")
         ax.set_ylabel("|ω − ω*| [rad/s]")
         ax.set_ylim(1e-3, 1e3)

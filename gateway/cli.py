@@ -132,7 +132,9 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="rotor flux for the law: estimated by (24) (sensorless, default) or the "
                         "true flux (the paper's 'flux measurements available' comparison)")
     p.add_argument("--estimator", choices=ESTIMATORS, default="open-loop",
-                   help="flux estimator: the paper's open-loop integrator or the drift-free one")
+                   help="flux estimator: the paper's open-loop integrator, the drift-free "
+                        "one, or drift-free with on-line R_s adaptation (rs-adaptive, issue "
+                        "14, docs/robustness.md)")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
     p.add_argument("--load", choices=("known", "observed"),

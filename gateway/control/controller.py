@@ -23,18 +23,22 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
+from gateway.control.estimator import (
+    DriftFreeFluxEstimator,
+    OpenLoopFluxEstimator,
+    RsAdaptiveFluxEstimator,
+)
 from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
 from gateway.control.load_observer import LoadObserver
 
 Law = Literal["current-fed", "full-order"]
 FluxSource = Literal["estimated", "true"]
-EstimatorKind = Literal["open-loop", "drift-free"]
+EstimatorKind = Literal["open-loop", "drift-free", "rs-adaptive"]
 
 LAWS: tuple[str, ...] = ("current-fed", "full-order")
 LOADS: tuple[str, ...] = ("known", "observed")
 FLUX_SOURCES: tuple[str, ...] = ("estimated", "true")
-ESTIMATORS: tuple[str, ...] = ("open-loop", "drift-free")
+ESTIMATORS: tuple[str, ...] = ("open-loop", "drift-free", "rs-adaptive")
 TWO_PI = 2.0 * math.pi
 
 
@@ -145,7 +149,9 @@ class Controller:
         self._full = self.config.law == "full-order"
         self._true_flux = self.config.flux == "true"
         self._gains = self.config.gains
-        if self.config.estimator == "drift-free":
+        if self.config.estimator == "rs-adaptive":  # issue 14
+            self.estimator = RsAdaptiveFluxEstimator(motor)  # its own ω_c, γ_R
+        elif self.config.estimator == "drift-free":
             self.estimator: OpenLoopFluxEstimator = DriftFreeFluxEstimator(motor, self.config.w_c)
         else:
             self.estimator = OpenLoopFluxEstimator(motor)
