@@ -110,3 +110,18 @@ def test_load_observer_rejects_bad_tuning():
         LoadObserver(MOTOR, 1e-3, bandwidth=0.0)
     with pytest.raises(ValueError, match="current_rise"):
         LoadObserver(MOTOR, 1e-3, current_rise=2.0)
+
+
+def test_sim_over_canopen_with_observed_load_equals_simulate(tmp_path):
+    """The observer runs in the gateway's controller exactly as in `simulate`."""
+    from gateway.report import read_csv
+
+    out = tmp_path / "sim"
+    assert main(["sim", "--plant", "unknown-load", "--duration", "0.7s", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["configuration"]["load"] == "observed"
+    bus = read_csv(out / "signals.csv")
+    ref = run(paper_profile(), MOTOR, SimConfig(duration=0.7, load="observed",
+                                                plant=resolve_scenario("unknown-load"))).arrays()
+    for col in ("i_sa", "i_sb", "u_sa", "u_sb", "i_sq_ref", "w_hat", "eps_0"):
+        np.testing.assert_array_equal(bus[col], ref[col], err_msg=col)

@@ -37,6 +37,7 @@ Complex numbers carry (a, b) pairs: ``x_ab = x_a + 1j*x_b``.
 from __future__ import annotations
 
 import cmath
+import math
 from typing import Protocol
 
 
@@ -171,7 +172,7 @@ class RsAdaptiveFluxEstimator(DriftFreeFluxEstimator):
         )
         w_0 = 0.0
         if self._eps_prev is not None:
-            w_0 = cmath.phase(cmath.exp(1j * (eps_0 - self._eps_prev))) / T
+            w_0 = ((eps_0 - self._eps_prev + math.pi) % (2.0 * math.pi) - math.pi) / T
         self._eps_prev = eps_0
         i2 = i_s_ab.real * i_s_ab.real + i_s_ab.imag * i_s_ab.imag
         if i2 > 0.25:

@@ -91,9 +91,10 @@ class Motor(Protocol):
     sigma: float
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class RefsWithLoad:
-    """The references of one instant with the load replaced by its estimate."""
+    """The references of one instant with the load replaced by its estimate (a plain
+    slotted class: built every period, the frozen form costs twice as much)."""
 
     w_ref: float
     dw_ref: float
@@ -158,7 +159,10 @@ class LoadObserver:
         self._i_prev = i_s_ab
         psi = self.psi_r_ab
         turn = psi * self._psi_prev.conjugate() if self._psi_prev else 0j
-        half = (turn / abs(turn)) ** 0.5 if turn else 1.0  # e^{jΔθ/2} of the last period
+        half = 1.0  # e^{jΔθ/2} of the last period: (1 + e^{jΔθ})/|1 + e^{jΔθ}|
+        if turn:
+            half = 1.0 + turn / abs(turn)
+            half = half / abs(half) if half else 1j
         i_mean = self._mean_current(i_0, i_s_ab)
         d_psi_s = T * u_s_ab - self._R_s * T * i_mean / half  # ∫i ≈ T·ī·e^{−jΔθ/2}
         psi_new = psi + self._k_r * (d_psi_s - self._sigma * (i_s_ab - i_0))
