@@ -238,3 +238,5 @@ class Controller:
         if self._delay and self._in_flight:
             self._in_flight.append(self._in_flight[-1])
             self._in_flight.popleft()
+        if self.load_observer is not None:
+            self.load_observer.coast(w_0, T)

@@ -207,6 +207,16 @@ class LoadObserver:
         self.T_L += T * self.dT_L
         return self.T_L
 
+    def coast(self, w_0: float, T: float) -> None:
+        """A period without measurements: the flux turns with the frame (ω0·T), T̂_L is held
+        and the speed observer restarts from the next measured speed."""
+        turn = cmath.exp(1j * w_0 * T)
+        self.psi_r_ab *= turn
+        self._i_prev *= turn  # the drive turns the held current with the frame
+        self._psi_prev = None
+        self._running = False
+        self.dT_L = 0.0
+
     def speed_injection(self, w_hat: float) -> float:
         """k_s·(ω̂_m − ω̂), rad/s²: the term added to dω̂/dt of (16)/(27) that pulls the
         paper's speed estimate towards the load observer's (0 until the flux is up)."""
