@@ -86,6 +86,12 @@ def blocks() -> dict[str, list[Case]]:
                    for c, kw in (("drift-free", {"estimator": "drift-free"}),
                                  ("rs-adaptive", {"estimator": "rs-adaptive"}))
                    for load in ("known", "observed")]
+    # the observed load against plant errors (rs-adaptive estimator, ideal drive)
+    out["load"] += [Case("load", "paper", s, f"T_L {load}",
+                         {"estimator": "rs-adaptive", "load": load},
+                         row=f"rs-adaptive, ideal drive, {s}")
+                    for s in ("offset10mA", "noise5mA", "rs+10", "rr+20", "real-drive")
+                    for load in ("known", "observed")]
     return out
 
 

@@ -93,6 +93,8 @@ def test_full_order_with_observed_load_is_refused():
 
 
 def test_cli_load_default_from_the_scenario(tmp_path, capsys):
+    """--load: from the scenario's [load].known, else known (also against a real drive:
+    the observer is not robust to plant errors yet)."""
     out = tmp_path / "u"
     assert main(["simulate", "--plant", "unknown-load", "--duration", "0.6s",
                  "--out", str(out)]) == 0

@@ -45,6 +45,16 @@ Derivation, from model (1):
   same kind of term as v. With it the paper scenario with an unknown load tracks about as
   well as with the load known (BENCHMARKS.md).
 
+**Limitation (measured, BENCHMARKS.md).** With the tuning below the loop meets the issue's
+target on an exact plant, but runs away with a 10 mA current-sensor offset, 5 mA of noise,
+R_s +10 % or R_r +20 %: a DC offset of the observer's flux (R_s·offset/ω_c, or the current
+model's error) makes ω_m ripple at the stator frequency, and the fast loop through T̂_L and
+the speed injection amplifies it; at low flux (magnetisation) noise on the flux angle is
+amplified as 1/|ψ_r|. Lower gains or a larger ω_c trade one failure for another (p = 150,
+k_s = 100, ω_c = 20 rad/s survived the offset and the noise, RMS ≈ 1, but not R_r +20 % and
+gave 0.77 on the exact plant). Not done: a robust design (e.g. the load estimated inside the
+paper's adaptive observer (16), (20) with a Lyapunov term, or gains scheduled with |ψ_r|).
+
 This is the classical disturbance-torque observer of speed-sensored drives (Lorenz &
 Patten, IEEE Trans. IA 27(4), 1991) with the speed taken from the rotor-flux angle, the
 voltage-model speed estimate of sensorless drives (e.g. Holtz, "Sensorless control of
