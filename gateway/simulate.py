@@ -113,8 +113,9 @@ class SimConfig:
             raise UserError(f"delay {self.delay!r}: use 0 or 1 periods")
         if self.load != "known":
             if self.period is None:
-                raise UserError("the load observer is discrete-time: with --load observed "
-                                "choose a sampling --period such as 1ms")
+                raise UserError("the load observer is discrete-time: with the load observed "
+                                "(--load observed, or a plant scenario with [load].known = "
+                                "false) choose a sampling --period such as 1ms, or --load known")
             try:
                 load_tuning(self.drive)
             except ValueError as exc:
