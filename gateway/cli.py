@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,20 @@ def _load_motor(path: str | None):
         raise UserError(str(exc)) from exc
 
 
+def _load_scenario(arg: str | None):
+    """``--plant``: a scenario file or a shipped scenario's name; nominal when not given."""
+    from gateway.sim import load_scenario
+
+    return load_scenario(arg)
+
+
+def _add_plant_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--plant", metavar="SCENARIO",
+                   help="plant scenario (TOML file, or a shipped name such as rs+10): how the "
+                        "emulated motor, sensors, inverter and load differ from the "
+                        "controller's model (issue 14); default: the nominal plant")
+
+
 class Progress:
     """A one-line progress bar on stderr (only on a terminal, or when forced)."""
 
@@ -119,15 +134,23 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "true flux (the paper's 'flux measurements available' comparison)")
     p.add_argument("--estimator", type=EstimatorKind, choices=list(EstimatorKind),
                    default=EstimatorKind.OPEN_LOOP,
-                   help="flux estimator: the paper's open-loop integrator or the drift-free one")
+                   help="flux estimator: the paper's open-loop integrator, the drift-free "
+                        "one, or drift-free with on-line R_s adaptation (rs-adaptive, "
+                        "docs/robustness.md; with --discretisation euler)")
     p.add_argument("--discretisation", type=Discretisation, choices=list(Discretisation),
-                   default=Discretisation.EXACT,
                    help="sampled controller: exact (the sampled-data design of "
-                        "docs/sampled-control.md, default) or euler (the continuous laws "
-                        "stepped with forward Euler, the earlier design); the full-order law "
-                        "has an exact design for voltage-fed (d, q) drives only")
+                        "docs/sampled-control.md) or euler (the continuous laws stepped with "
+                        "forward Euler, the earlier design); default exact, euler with "
+                        "--estimator rs-adaptive or an observed load (the exact design has "
+                        "neither yet); the full-order law has an exact design for voltage-fed "
+                        "(d, q) drives only")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
                    "paper's 0.6 kW motor")
+    p.add_argument("--load", choices=("known", "observed"),
+                   help="the load torque for the laws: known (the profile's T_L, the paper, "
+                        "ERRATA 6) or observed (estimated by the load observer, issue 14; "
+                        "current-fed law; exact plants only so far, see BENCHMARKS.md); "
+                        "default: the plant scenario's [load].known, else known")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
@@ -137,6 +160,27 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="current-error gain ke of (32), 1/s (%(default)s)")
     p.add_argument("--i-max", type=float, default=g.i_max,
                    help="current-vector limit of the setpoints, A (%(default)s)")
+
+
+def _design(args: argparse.Namespace, estimator: Any, load: str) -> Any:
+    """--discretisation, else exact, or euler where only it has the estimator or the load
+    observer asked for."""
+    from gateway.control.controller import Discretisation, EstimatorKind
+
+    if args.discretisation is not None:
+        return args.discretisation
+    if estimator == EstimatorKind.RS_ADAPTIVE or load == "observed":
+        return Discretisation.EULER
+    return Discretisation.EXACT
+
+
+def _load_mode(args: argparse.Namespace, plant: Any) -> str:
+    """--load, else the scenario's [load].known, else known. "Not told" would be the right
+    default against a real drive, but the load observer diverges with a 10 mA offset, 5 mA
+    of noise or R_s/R_r errors (docs/robustness.md): it stays opt-in until it is robust."""
+    if args.load:
+        return args.load
+    return "known" if plant is None or plant.known(True) else "observed"
 
 
 def _gains(args: argparse.Namespace):
@@ -160,6 +204,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
+    plant = _load_scenario(args.plant)
     period = None if args.period == "continuous" else parse_duration(args.period, "--period")
     drive = args.drive_mode or args.law.drive_modes[0]
     cfg = SimConfig(
@@ -167,7 +212,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args),
         duration=args.duration and parse_duration(args.duration, "--duration"),
-        discretisation=args.discretisation,
+        discretisation=_design(args, args.estimator, _load_mode(args, plant)),
+        plant=plant, load=_load_mode(args, plant),
     )
     out = _out_dir(args.out, f"simulate-{args.law}")
     label = "continuous" if period is None else format_duration(period)
@@ -181,7 +227,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     with signals.installed():
         try:
             rec = run(profile, motor, cfg, progress, stop)
-        except ValueError as exc:
+        except ValueError as exc:  # also a plant scenario's error (ScenarioError)
             raise UserError(f"the simulation could not run: {exc}") from exc
     progress.done()
     wall = time.perf_counter() - t0
@@ -199,9 +245,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     rec.write_csv(out / "signals.csv")
     figures = report.plot_figures(sig, out, f"({args.law}, {label})")
     print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
-          f"period {label}" + ("" if period is None else
+          f"plant {plant.name}, load {cfg.load}, period {label}" + ("" if period is None else
                               f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
-                              f"{args.setpoint_frame[1]}), {args.discretisation} design"))
+                              f"{args.setpoint_frame[1]}), {cfg.discretisation} design"))
     print(report.summary_table(summary))
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
           + (", " + ", ".join(p.name for p in figures) if figures else
@@ -291,7 +337,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
                                        if args.timing is Timing.REALTIME else 5),
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
-        discretisation=args.discretisation,
+        discretisation=_design(args, args.estimator, "known"),
     )
 
 
@@ -325,7 +371,8 @@ def _finish_run(summary: dict[str, Any]) -> int:
 
 
 def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
-                     open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]]) -> int:
+                     open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]],
+                     plant: Any = None) -> int:
     """What `run` and `sim` share: inputs, signals, the run, the report, the exit status.
 
     ``open_buses(cfg)`` → (gateway bus, bus label, close): opens whatever the command needs
@@ -336,6 +383,13 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     cfg = _run_config(args, drive)
+    load = _load_mode(args, plant)
+    try:
+        cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load,
+                      discretisation=_design(args, cfg.estimator, load))
+        cfg.controller_config()
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
     node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -357,9 +411,9 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
         finally:
             close()
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
-          f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, {cfg.timing}, period "
-          f"{format_duration(cfg.period)}, delay {cfg.sampling.delay}, {cfg.discretisation} "
-          "design")
+          f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, load {cfg.load}, {cfg.timing}, "
+          f"period {format_duration(cfg.period)}, delay {cfg.sampling.delay}, "
+          f"{cfg.discretisation} design")
     _print_run(kind, summary, out, profile)
     return _finish_run(summary)
 
@@ -388,11 +442,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from gateway.drive_profile import load_drive_profile
     from gateway.sim import open_emulator
 
+    plant = _load_scenario(args.plant)
+    profile_load = _load_profile(args.profile).load
+
     def open_buses(ctx: Any) -> tuple[Any, str, Callable[[], None]]:
         cfg, motor, node = ctx
-        return open_emulator(args.transport, node, motor, cfg.drive_mode)
+        return open_emulator(args.transport, node, motor, cfg.drive_mode, plant,
+                             profile_load)
 
-    return _gateway_session(args, "sim", load_drive_profile(None), open_buses)
+    return _gateway_session(args, "sim", load_drive_profile(None), open_buses, plant)
 
 
 # ---------------------------------------------------------------------------- profile
@@ -499,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "in the fixed frame over the period")
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
                    help="periods between a sample and its setpoints acting (1 = CANopen SYNC)")
+    _add_plant_option(p)
     p.add_argument("--no-quantize", action="store_true",
                    help="skip the INT16 quantisation of the PDO signals")
     p.add_argument("--duration", help="simulate this long instead of the profile's duration")
@@ -520,6 +579,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="inprocess (default): a python-can bus that hands each receiver the "
                         "same frame; virtual: python-can's virtual interface, which deep-copies "
                         "every frame per receiver (about half the cycles per second)")
+    _add_plant_option(p)
     p.set_defaults(func=cmd_sim)
 
     from dbc.bus import add_bus_options

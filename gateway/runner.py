@@ -36,9 +36,12 @@ from gateway.control.controller import (
     EstimatorKind,
     FluxSource,
     Law,
+    LoadSource,
     as_enum,
+    euler_only,
 )
 from gateway.control.laws import Gains
+from gateway.control.load_observer import load_config
 from gateway.control.sampled import make_controller
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
@@ -66,7 +69,10 @@ class RunConfig:
         CiA 301 default; 0 = the emulator applies RPDOs on receipt) and the setpoint frame
         (the drive profile's). bus_log: file name of the raw bus log in the run directory;
         its suffix picks the python-can writer. discretisation: EXACT (the sampled-data
-        design, docs/sampled-control.md) or EULER. Strings are accepted for the enums.
+        design, docs/sampled-control.md) or EULER.
+        plant_scenario: the resolved plant scenario of `sim` (docs/robustness.md), None
+        when the plant is not ours to know (`run`). load: :class:`LoadSource`. Strings are
+        accepted for the enums.
     """
 
     law: Law = Law.CURRENT_FED
@@ -81,6 +87,8 @@ class RunConfig:
     max_miss_rate: float = 0.2
     duration: float | None = None
     discretisation: Discretisation = Discretisation.EXACT
+    plant_scenario: dict[str, Any] | None = None
+    load: LoadSource = LoadSource.KNOWN
 
     def __post_init__(self) -> None:
         try:
@@ -88,8 +96,11 @@ class RunConfig:
                                      ("estimator", EstimatorKind, "estimator"),
                                      ("drive_mode", DriveMode, "drive mode"),
                                      ("timing", Timing, "timing"),
-                                     ("discretisation", Discretisation, "discretisation")):
+                                     ("discretisation", Discretisation, "discretisation"),
+                                     ("load", LoadSource, "load mode")):
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
+            euler_only(self.discretisation, self.estimator, self.load)
+            load_config(self.load, self.drive_mode)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         if Path(self.bus_log).suffix.lower() not in LOG_SUFFIXES:
@@ -105,7 +116,8 @@ class RunConfig:
         """The controller's part; ``current_lag``: the drive's current response time, s."""
         return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,
                                 sampling=self.sampling, gains=self.gains,
-                                discretisation=self.discretisation, current_lag=current_lag)
+                                discretisation=self.discretisation, current_lag=current_lag,
+                                load=self.load, **load_config(self.load, self.drive_mode))
 
 
 class BusRecorder(can.Listener):

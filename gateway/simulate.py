@@ -32,9 +32,12 @@ from gateway.control.controller import (
     EstimatorKind,
     FluxSource,
     Law,
+    LoadSource,
     as_enum,
+    euler_only,
 )
 from gateway.control.laws import Gains, current_fed, full_order
+from gateway.control.load_observer import load_config
 from gateway.control.sampled import make_controller
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import load_drive_profile
@@ -46,6 +49,7 @@ from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams
 from plant.rpdo import setpoints_from_rpdos, tpdo_signals
+from plant.scenario import PlantScenario
 from plant.timing import sync_cycle
 
 
@@ -63,6 +67,10 @@ class SimConfig:
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
     discretisation: sampled runs only: "exact" (the sampled-data design,
         docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
+    load: "known" (the paper) or "observed": the controller's T_L (issue 14).
+    plant: how the plant differs from the controller's model (issue 14,
+        :mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
+        motor factors and the load only.
     """
 
     law: Law = Law.CURRENT_FED
@@ -80,13 +88,16 @@ class SimConfig:
     w_hat_0: float = 0.0
     eps_0: float = 0.0
     discretisation: Discretisation = Discretisation.EXACT
+    plant: PlantScenario = field(default_factory=PlantScenario)
+    load: LoadSource = LoadSource.KNOWN
 
     def __post_init__(self) -> None:
         try:
             for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),
                                      ("estimator", EstimatorKind, "estimator"),
                                      ("drive_mode", DriveMode, "drive mode"),
-                                     ("discretisation", Discretisation, "discretisation")):
+                                     ("discretisation", Discretisation, "discretisation"),
+                                     ("load", LoadSource, "load mode")):
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
         except ValueError as exc:
             raise UserError(str(exc)) from None
@@ -104,6 +115,23 @@ class SimConfig:
                             "voltage-fed (full-order law): choose --drive-mode ideal or "
                             "voltage, or a sampling --period such as 1ms for the current-loop "
                             "drive")
+        try:
+            euler_only(self.discretisation, self.estimator, self.load)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        if self.load is not LoadSource.KNOWN:
+            if self.sampling is None:
+                raise UserError("the load observer is discrete-time: with the load observed "
+                                "(--load observed, or a plant scenario with [load].known = "
+                                "false) choose a sampling --period such as 1ms, or --load known")
+            try:
+                load_config(self.load, self.drive_mode)
+            except ValueError as exc:
+                raise UserError(str(exc)) from None
+        if self.sampling is None and not self.plant.continuous_time_ok:
+            raise UserError(f"plant scenario {self.plant.source}: continuous time models the "
+                            "motor factors and the load only (no sensors, inverter or drifts); "
+                            "choose a sampling --period such as 1ms")
 
     def controller_config(self) -> ControllerConfig:
         """The controller's part of this configuration (continuous time: the record step
@@ -113,6 +141,7 @@ class SimConfig:
             sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
             discretisation=self.discretisation,
             current_lag=current_lag(self.drive_mode, self.drive_params),
+            load=self.load, **load_config(self.load, self.drive_mode),
         )
 
     def describe(self) -> dict[str, Any]:
@@ -127,6 +156,8 @@ class SimConfig:
                         for k, v in asdict(self.initial).items()}
         d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
                              for k, v in asdict(self.drive_params).items()}
+        del d["plant"]
+        d["plant_scenario"] = self.plant.describe()
         return d
 
 
@@ -191,8 +222,11 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     T = sampling.period
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / T)
-    drive = Drive(motor, drive_params_for_period(cfg.drive_params, T, cfg.drive_mode),
-                  cfg.initial)
+    plant = cfg.plant  # the plant is the controller's model × the scenario (issue 14)
+    drive = Drive(plant.plant_motor(motor),
+                  plant.drive_params(drive_params_for_period(cfg.drive_params, T,
+                                                             cfg.drive_mode)),
+                  cfg.initial, **plant.drive_options(lambda t: profile.load.at(t)[0]))
     drive.enable(True)
     ctl = make_controller(motor, cfg.controller_config(), profile.at, eps_0=cfg.eps_0,
                           w_hat=cfg.w_hat_0)
@@ -251,7 +285,10 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     n = round(duration / h)
     t_eval = np.arange(n + 1) * h
     m, g = motor, cfg.gains
+    pm = cfg.plant.plant_motor(motor)  # the plant's motor (issue 14); m is the controller's
+    load = cfg.plant.load_function(lambda t: profile.load.at(t)[0])
     k_r = m.M / m.L_r
+    pk_r = pm.M / pm.L_r
     full = cfg.law is Law.FULL_ORDER
     estimated = full and cfg.flux is FluxSource.ESTIMATED
     last = [0.0]
@@ -277,15 +314,16 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         if progress is not None and t - last[0] > duration / 100:
             last[0] = t
             progress(min(t / duration, 1.0))
+        T_L = r.T_L if load is None else load(t, r.T_L)
         if full:
             u = complex(out.u_sd_ref, out.u_sq_ref) * to_ab
-            dx = rhs_full(t, x[:5], m, u, r.T_L)
+            dx = rhs_full(t, x[:5], pm, u, T_L)
             dx += [out.w_0, out.dw_hat]
             if estimated:
                 dx += [u.real - m.R_s * x[3], u.imag - m.R_s * x[4]]  # (24)
             return dx
         i = complex(out.i_sd_ref, out.i_sq_ref) * to_ab
-        return [*rhs_current_fed(t, x[:3], m, i, r.T_L), out.w_0, out.dw_hat]
+        return [*rhs_current_fed(t, x[:3], pm, i, T_L), out.w_0, out.dw_hat]
 
     x0 = np.zeros((9 if estimated else 7) if full else 5)
     s0 = cfg.initial
@@ -293,7 +331,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     if full:
         x0[3:7] = (s0.i_s_ab.real, s0.i_s_ab.imag, cfg.eps_0, cfg.w_hat_0)
         if estimated:  # the integrator starts from the true stator flux
-            psi_s0 = m.sigma * s0.i_s_ab + k_r * s0.psi_r_ab
+            psi_s0 = pm.sigma * s0.i_s_ab + pk_r * s0.psi_r_ab
             x0[7:9] = (psi_s0.real, psi_s0.imag)
     else:
         x0[3:5] = (cfg.eps_0, cfg.w_hat_0)
@@ -310,14 +348,14 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         to_ab = cmath.exp(1j * eps)
         psi_r = complex(x[1], x[2])
         i = complex(x[3], x[4]) if full else complex(out.i_sd_ref, out.i_sq_ref) * to_ab
-        psi_s = m.sigma * i + k_r * psi_r
+        psi_s = pm.sigma * i + pk_r * psi_r
         if psi_s_prev is None:
             u = 0j
         else:
-            u = (psi_s - psi_s_prev) / h + m.R_s * 0.5 * (i + i_prev)
+            u = (psi_s - psi_s_prev) / h + pm.R_s * 0.5 * (i + i_prev)
         psi_s_prev, i_prev = psi_s, i
         psi_hat = psi_r_used(x) * cmath.exp(-1j * eps)
-        T_e = m.J * m.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
+        T_e = pm.J * pm.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
         rec.append(CycleRow(
             t, r.w_ref, r.psi_ref, r.T_L, x[0], abs(psi_r), x[6 if full else 4], abs(psi_hat),
             i.real, i.imag, u.real, u.imag, out.i_sd_ref, out.i_sq_ref, out.u_sd_ref,

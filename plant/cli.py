@@ -1,6 +1,7 @@
 """``hil-plant``: run the emulated CiA 402 drive on a CAN bus.
 
-``hil-plant run [-i IF] [-c CH] [-b BITRATE] [--node N] [--motor FILE] [--drive-mode M]``
+``hil-plant run [-i IF] [-c CH] [-b BITRATE] [--node N] [--motor FILE] [--drive-mode M]
+[--plant SCENARIO]``
 opens the bus (python-can conventions; what is not given comes from python-can's config
 file or the CAN_INTERFACE / CAN_CHANNEL / CAN_BITRATE environment variables), starts the
 device, prints one line when it is ready, runs until SIGINT/SIGTERM, then goes silent
@@ -43,6 +44,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--motor", metavar="FILE",
                      help="motor parameters (TOML: J, R_s, R_r, L_s, L_r, M in SI units); "
                           "default: the paper's 0.6 kW motor")
+    run.add_argument("--plant", metavar="SCENARIO",
+                     help="plant scenario (TOML file or shipped name, e.g. rs+10; issue 14): "
+                          "its motor factors multiply the device's motor (--motor or the "
+                          "paper's), its sensor and inverter errors and drifts apply, and its "
+                          "dynamometer adds the extra torque to RPDO3's T_L (torque = "
+                          "\"profile\" needs the gateway's profile: simulate/sim only)")
     run.add_argument("--drive-mode", type=DriveMode, choices=list(DriveMode),
                      default=DriveMode.CURRENT_LOOP,
                      help="default drive model (0x6060/0x2202; the master may change it by "
@@ -65,18 +72,28 @@ def cmd_run(args: argparse.Namespace) -> int:
         motor = MotorParams.from_toml(args.motor) if args.motor else MotorParams()
     except ParamsError as exc:
         raise UserError(f"bad --motor file: {exc}") from None
+    from plant.scenario import PlantScenario, ScenarioError, resolve_scenario
+
+    try:
+        plant = resolve_scenario(args.plant) if args.plant else PlantScenario()
+        motor = plant.plant_motor(motor)
+        params = plant.drive_params(DriveParams(mode=args.drive_mode))
+        options = plant.drive_options(None)
+    except ScenarioError as exc:
+        raise UserError(f"bad --plant scenario: {exc}") from None
     cfg = bus_config(args)
     bus = open_bus(cfg, receive_own_messages=False)
     from plant.device import DriveDevice
 
     stop = threading.Event()
-    device = DriveDevice(bus, args.node, motor, DriveParams(mode=args.drive_mode))
+    device = DriveDevice(bus, args.node, motor, params, drive_options=options)
     old = {}
     if threading.current_thread() is threading.main_thread():
         old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         device.start()
-        print(f"hil-plant: node {args.node} ready on {cfg.label()} (PRE-OPERATIONAL)", flush=True)
+        print(f"hil-plant: node {args.node} ready on {cfg.label()} (PRE-OPERATIONAL)"
+              + ("" if plant.nominal else f", plant {plant.name}"), flush=True)
         while not stop.wait(0.2):
             pass
     finally:

@@ -75,19 +75,23 @@ class DriveDevice:
     ``drive_params`` (default: the paper's motor, the default current-loop inverter) are the
     device's defaults, to which reset node returns; ``drive_params.mode`` sets the defaults
     of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1).
+    ``drive_options``: keyword arguments of every :class:`plant.drive.Drive` the device
+    builds (the dynamometer ``load`` and ``motor_drift`` of a plant scenario, issue 14).
 
     The parts ``nmt``, ``sdo``, ``pdo`` and ``emcy`` are for diagnostics: every frame and
     timer goes through the device, which holds its lock while a part runs.
     """
 
     def __init__(self, bus: can.BusABC, node_id: int = 1, motor: MotorParams | None = None,
-                 drive_params: DriveParams | None = None) -> None:
+                 drive_params: DriveParams | None = None,
+                 drive_options: dict[str, Any] | None = None) -> None:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
         self.node_id = node_id
         self._motor0 = motor if motor is not None else MotorParams()
         self._params0 = drive_params if drive_params is not None else DriveParams()
+        self._drive_options = dict(drive_options or {})
         self._store = odm.ObjectStore(node_id, self._overrides())
         self._values = self._store.values
         self._send = Sender(bus)
@@ -225,7 +229,7 @@ class DriveDevice:
         """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
         self._store.reset()
         motor, params = self._drive_params()
-        self._drive = Drive(motor, params)
+        self._drive = Drive(motor, params, **self._drive_options)
         self._params_dirty = False
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
@@ -258,7 +262,7 @@ class DriveDevice:
         try:
             motor, params = self._drive_params()
             old = self._drive
-            new = Drive(motor, params, state=old.state)
+            new = Drive(motor, params, state=old.state, **self._drive_options)
         except ValueError as exc:  # guarded by the SDO checks; keep the old model
             log.error("node %d: parameters rejected, model unchanged: %s", self.node_id, exc)
             return

@@ -20,8 +20,10 @@ Modes (:class:`plant.params.DriveParams`):
   the jump), so Σ u·T reproduces the true stator flux at the samples — what the estimator
   (24) integrates.
 * ``current-loop``: a discrete PI current controller in the setpoint frame, once per
-  internal step from the true current at the step start (sensor errors are applied to the
-  reported currents only), with the voltage feedforward u_s_ref added:
+  internal step from the *measured* current at the step start (the true current through the
+  sensor model below, a fresh noise draw per step: a real drive regulates what its sensors
+  read, so a sensor offset becomes a true current error), with the voltage feedforward
+  u_s_ref added:
   u = u_s_ref + K_p·e + x, x ← x + K_i·h·e. Gains (:func:`pi_gains`): K_p = σ(1 − e^{−ω_bw·h})/h
   puts the discrete closed-loop pole at e^{−ω_bw·h} (the current follows a step as
   1 − e^{−ω_bw·t} at the steps; K_p → σ·ω_bw as h → 0), K_i = K_p·R_eff/σ with
@@ -38,6 +40,27 @@ Modes (:class:`plant.params.DriveParams`):
   limited as above.
 
 In ``current-loop`` and ``voltage`` the full model (1) is integrated with RK4, voltage held.
+
+Current sensors (:class:`plant.params.DriveParams`): a three-phase drive measures phases a
+and b (i_c = −i_a − i_b) and maps them to the (a, b) frame of (1) by the amplitude-invariant
+Clarke transform, i_a = i_sa, i_b = −i_sa/2 + (√3/2)·i_sb. Each phase sensor reads
+(1 + i_gain_error)(1 + i_gain_phase[k]) times the true phase current; then the offset
+``i_offset_ab`` (in the (a, b) frame) and Gaussian noise (``i_noise_rms`` per axis) are
+added. The measured current is what the drive reports *and* what its current control
+regulates: in ``ideal`` mode (a perfect current loop) the *measured* current equals the
+setpoint, i.e. the true current is the sensor model inverted (noise excluded).
+
+Inverter voltage errors (``current-loop`` and ``voltage``; the reported voltage stays the
+commanded one, as a real drive reports its reference): dead time, −dead_time·f_pwm·u_dc·
+sign(i_k) on each phase k, from the true phase currents at the step start; DC-link ripple,
+the applied vector scaled by 1 + u_dc_ripple·sin(2π·u_dc_ripple_hz·t) at the step midpoint.
+
+Plant-side options of the constructor (issue 14, see :mod:`plant.scenario`): ``load`` =
+f(t, T_L) gives the dynamometer torque at time t from the value T_L passed to
+:meth:`Drive.advance` (held over the period), evaluated at each internal step's midpoint;
+``motor_drift`` = {field: relative change per second} makes the motor's parameters
+p(t) = p·(1 + d·t), updated once per period at its midpoint (the current-loop gains keep
+their initial tuning, as a real drive's would).
 
 Disabled power stage (``enable(False)``, or an over-current trip |i_s| > i_trip): no voltage
 is applied. The freewheeling diodes apply −u_lim·i_s/|i_s| while current flows; the step in
@@ -56,7 +79,8 @@ from __future__ import annotations
 import cmath
 import math
 import random
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 from typing import Literal
 
 from dbc.motor import MotorParams
@@ -128,6 +152,10 @@ def pi_gains(motor: MotorParams, params: DriveParams) -> tuple[float, float]:
     return K_p, K_p * motor.R_eff / motor.sigma
 
 
+SQRT3 = math.sqrt(3.0)
+LoadFunction = Callable[[float, float], float]
+
+
 def _mean_turning(w_0_T: float) -> complex:
     """(e^{jx} − 1)/(jx) for x = ω0·T: the mean of e^{jω0·t} over [0, T]."""
     if abs(w_0_T) < 1e-4:
@@ -149,13 +177,75 @@ class Drive:
         motor: MotorParams | None = None,
         params: DriveParams | None = None,
         state: MotorState | None = None,
+        *,
+        load: LoadFunction | None = None,
+        motor_drift: Mapping[str, float] | None = None,
     ) -> None:
         self.motor = motor if motor is not None else MotorParams()
         self.params = params if params is not None else DriveParams()
         self._c = coeffs(self.motor)
         self._h = self.params.h
         self._K_p, self._K_i = pi_gains(self.motor, self.params)
+        self.load = load
+        self.motor_drift = {k: float(v) for k, v in (motor_drift or {}).items() if v}
+        p = self.params
+        g = 1.0 + p.i_gain_error
+        ka, kb = 1.0 + p.i_gain_phase[0], 1.0 + p.i_gain_phase[1]
+        self._phase_gains = p.i_gain_phase != (0.0, 0.0)
+        # measured (a, b) = S·true + offset, S = g·[[ka, 0], [(ka − kb)/√3, kb]]
+        self._S = (g * ka, g * (ka - kb) / SQRT3, g * kb)
+        self._g = g
+        self._exact_sensors = (g == 1.0 and not self._phase_gains and p.i_offset_ab == 0
+                               and p.i_noise_rms == 0.0)
+        self._du_dead = p.dead_time * p.f_pwm * p.u_dc
+        self._u_errors = self._du_dead > 0.0 or p.u_dc_ripple > 0.0
         self.reset(state)
+
+    # ---- sensors and inverter errors ----------------------------------------------------------
+    def _sense(self, i: complex, noise: bool = True) -> complex:
+        """The measured current (a, b) for the true one (see the module docstring)."""
+        p = self.params
+        if self._phase_gains:
+            sa, sba, sb = self._S
+            z = complex(sa * i.real, sba * i.real + sb * i.imag) + p.i_offset_ab
+        else:
+            z = self._g * i + p.i_offset_ab
+        if noise and p.i_noise_rms > 0.0:
+            gauss = self._rng.gauss
+            z += complex(gauss(0.0, p.i_noise_rms), gauss(0.0, p.i_noise_rms))
+        return z
+
+    def _unsense(self, z: complex) -> complex:
+        """The true current whose noise-free measurement is z (inverse of :meth:`_sense`)."""
+        z = z - self.params.i_offset_ab
+        sa, sba, sb = self._S
+        x = z.real / sa
+        return complex(x, (z.imag - sba * x) / sb)
+
+    def _u_error(self, u_ab: complex, i: complex, t_mid: float) -> complex:
+        """The applied voltage for the commanded ``u_ab``: DC-link ripple and dead time."""
+        p = self.params
+        if p.u_dc_ripple > 0.0:
+            u_ab *= 1.0 + p.u_dc_ripple * math.sin(2.0 * math.pi * p.u_dc_ripple_hz * t_mid)
+        du = self._du_dead
+        if du > 0.0:
+            i_a = i.real
+            i_b = -0.5 * i.real + 0.5 * SQRT3 * i.imag
+            e_a = -du * ((i_a > 0.0) - (i_a < 0.0))
+            e_b = -du * ((i_b > 0.0) - (i_b < 0.0))
+            i_c = -i_a - i_b
+            e_c = -du * ((i_c > 0.0) - (i_c < 0.0))
+            u_ab += complex((2.0 * e_a - e_b - e_c) / 3.0, (e_b - e_c) / SQRT3)
+        return u_ab
+
+    def _drift(self, t_mid: float) -> None:
+        """Motor parameters at t_mid (linear drifts); the coefficients of (1) follow."""
+        m = self.motor
+        values = {k: getattr(m, k) * (1.0 + d * t_mid) for k, d in self.motor_drift.items()}
+        try:
+            self._c = coeffs(replace(m, **values))
+        except ValueError as exc:
+            raise ValueError(f"motor drift at t = {t_mid:.3f} s: {exc}") from exc
 
     # ---- commands ---------------------------------------------------------------------------
     def reset(self, state: MotorState | None = None) -> None:
@@ -242,6 +332,8 @@ class Drive:
         """
         n = self._whole_steps(T)
         T_L = float(T_L)
+        if self.motor_drift:
+            self._drift((self._n + 0.5 * n) * self._h)
         if self._sp.frame == "dq" and self._n_app is None:
             self._n_app = self._n
         if self.params.mode == "ideal":
@@ -250,6 +342,12 @@ class Drive:
             u_avg, limited = self._advance_inverter(n, T_L)
         self._n += n
         return self._measure(u_avg, limited)
+
+    def _torque(self, k: float, T_L: float) -> float:
+        """The load torque over internal step k of this period (dynamometer, N·m)."""
+        if self.load is None:
+            return T_L
+        return self.load((self._n + k + 0.5) * self._h, T_L)
 
     def _trip(self) -> None:
         self._enabled = False
@@ -270,15 +368,25 @@ class Drive:
             mean_i = i_ref * rot * (_mean_turning(sp.w_0 * n * h) if sp.frame == "dq" else 1.0)
             w, psi = self._w, self._psi
             i0 = i_ref * rot
-            for _ in range(n):
-                i1 = i0 * step
-                w, psi = rk4_step_current_fed(c, w, psi, i0, i0 * half, i1, T_L, h)
-                i0 = i1
-            self._w, self._psi, self._i = w, psi, i0
+            if self._exact_sensors and self.load is None:
+                for _ in range(n):
+                    i1 = i0 * step
+                    w, psi = rk4_step_current_fed(c, w, psi, i0, i0 * half, i1, T_L, h)
+                    i0 = i1
+                self._w, self._psi, self._i = w, psi, i0
+            else:  # the measured current follows the setpoint; the load may vary
+                un = self._unsense
+                mean_i = un(mean_i)
+                for k in range(n):
+                    i1 = i0 * step
+                    w, psi = rk4_step_current_fed(c, w, psi, un(i0), un(i0 * half), un(i1),
+                                                  self._torque(k, T_L), h)
+                    i0 = i1
+                self._w, self._psi, self._i = w, psi, un(i0)
         else:
             mean_i = 0j
             self._i = 0j
-            self._open_circuit(n * h, T_L)
+            self._open_circuit(n * h, self._torque(0.5 * n - 0.5, T_L))
         psi_s_end = c.sigma * self._i + c.M_over_L_r * self._psi
         return (psi_s_end - psi_s_start) / (n * h) + c.R_s * mean_i
 
@@ -291,7 +399,8 @@ class Drive:
             else:
                 done, u_sum, limited = self._run_voltage(n, T_L)
         if done < n:
-            u_sum += self._run_disabled(n - done, T_L)
+            # the load while disabled: the dynamometer's torque at the interval's midpoint
+            u_sum += self._run_disabled(n - done, self._torque(0.5 * (n + done) - 0.5, T_L))
         return u_sum / n, limited
 
     def _run_current_loop(self, n: int, T_L: float) -> tuple[int, complex, bool]:
@@ -318,8 +427,11 @@ class Drive:
         u_sum = 0j
         limited = False
         done = n
+        plain = self._exact_sensors and not self._u_errors and self.load is None
+        sense, u_error, torque_at = self._sense, self._u_error, self._torque
+        t0 = self._n * h
         for k in range(n):
-            e = i_ref - i * rot.conjugate()
+            e = i_ref - (i if plain else sense(i)) * rot.conjugate()
             u = u_ff + K_p * e + x
             m2 = u.real * u.real + u.imag * u.imag
             if m2 > u_lim2:
@@ -330,7 +442,11 @@ class Drive:
                 x += K_i_h * e
             u_ab = u * (rot * half)
             u_sum += u_ab
-            w, psi, i = rk4(c, w, psi, i, u_ab, T_L, h)
+            if plain:
+                w, psi, i = rk4(c, w, psi, i, u_ab, T_L, h)
+            else:
+                u_app = u_error(u_ab, i, t0 + (k + 0.5) * h) if self._u_errors else u_ab
+                w, psi, i = rk4(c, w, psi, i, u_app, torque_at(k, T_L), h)
             rot *= step
             if i.real * i.real + i.imag * i.imag > trip2:
                 done = k + 1
@@ -357,9 +473,15 @@ class Drive:
         u_rot = u * rot * half
         u_sum = 0j
         done = n
+        plain = not self._u_errors and self.load is None
+        t0 = self._n * h
         for k in range(n):
             u_sum += u_rot
-            w, psi, i = rk4(c, w, psi, i, u_rot, T_L, h)
+            if plain:
+                w, psi, i = rk4(c, w, psi, i, u_rot, T_L, h)
+            else:
+                u_app = self._u_error(u_rot, i, t0 + (k + 0.5) * h) if self._u_errors else u_rot
+                w, psi, i = rk4(c, w, psi, i, u_app, self._torque(k, T_L), h)
             u_rot *= step
             if i.real * i.real + i.imag * i.imag > trip2:
                 done = k + 1
@@ -418,10 +540,7 @@ class Drive:
         p = self.params
         i = self._i
         psi = self._psi
-        i_meas = (1.0 + p.i_gain_error) * i + p.i_offset_ab
-        if p.i_noise_rms > 0.0:
-            g = self._rng.gauss
-            i_meas += complex(g(0.0, p.i_noise_rms), g(0.0, p.i_noise_rms))
+        i_meas = self._sense(i)
         T_e = self._c.M_over_L_r * (psi.real * i.imag - psi.imag * i.real)
         return Measurement(
             i_s_ab=i_meas,

@@ -40,6 +40,14 @@ class DriveParams:
     i_gain_error: relative current-sensor gain error (0.01 = +1 %).
     i_noise_rms: current-sensor white noise, A rms per axis (Gaussian).
     seed: seed of the sensor-noise generator owned by each Drive.
+    i_gain_phase: relative gain errors (a, b) of the two phase-current sensors of a
+        three-phase drive (phases a and b measured, i_c = −i_a − i_b; amplitude-invariant
+        Clarke transform to the (a, b) frame of (1)): 0.02 = the sensor reads 2 % high.
+    dead_time: inverter dead time, s: each phase voltage is off by −dead_time·f_pwm·u_dc·
+        sign(i_phase) (the classic dead-time voltage error), unseen by the drive's report.
+    u_dc_ripple, u_dc_ripple_hz: DC-link voltage ripple, relative amplitude and frequency:
+        the applied voltage is scaled by 1 + u_dc_ripple·sin(2π·u_dc_ripple_hz·t) while the
+        modulator assumes the nominal u_dc (the reported voltage is the commanded one).
     """
 
     mode: DriveMode = DriveMode.CURRENT_LOOP
@@ -51,6 +59,10 @@ class DriveParams:
     i_gain_error: float = 0.0
     i_noise_rms: float = 0.0
     seed: int = 0
+    i_gain_phase: tuple[float, float] = (0.0, 0.0)
+    dead_time: float = 0.0
+    u_dc_ripple: float = 0.0
+    u_dc_ripple_hz: float = 300.0
 
     def __post_init__(self) -> None:
         self._validate("DriveParams")
@@ -92,6 +104,23 @@ class DriveParams:
             )
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise ParamsError(f"{source}: seed = {self.seed!r} must be an integer")
+        gp = self.i_gain_phase
+        if not (isinstance(gp, tuple) and len(gp) == 2 and all(
+                isinstance(x, int | float) and not isinstance(x, bool) and -1.0 < x < 1.0
+                for x in gp)):
+            raise ParamsError(
+                f"{source}: i_gain_phase = {gp!r} must be two relative errors (a, b), each "
+                f"in (−1, 1), e.g. (0.0, 0.02) for phase b reading 2 % high"
+            )
+        for key, hi in (("dead_time", 0.5 / self.f_pwm), ("u_dc_ripple", 1.0),
+                        ("u_dc_ripple_hz", math.inf)):
+            x = getattr(self, key)
+            if isinstance(x, bool) or not isinstance(x, int | float) or not (0.0 <= x < hi):
+                raise ParamsError(
+                    f"{source}: {key} = {x!r} must be a number ≥ 0 and below {hi:g} "
+                    f"(dead_time in s, below half a PWM period; u_dc_ripple relative; "
+                    f"u_dc_ripple_hz in Hz)"
+                )
 
     @property
     def u_lim(self) -> float:
@@ -118,7 +147,10 @@ class DriveParams:
                     f"{source}: i_offset_ab = {off!r} must be two numbers [a, b], A"
                 )
             values["i_offset_ab"] = complex(off[0], off[1])
-        for key in ("f_pwm", "u_dc", "i_trip", "current_loop_bw", "i_gain_error", "i_noise_rms"):
+        if isinstance(values.get("i_gain_phase"), list):
+            values["i_gain_phase"] = tuple(values["i_gain_phase"])
+        for key in ("f_pwm", "u_dc", "i_trip", "current_loop_bw", "i_gain_error", "i_noise_rms",
+                    "dead_time", "u_dc_ripple", "u_dc_ripple_hz"):
             if isinstance(values.get(key), int) and not isinstance(values.get(key), bool):
                 values[key] = float(values[key])
         return build_params(cls, valid, values, source)

@@ -34,8 +34,10 @@ def steady_state(i_s_dq: complex, w_0: float, eps_0: float) -> tuple[MotorState,
     return MotorState(w_m, psi_rd * rot, i_s_dq * rot), T_L, u_s_dq
 
 
-def make_drive(mode: str, state: MotorState | None = None, **kw: object) -> Drive:
-    d = Drive(MOTOR, DriveParams(mode=mode, **kw), state)  # type: ignore[arg-type]
+def make_drive(mode: str, state: MotorState | None = None, load=None, motor_drift=None,
+               **kw: object) -> Drive:
+    d = Drive(MOTOR, DriveParams(mode=mode, **kw), state,  # type: ignore[arg-type]
+              load=load, motor_drift=motor_drift)
     d.enable(True)
     return d
 
@@ -323,13 +325,80 @@ def test_ideal_over_current_setpoint_trips() -> None:
 
 
 # ---- sensors --------------------------------------------------------------------------------
-def test_sensor_offset_and_gain_apply_to_measurement_only() -> None:
+def test_ideal_current_source_regulates_the_measured_current() -> None:
+    """Issue 14: a perfect current loop makes the *measured* current equal the setpoint, so
+    the sensor errors land in the true current (before: in the measurement only)."""
     p = {"i_offset_ab": 0.2 - 0.1j, "i_gain_error": 0.03}
     d = make_drive("ideal", **p)
     d.set_setpoints(Setpoints("ab", 4.0 - 2.0j))
     meas = d.advance(1e-3, 0.0)
-    assert meas.i_s_ab == pytest.approx(1.03 * (4.0 - 2.0j) + 0.2 - 0.1j, rel=1e-12)
-    assert d.state.i_s_ab == 4.0 - 2.0j
+    assert meas.i_s_ab == pytest.approx(4.0 - 2.0j, rel=1e-12)
+    assert d.state.i_s_ab == pytest.approx((4.0 - 2.0j - (0.2 - 0.1j)) / 1.03, rel=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["ideal", "current-loop"])
+def test_phase_sensor_gain_and_offset_in_measured_and_true_current(mode: str) -> None:
+    """Phase-b sensor 2 % high, phase-a offset: measured = S·true + offset (three-phase
+    sensors, Clarke), and the current control regulates the measured value."""
+    off = complex(0.01, 0.01 / math.sqrt(3.0))  # 10 mA on the phase-a sensor, in (a, b)
+    d = make_drive(mode, i_offset_ab=off, i_gain_phase=(0.0, 0.02))
+    d.set_setpoints(Setpoints("ab", 3.0 + 1.0j, (3.0 + 1.0j) * MOTOR.R_s))
+    for _ in range(50):
+        meas = d.advance(1e-3, 0.0)
+    i = d.state.i_s_ab
+    i_a, i_b = i.real, -0.5 * i.real + 0.5 * math.sqrt(3.0) * i.imag
+    m_a, m_b = i_a + 0.01, 1.02 * i_b
+    expected = complex(m_a, (m_a + 2.0 * m_b) / math.sqrt(3.0))
+    assert meas.i_s_ab == pytest.approx(expected + (off - 0.01 * (1 + 1j / math.sqrt(3.0))),
+                                        abs=1e-9)
+    assert meas.i_s_ab == pytest.approx(3.0 + 1.0j, abs=2e-3)  # regulated: measured = setpoint
+    assert abs(i - (3.0 + 1.0j)) > 0.01  # the true current carries the sensor error
+
+
+def test_sensor_errors_leave_exact_sensors_bit_identical() -> None:
+    """Zero sensor and inverter errors take the original path: identical results."""
+    state, T_L, u_dq = steady_state(4.0 + 2.0j, 100.0, 0.2)
+    a = make_drive("current-loop", state)
+    b = make_drive("current-loop", state, i_gain_phase=(0.0, 0.0), dead_time=0.0)
+    for d in (a, b):
+        d.set_setpoints(Setpoints("dq", 4.5 + 2.0j, u_dq, 0.2, 100.0))
+    assert run(a, 20, 1e-3, T_L) == run(b, 20, 1e-3, T_L)
+
+
+def test_dead_time_and_ripple_change_the_applied_not_the_reported_voltage() -> None:
+    d0 = make_drive("voltage")
+    d1 = make_drive("voltage", dead_time=2e-6, u_dc_ripple=0.05)
+    for d in (d0, d1):
+        d.set_setpoints(Setpoints("ab", 0j, 30.0 + 0j))
+    m0, m1 = run(d0, 1000, 1e-3, 0.0)[-1], run(d1, 1000, 1e-3, 0.0)[-1]
+    assert m1.u_s_ab == m0.u_s_ab  # the drive reports its commanded voltage
+    du = 2e-6 * 10e3 * 560.0  # 11.2 V per phase; current along +a: i_a > 0, i_b = i_c < 0
+    # steady state: (30 − (4/3)·du·…)/R_s; the a-axis error is −(2/3)(du + du/2 + du/2)
+    assert m1.i_s_ab.real == pytest.approx((30.0 - 4.0 / 3.0 * du) / MOTOR.R_s, rel=0.01)
+    assert m0.i_s_ab.real == pytest.approx(30.0 / MOTOR.R_s, rel=2e-3)
+
+
+def test_load_function_is_applied_within_the_period() -> None:
+    """A dynamometer torque that ramps within the period is integrated at the internal rate,
+    not held: with T_L(t) = 100·t N·m over 10 ms, ω falls by ∫T_L/J."""
+    d = make_drive("ideal", load=None)
+    d.load = lambda t, T_L: 100.0 * t
+    d.advance(1e-2, 0.0)
+    assert d.state.w_m == pytest.approx(-0.5 * 100.0 * 1e-4 / MOTOR.J, rel=1e-9)
+    held = make_drive("ideal")
+    held.advance(1e-2, 0.5)  # the held mean torque gives the same end speed ...
+    assert held.state.w_m == pytest.approx(d.state.w_m, rel=1e-9)
+
+
+def test_motor_drift_changes_the_plant_over_time() -> None:
+    d = make_drive("voltage", motor_drift={"R_s": 0.5})
+    d0 = make_drive("voltage")
+    for x in (d, d0):
+        x.set_setpoints(Setpoints("ab", 0j, 30.0 + 0j))
+    m, m0 = run(d, 1000, 1e-3, 0.0)[-1], run(d0, 1000, 1e-3, 0.0)[-1]
+    # R_s × 1.5 at 1 s; the current lags the drifting resistance by the stator time constant
+    assert m.i_s_ab.real == pytest.approx(30.0 / (1.5 * MOTOR.R_s), rel=0.03)
+    assert m0.i_s_ab.real == pytest.approx(30.0 / MOTOR.R_s, rel=2e-3)
 
 
 def test_sensor_noise_statistics_and_seed() -> None:
@@ -357,4 +426,6 @@ def test_measurement_carries_truth() -> None:
     assert meas.u_dc == 600.0
     assert (meas.w_m, meas.psi_r_ab) == (s.w_m, s.psi_r_ab)
     assert meas.T_e == pytest.approx(torque(MOTOR, s.psi_r_ab, s.i_s_ab), rel=1e-12)
-    assert meas.T_e == pytest.approx(T_L, rel=0.02)
+    # the measurement carries the 0.5 A offset; the current loop regulates the measured value
+    # (issue 14), so the true current is off by −0.5 A and T_e ≠ T_L (it was ≈ T_L before)
+    assert meas.i_s_ab - s.i_s_ab == pytest.approx(0.5, abs=1e-12)

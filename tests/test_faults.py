@@ -214,18 +214,17 @@ def test_emcy_near_the_end_is_not_exit_0(emulator, tmp_path):
     assert "0x2310" in s["run"]["stop_reason"]
 
 
-def test_implausible_currents_stop_the_run_before_any_setpoint(tmp_path):
-    """Current sensors reading 30 A (offset) on a drive whose peak is 25 A."""
+def test_implausible_measurement_stops_the_run_before_any_setpoint(tmp_path):
+    """A DC link of 1000 V reported by a drive whose range is 400..700 V."""
     emu = Emulator()
     emu.device.stop()
-    emu.device = DriveDevice(emu.bus, 1, drive_params=DriveParams(mode="ideal",
-                                                                   i_offset_ab=30 + 0j))
+    emu.device = DriveDevice(emu.bus, 1, drive_params=DriveParams(mode="ideal", u_dc=1000.0))
     emu.device.start()
     try:
         assert gateway_run(emu, tmp_path, "--duration", "0.2s") == 1
         s = _summary(tmp_path)
-        assert s["run"]["stop"] == "IMPLAUSIBLE" and "beyond the drive's peak current 25" in \
-            s["run"]["stop_reason"]
+        assert s["run"]["stop"] == "IMPLAUSIBLE" and "DC link u_dc = 1000.0 V outside the " \
+            "drive's range 400..700 V" in s["run"]["stop_reason"]
         assert s["run"]["cycles"] == 0
         assert_disabled(emu)
     finally:

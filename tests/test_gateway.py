@@ -125,8 +125,8 @@ def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     """What Ctrl-C and SIGTERM do: a stop request ends the loop and the drive is disabled."""
     emu = emulator()
     signals = StopSignals()
-    th, result = run_in_thread(emu, tmp_path, RunConfig(timing="realtime", max_missed=1000),
-                                signals)
+    cfg = RunConfig(timing="realtime", max_missed=1000, max_miss_rate=1.0)
+    th, result = run_in_thread(emu, tmp_path, cfg, signals)
     wait_cycles(emu.device, 200)
     signals.requested.set()
     signals.reason = "SIGTERM received"
@@ -147,8 +147,8 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     """An EMCY (here: a PDO of wrong length, 0x8210) stops the run and is reported."""
     emu = emulator()
     signals = StopSignals()
-    th, result = run_in_thread(emu, tmp_path, RunConfig(timing="realtime", max_missed=1000),
-                                signals)
+    cfg = RunConfig(timing="realtime", max_missed=1000, max_miss_rate=1.0)
+    th, result = run_in_thread(emu, tmp_path, cfg, signals)
     wait_cycles(emu.device, 100)
     with can.Bus(interface="virtual", channel=emu.channel) as intruder:
         intruder.send(can.Message(arbitration_id=0x301, data=b"\x00\x01", is_extended_id=False))

@@ -25,8 +25,13 @@ from enum import StrEnum
 
 from dbc.modes import DriveMode
 from dbc.timing import Sampling
-from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
+from gateway.control.estimator import (
+    DriftFreeFluxEstimator,
+    OpenLoopFluxEstimator,
+    RsAdaptiveFluxEstimator,
+)
 from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
+from gateway.control.load_observer import LoadObserver
 
 
 class Law(StrEnum):
@@ -54,10 +59,20 @@ class FluxSource(StrEnum):
 
 
 class EstimatorKind(StrEnum):
-    """OPEN_LOOP: the paper's integrator (24); DRIFT_FREE: with a low-frequency correction."""
+    """OPEN_LOOP: the paper's integrator (24); DRIFT_FREE: with a low-frequency correction;
+    RS_ADAPTIVE: drift-free with on-line stator-resistance adaptation (docs/robustness.md)."""
 
     OPEN_LOOP = "open-loop"
     DRIFT_FREE = "drift-free"
+    RS_ADAPTIVE = "rs-adaptive"
+
+
+class LoadSource(StrEnum):
+    """KNOWN: the laws get the profile's T_L, dT_L/dt (the paper); OBSERVED: T̂_L, dT̂_L/dt of
+    :class:`gateway.control.load_observer.LoadObserver` instead (docs/robustness.md)."""
+
+    KNOWN = "known"
+    OBSERVED = "observed"
 
 
 class Discretisation(StrEnum):
@@ -69,6 +84,16 @@ class Discretisation(StrEnum):
 
 
 TWO_PI = 2.0 * math.pi
+
+
+def euler_only(discretisation: Discretisation, estimator: EstimatorKind,
+               load: LoadSource) -> None:
+    """The exact design has neither the R_s-adaptive estimator nor the load observer yet:
+    ValueError saying what to choose."""
+    if discretisation is Discretisation.EXACT and (
+            estimator is EstimatorKind.RS_ADAPTIVE or load is LoadSource.OBSERVED):
+        raise ValueError("--estimator rs-adaptive and --load observed work with the Euler "
+                         "design only (docs/robustness.md): add --discretisation euler")
 
 
 def as_enum(enum: type[StrEnum], value: object, what: str) -> StrEnum:
@@ -95,6 +120,10 @@ class ControllerConfig:
     current_lag: time constant of the drive's current response to a setpoint step, s
         (0: ideal current source; only the exact design uses it).
     Strings are accepted for the enums (the command-line words) and converted.
+    load: "known" (the laws get the profile's T_L, dT_L/dt: the paper, ERRATA 6) or
+        "observed" (issue 14: T̂_L, dT̂_L/dt of :class:`LoadObserver` instead).
+    load_bandwidth, load_speed_gain, load_current_rise: the load observer's tuning
+        (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).
     """
 
     law: Law = Law.CURRENT_FED
@@ -105,6 +134,10 @@ class ControllerConfig:
     gains: Gains = field(default_factory=Gains)
     discretisation: Discretisation = Discretisation.EULER
     current_lag: float = 0.0
+    load: LoadSource = LoadSource.KNOWN
+    load_bandwidth: float = 300.0
+    load_speed_gain: float = 300.0
+    load_current_rise: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "law", as_enum(Law, self.law, "law"))
@@ -113,6 +146,7 @@ class ControllerConfig:
                            as_enum(EstimatorKind, self.estimator, "estimator"))
         object.__setattr__(self, "discretisation",
                            as_enum(Discretisation, self.discretisation, "discretisation"))
+        object.__setattr__(self, "load", as_enum(LoadSource, self.load, "load mode"))
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
 
@@ -178,7 +212,9 @@ class Controller:
         self._full = self.config.law is Law.FULL_ORDER
         self._true_flux = self.config.flux is FluxSource.TRUE
         self._gains = self.config.gains
-        if self.config.estimator is EstimatorKind.DRIFT_FREE:
+        if self.config.estimator is EstimatorKind.RS_ADAPTIVE:  # docs/robustness.md
+            self.estimator = RsAdaptiveFluxEstimator(motor)  # its own ω_c, γ_R
+        elif self.config.estimator is EstimatorKind.DRIFT_FREE:
             self.estimator: OpenLoopFluxEstimator = DriftFreeFluxEstimator(motor, self.config.w_c)
         else:
             self.estimator = OpenLoopFluxEstimator(motor)
@@ -188,6 +224,11 @@ class Controller:
         # the commands in flight (the drive holds zero before it receives anything).
         self._in_flight: deque[tuple[float, float]] = deque([(0.0, 0.0)] * self._delay)
         self._last = (0.0, 0.0)  # (ω0, dω̂/dt) of the last step, for coast()
+        # issue 14: the load torque estimated instead of known (None: known)
+        c = self.config
+        self.load_observer = (LoadObserver(motor, self._T, c.load_bandwidth, c.load_speed_gain,
+                                           c.load_current_rise)
+                              if c.load is LoadSource.OBSERVED else None)
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
@@ -201,6 +242,8 @@ class Controller:
             psi_r_ab = self.estimator.update(
                 sample.i_s_ab, sample.u_s_ab, T, eps_0, refs.psi_ref
             )
+        if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt
+            refs = self.load_observer.refs(refs, sample.i_s_ab, sample.u_s_ab, eps_0)
         to_dq = cmath.exp(-1j * eps_0)
         psi_r_dq = psi_r_ab * to_dq
         if self._full:
@@ -235,9 +278,12 @@ class Controller:
             psi_r_dq=psi_r_dq,
             i_limited=out.i_limited,
         )
-        self.w_hat += T * out.dw_hat  # (16)/(27), forward Euler
+        dw_hat = out.dw_hat
+        if self.load_observer is not None:  # issue 14: ω̂ also pulled to the observer's ω̂_m
+            dw_hat += self.load_observer.speed_injection(self.w_hat)
+        self.w_hat += T * dw_hat  # (16)/(27), forward Euler
         self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0
-        self._last = (w_0, out.dw_hat)
+        self._last = (w_0, dw_hat)
         return cmd
 
     def coast(self) -> None:
@@ -257,3 +303,5 @@ class Controller:
         if self._delay and self._in_flight:
             self._in_flight.append(self._in_flight[-1])
             self._in_flight.popleft()
+        if self.load_observer is not None:
+            self.load_observer.coast(w_0, T)
