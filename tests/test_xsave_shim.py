@@ -3,15 +3,19 @@ boot where the host's XSAVE area is larger than UML's buffer, e.g. with AMX).
 
 The shim is compiled here with gcc (scripts/bootstrap --test installs it) and its exported
 ``xsave_pad`` is called through ctypes with a synthetic AMX host: 11008 bytes, UML's buffer
-2696 bytes (Debian's 6.1). The ptrace path itself runs in the vcan suite
-(``VCAN_RUN_XSAVE_SHIM=always`` / ``pad-test``, see scripts/vcan-run).
+2696 bytes (Debian's 6.1). Its ptrace() wrapper is checked against a real traced child on
+this host (a SETREGSET shorter than the host's size: EFAULT plain, accepted through the
+shim), and under UML in the vcan suite (``VCAN_RUN_XSAVE_SHIM=always`` / ``pad-test``, see
+scripts/vcan-run).
 """
 
 from __future__ import annotations
 
 import ctypes
+import errno
 import os
 import shutil
+import signal
 import struct
 import subprocess
 from pathlib import Path
@@ -134,3 +138,67 @@ def test_host_size_is_cpuid_0xd(shim):
         assert size >= 2688
     if "amx_tile" in flags:
         assert size >= AMX_HOST_SIZE
+
+
+# ---------------------------------------------------------------- the ptrace contract, here
+PTRACE_TRACEME, PTRACE_GETREGSET, PTRACE_SETREGSET = 0, 0x4204, 0x4205
+NT_X86_XSTATE = 0x202
+XMM0 = 160  # offset of xmm0 in the legacy (FXSAVE) area
+
+
+class _Iovec(ctypes.Structure):
+    _fields_ = [("iov_base", ctypes.c_void_p), ("iov_len", ctypes.c_size_t)]
+
+
+def _ptrace_fn(lib):
+    f = lib.ptrace
+    f.restype = ctypes.c_long
+    f.argtypes = [ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
+    return f
+
+
+def test_shim_reissues_a_short_setregset_at_the_host_size(shim):
+    """On this host, against a real traced child: the kernel refuses a PTRACE_SETREGSET
+    (NT_X86_XSTATE) shorter than its XSAVE size (EFAULT) — what makes UML panic on an AMX
+    host — and the same call through the shim's ptrace() succeeds, the registers in it
+    arrive, and components beyond the short buffer are reset (XSTATE_BV masked)."""
+    host = shim.xsave_host_size()
+    assert host > 832, f"host XSAVE size {host}: no AVX, nothing shorter to test"
+    short = 832  # legacy area, header, AVX: PKRU/AVX-512/AMX beyond
+    libc = ctypes.CDLL(None, use_errno=True)
+    plain, wrapped = _ptrace_fn(libc), _ptrace_fn(shim)
+    pid = os.fork()
+    if pid == 0:  # the tracee: stop and wait to be killed
+        try:
+            plain(PTRACE_TRACEME, 0, None, None)
+            os.kill(os.getpid(), signal.SIGSTOP)
+        finally:
+            os._exit(0)
+    try:
+        _, status = os.waitpid(pid, os.WUNTRACED)
+        assert os.WIFSTOPPED(status), status
+        full = (ctypes.c_ubyte * (host + 4096))()
+        iov = _Iovec(ctypes.addressof(full), len(full))
+        assert plain(PTRACE_GETREGSET, pid, NT_X86_XSTATE, ctypes.byref(iov)) == 0
+        assert iov.iov_len == host  # the kernel's size is CPUID 0xD's
+        img = (ctypes.c_ubyte * short).from_buffer_copy(bytes(full)[:short])
+        marker = bytes(range(0x40, 0x50))
+        img[XMM0:XMM0 + 16] = list(marker)
+        bv = struct.unpack_from("<Q", bytes(img), HDR)[0] | 0x7  # x87, SSE, AVX in use
+        struct.pack_into("<Q", img, HDR, bv)
+        iov = _Iovec(ctypes.addressof(img), short)
+        assert plain(PTRACE_SETREGSET, pid, NT_X86_XSTATE, ctypes.byref(iov)) == -1
+        assert ctypes.get_errno() == errno.EFAULT
+        iov = _Iovec(ctypes.addressof(img), short)
+        assert wrapped(PTRACE_SETREGSET, pid, NT_X86_XSTATE, ctypes.byref(iov)) == 0
+        iov = _Iovec(ctypes.addressof(full), len(full))
+        assert plain(PTRACE_GETREGSET, pid, NT_X86_XSTATE, ctypes.byref(iov)) == 0
+        back = bytes(full)[:host]
+        assert back[XMM0:XMM0 + 16] == marker
+        assert struct.unpack_from("<Q", back, HDR)[0] & ~0x7 == 0  # nothing beyond AVX
+        # A full-size call passes through the shim unchanged.
+        iov = _Iovec(ctypes.addressof(full), host)
+        assert wrapped(PTRACE_SETREGSET, pid, NT_X86_XSTATE, ctypes.byref(iov)) == 0
+    finally:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
