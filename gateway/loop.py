@@ -189,6 +189,8 @@ class CycleLoop:
         if self._consecutive_missed >= self.cfg.max_missed:
             self._finish(f"{self._consecutive_missed} consecutive cycles without the drive's "
                          "TPDOs (drive lost or bus overloaded)")
+        elif self._k >= self.cfg.n_cycles:  # the last cycle was missed: no cycle n + 1
+            self._finish("end of the profile")
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         t_arrival = time.perf_counter()
