@@ -284,6 +284,8 @@ class CycleLoop:
                          f"{len(misses)} of the last {window} cycles missed (more than "
                          f"{self.cfg.max_miss_rate:.0%} within {window * self._T * 1e3:g} ms; "
                          f"last missing: {', '.join(missing)}): the loop cannot keep its rate")
+        elif k >= self.cfg.n_cycles:  # the last cycle was missed: no cycle n + 1
+            self._finish(StopReason.END_OF_PROFILE, "end of the profile")
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """A TPDO of the drive: it belongs to the cycle open since the last SYNC; the cycle

@@ -1,0 +1,194 @@
+"""Two processes over SocketCAN: `hil-plant run` and `hil-gateway run` at 1 ms.
+
+Run where vcan0 exists, e.g. inside the sandbox:
+    scripts/vcan-run -- .venv/bin/python bench/bench_twoproc.py [--seconds 60] [--quick]
+
+Figures (from each run's summary.json, written by the gateway):
+
+* real time: `hil-gateway run --timing realtime --period 1ms` for N seconds, SYNC from the
+  kernel's broadcast manager (the gateway's choice on socketcan): cycles, missed cycles
+  (target 0), late RPDOs, SYNC jitter (|SYNC period − 1 ms|), SYNC → TPDO (the drive's
+  answer) and reaction (last TPDO → RPDOs sent, target p99 ≤ 200 µs), median/p99/max;
+  the emulator's own account (cycles, SYNC gaps);
+* lockstep: cycles per second of the paper scenario (2500 cycles at 1 ms) across the two
+  processes, `--repeats` runs.
+
+A fresh `hil-plant run` for each gateway run. The missed-cycle limit is raised so the real
+time run lasts its N seconds whatever happens and the count is reported. With
+`--no-deadlines` the real-time run uses a copy of gateway/drives/emulator.toml with the
+drive's RPDO deadline (0x1400.5) and heartbeat consumer (0x1016) off and the gateway's
+watch on the drive's heartbeat at 5 s: where the two processes cannot keep up with 1 ms
+(the UML sandbox: one CPU) the drive otherwise trips (EMCY 0x8250 or 0x8130) and ends the
+run within seconds, and the figures would describe only that.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def _cmd(name: str, module: str) -> list[str]:
+    exe = BIN / name
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", module]
+
+
+def where() -> str:
+    """The machine the figures are from: native kernel or the UML sandbox, and CPUs."""
+    vendor = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            vendor = next((ln.split(":", 1)[1].strip() for ln in f
+                           if ln.startswith("vendor_id")), "")
+    except OSError:
+        pass
+    kind = "User-Mode Linux sandbox" if vendor == "User Mode Linux" else "native kernel"
+    return f"{kind}, Linux {platform.release()}, {os.cpu_count()} CPU(s)"
+
+
+class Plant:
+    """`hil-plant run` in its own session until its ready line; SIGTERM on exit."""
+
+    def __init__(self, channel: str, logdir: Path):
+        self.out = logdir / "plant.out"
+        self.err = logdir / "plant.err"
+        with open(self.out, "wb") as fo, open(self.err, "wb") as fe:
+            self.p = subprocess.Popen([*_cmd("hil-plant", "plant"), "run", "-i", "socketcan",
+                                       "-c", channel], stdin=subprocess.DEVNULL, stdout=fo,
+                                      stderr=fe, cwd=REPO, start_new_session=True,
+                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        deadline = time.monotonic() + 120
+        while not self.out.read_text().strip():
+            if self.p.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise SystemExit(f"hil-plant did not start: {self.err.read_text()[-2000:]}")
+            time.sleep(0.05)
+
+    def stop(self) -> str:
+        """Its account line (cycles, SYNC gaps, faults)."""
+        if self.p.poll() is None:
+            os.killpg(self.p.pid, signal.SIGTERM)
+            try:
+                self.p.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.p.pid, signal.SIGKILL)
+                self.p.wait(10)
+        lines = self.out.read_text().strip().splitlines()
+        return lines[-1] if len(lines) > 1 else ""
+
+
+def gateway(channel: str, out: Path, logdir: Path, *args: str, timeout: float) -> dict:
+    cmd = [*_cmd("hil-gateway", "gateway"), "run", "-i", "socketcan", "-c", channel,
+           "--out", str(out), *args]
+    with open(logdir / "gateway.out", "wb") as fo, open(logdir / "gateway.err", "wb") as fe:
+        p = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=fo, stderr=fe, cwd=REPO,
+                           timeout=timeout, check=False)
+    if not (out / "summary.json").exists():
+        raise SystemExit(f"hil-gateway failed ({p.returncode}): "
+                         f"{(logdir / 'gateway.err').read_text()[-2000:]}")
+    if p.returncode != 0:  # e.g. the drive tripped: the figures up to then still count
+        print(f"hil-gateway exit {p.returncode}: "
+              f"{(logdir / 'gateway.err').read_text().strip().splitlines()[-1:]}")
+    return json.loads((out / "summary.json").read_text())
+
+
+def us(x: float) -> str:
+    return f"{x * 1e6:.0f} µs"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-c", "--channel", default="vcan0")
+    ap.add_argument("--seconds", type=float, default=60.0, help="real-time run length (60)")
+    ap.add_argument("--period", default="1ms")
+    ap.add_argument("--repeats", type=int, default=3, help="lockstep runs (3; 0: none)")
+    ap.add_argument("--quick", action="store_true", help="10 s of real time, 1 lockstep run")
+    ap.add_argument("--out", type=Path, help="keep the run directories here")
+    ap.add_argument("--json", type=Path, help="write the figures here as JSON")
+    ap.add_argument("--no-deadlines", action="store_true",
+                    help="real-time run with the drive's deadlines off (see above)")
+    args = ap.parse_args()
+    if args.quick:
+        args.seconds, args.repeats = 10.0, 1
+    root = args.out or Path(tempfile.mkdtemp(prefix="bench-twoproc-"))
+    root.mkdir(parents=True, exist_ok=True)
+    print(f"two processes on socketcan:{args.channel}; {where()}; runs under {root}")
+    result: dict = {"where": where(), "deadlines": not args.no_deadlines}
+
+    # ------------------------------------------------------------------ real time
+    d = root / "realtime"
+    d.mkdir(exist_ok=True)
+    extra: list[str] = []
+    if args.no_deadlines:
+        drive = (REPO / "gateway" / "drives" / "emulator.toml").read_text()
+        for old, new in (("rpdo_timeout_ms = 300", "rpdo_timeout_ms = 0"),
+                         ("heartbeat_timeout_ms = 300", "heartbeat_timeout_ms = 0"),
+                         ("drive_heartbeat_timeout_ms = 500", "drive_heartbeat_timeout_ms = 5000")):
+            assert old in drive, f"{old!r} not in emulator.toml"
+            drive = drive.replace(old, new)
+        (d / "drive.toml").write_text(drive)
+        extra = ["--drive", str(d / "drive.toml")]
+    pl = Plant(args.channel, d)
+    try:
+        s = gateway(args.channel, d / "run", d, "--timing", "realtime", "--period", args.period,
+                    "--duration", f"{args.seconds:g}s", "--max-missed", "1000000", *extra,
+                    timeout=args.seconds * 3 + 300)
+    finally:
+        account = pl.stop()
+    r, t = s["run"], s["timing"]
+    result["realtime"] = {"run": r, "timing": t, "plant": account}
+    total = r["cycles"] + r["missed_cycles"]
+    print(f"\nreal time, period {args.period}, {args.seconds:g} s, SYNC by the kernel's BCM"
+          f"{', drive deadlines off' if args.no_deadlines else ''}:")
+    print(f"  cycles {r['cycles']}, missed {r['missed_cycles']} "
+          f"({100 * r['missed_cycles'] / max(total, 1):.2f} %), late RPDO {r['late_rpdo']}, "
+          f"wall {r['wall_time_s']:.1f} s, stopped: {r['stop_reason']}")
+    for key, label in (("sync_period", "SYNC period"), ("sync_jitter", "SYNC jitter"),
+                       ("sync_to_tpdo", "SYNC → TPDO"), ("reaction", "TPDO → RPDO")):
+        if key in t:
+            v = t[key]
+            print(f"  {label:12s} median {us(v['median']):>9s}  p99 {us(v['p99']):>9s}  "
+                  f"max {us(v['max']):>9s}")
+    print(f"  {account}")
+    for f in s.get("faults", []):
+        print(f"  fault at {f['time']:.1f} s: {f['kind']} 0x{f['code'] or 0:04X} {f['text']}")
+
+    # ------------------------------------------------------------------ lockstep
+    rates = []
+    for k in range(args.repeats):
+        d = root / f"lockstep{k}"
+        d.mkdir(exist_ok=True)
+        pl = Plant(args.channel, d)
+        try:
+            s = gateway(args.channel, d / "run", d, "--timing", "lockstep", "--profile",
+                        "profiles/paper.toml", "--period", args.period, timeout=900)
+        finally:
+            pl.stop()
+        r = s["run"]
+        rates.append(r["cycles"] / r["wall_time_s"])
+        print(f"lockstep run {k + 1}: {r['cycles']} cycles in {r['wall_time_s']:.2f} s = "
+              f"{rates[-1]:.0f} cycles/s, reaction median "
+              f"{us(s['timing']['reaction']['median'])}, p99 {us(s['timing']['reaction']['p99'])}")
+    result["lockstep_cycles_per_s"] = rates
+    if rates:
+        print(f"lockstep across two processes: median {statistics.median(rates):.0f} cycles/s "
+              f"({', '.join(f'{x:.0f}' for x in rates)})")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
