@@ -524,12 +524,18 @@ def render_toml(eds: DriveEds, choices: dict[str, Choice], *, node: int = 1,
             " (it has mode 10, cyclic synchronous torque, which these laws cannot use)"
             if cst else "") + ": find the drive's vector mode in the manual", "# "),
             "# current = -1", "# voltage = -2"]
+    def pdo(key: str, msg: str, remark: str = "") -> str:
+        line = f'{key} = "{msg}"'
+        if msg not in layout:
+            remark = "no candidate for any of its signals: not in the DBC skeleton"
+        return (line.ljust(34) + f"# {remark}") if remark else line
+
     lines += ["", "[pdo]                             # messages of the DBC skeleton",
-              'control = "RPDO1"', f'setpoints = "{setpoints}"'
-              + ("" if setpoints == "RPDO2" else "        # (alpha, beta) setpoints")]
+              pdo("control", "RPDO1"),
+              pdo("setpoints", setpoints, "" if setpoints == "RPDO2" else "(alpha, beta)")]
     if "T_L" in in_layout:
         lines.append('load = "RPDO3"')
-    lines += ['currents = "TPDO1"', 'voltages = "TPDO2"']
+    lines += [pdo("currents", "TPDO1"), pdo("voltages", "TPDO2")]
     if any(r in in_layout for r in ("w_m", "psi_ra", "psi_rb", "T_e")):
         lines.append('truth = "TPDO3"')
     lines.append("remap = true                      # write the PDO mappings by SDO")
@@ -633,7 +639,10 @@ def cmd_new_drive(args: argparse.Namespace) -> int:
         raise UserError(f"-o {str(out)!r}: give the profile's name ending in .toml (the DBC "
                         "skeleton is written next to it with the suffix .dbc)")
     dbc_path = out.with_suffix(".dbc")
-    eds_ref = os.path.relpath(eds.path.resolve(), out.resolve().parent).replace(os.sep, "/")
+    try:
+        eds_ref = os.path.relpath(eds.path.resolve(), out.resolve().parent).replace(os.sep, "/")
+    except ValueError:  # another drive (Windows)
+        eds_ref = str(eds.path.resolve())
     toml_text = render_toml(eds, choices, node=args.node, eds_ref=eds_ref,
                             dbc_ref=dbc_path.name)
     try:

@@ -82,6 +82,8 @@ def foreign_eds(path: Path) -> Path:
         "3103": var("Field speed", I16, "rww"),
         "3200": var("Phase current A filtered", REAL32, "ro", False),
         "3201": var("Id reference limit", U16, "rw", False),
+        "6073": var("Max current", U16, "rw", False, "2000"),  # per mille of rated current
+        "6075": var("Motor rated current", U32, "rw", False, "10000"),  # mA
     }})
 
 
@@ -158,6 +160,7 @@ def test_skeleton_of_the_foreign_eds(tmp_path, capsys):
     assert data["drive"]["dbc"] == "acme.dbc" and data["drive"]["node"] == 5
     assert data["drive"]["device_type"] == 0x00020192
     assert data["modes"] == {"current": -1, "voltage": -2}
+    assert data["limits"] == {"current_peak_a": 20.0}
     assert data["pdo"]["setpoints"] == "RPDO2" and "truth" not in data["pdo"]
     assert data["signals"]["i_sa"] == "TPDO1.i_sa" and data["signals"]["u_dc"] == "TPDO2.u_dc"
     assert "T_L" not in data["signals"]
@@ -215,6 +218,7 @@ def test_standard_objects_only_gives_the_refusal_note(tmp_path, capsys):
     assert data["signals"] == {"controlword": "RPDO1.controlword",
                                "statusword": "TPDO1.statusword", "u_dc": "TPDO2.u_dc"}
     assert re.search(r"# i_sa .*\n#   none found: look in the manual", text)
+    assert re.search(r'setpoints = "RPDO2" +# no candidate', text)
 
 
 @pytest.mark.parametrize("content, words", [

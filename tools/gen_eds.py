@@ -6,6 +6,11 @@ the DBC signal (bits, signedness) and their ParameterName from the signal name; 
 default PDO mappings are the DBC messages (``RPDO2_AB`` is the alternative of RPDO2 and
 is not a default). Parameter defaults are those of :mod:`dbc.motor` and
 :mod:`plant.params`. This is a development tool, not part of the installed packages.
+
+The text keeps to CiA 306 so that other EDS readers load it (``tests/test_eds.py``: python-
+canopen, objdictgen, eds-utils, and a lint): nothing before [FileInfo], only CiA 306 keys
+(descriptions and units go to [Comments]), no '=' inside a value, limits as integers (the
+REAL32 ranges live in :data:`plant.od.REAL32_LIMITS`; only their integral bounds are written).
 """
 
 from __future__ import annotations
