@@ -478,8 +478,8 @@ def render_toml(eds: DriveEds, choices: dict[str, Choice], *, node: int = 1,
     ]
     missing = [f"0x{i:04X} {what}" for i, what in REQUIRED_OBJECTS.items() if not eds.has(i)]
     if missing:
-        lines += ["#", f"# !! The EDS has no {', '.join(missing)}: the gateway needs them to "
-                  "run a CiA 402 drive."]
+        lines += ["#", *_wrap(f"The EDS has no {', '.join(missing)}: the gateway needs them "
+                              "to run a CiA 402 drive (is it a CiA 402 drive's EDS?).", "# !! ")]
     if not (currents_ok and setpoints_ok):
         std = {0x6071: "0x6071 target torque", 0x6077: "0x6077 torque actual value",
                0x6078: "0x6078 current actual value", 0x6079: "0x6079 DC link circuit voltage"}
@@ -489,7 +489,8 @@ def render_toml(eds: DriveEds, choices: dict[str, Choice], *, node: int = 1,
         if has_std:
             lines += _wrap(f"Its process data are the standard CiA 402 ones ("
                            f"{', '.join(has_std)}): a torque demand to the drive's own "
-                           "current loop and a current magnitude.", "# !! ")
+                           "current loop" + (" and a current magnitude" if eds.has(0x6078)
+                                             else "") + ".", "# !! ")
         lines += [
             "# !! The laws need the stator current vector in a fixed frame (i_sa, i_sb) and the",
             "# !! applied voltage (u_sa, u_sb) every period, and a drive that takes current or",

@@ -250,3 +250,12 @@ def test_latin1_eds_is_read(tmp_path):
     path.write_bytes(path.read_bytes().replace(b"Field speed", "Feldgeschw. ÄÖ".encode("cp1252")))
     eds = newdrive.read_eds(path)
     assert eds.objects[(0x3103, 0)].name == "Feldgeschw. ÄÖ"
+
+
+def test_eds_without_cia402_objects_is_told(tmp_path):
+    objects = {k: v for k, v in BASE.items() if k not in ("6040", "6060")}
+    eds = newdrive.read_eds(write_eds(tmp_path / "io.eds", objects, product="IO module"))
+    text = newdrive.render_toml(eds, newdrive.choose(eds))
+    header = " ".join(line.lstrip("#! ") for line in text[:text.index("[drive]")].splitlines())
+    assert "has no 0x6040 controlword, 0x6060 modes of operation" in header
+    assert tomllib.loads(text)["signals"] == {"statusword": "TPDO1.statusword"}
