@@ -616,6 +616,9 @@ def build_parser() -> argparse.ArgumentParser:
     pp.add_argument("file", metavar="FILE")
     pp.add_argument("-o", "--output", metavar="PNG", help="output file (default FILE's stem.png)")
     pp.set_defaults(func=cmd_profile_plot)
+    from gateway import newdrive  # `profile new-drive`: a drive-profile skeleton from an EDS
+
+    newdrive.add_action(psub)
     p.set_defaults(func=lambda a: _usage(p))
     return parser
 

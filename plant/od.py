@@ -4,9 +4,10 @@ The dictionary is ``dbc/drive.eds`` (loaded with ``canopen.import_od``). :class:
 holds the present value of every sub-object as a Python value (int, float, str; PDO signal
 objects as their raw integers) and checks SDO writes: access type, length, NMT state
 (parameters and PDO configuration only in PRE-OPERATIONAL), value range from the EDS
-LowLimit/HighLimit and the object-specific rules of CiA 301 (PDO COB-ID/mapping
-procedure) and of the emulator (consistent motor and drive parameters). Writes that
-break a rule raise :class:`canopen.SdoAbortedError` with the standard abort code.
+LowLimit/HighLimit (REAL32 parameters: :data:`REAL32_LIMITS`) and the object-specific rules
+of CiA 301 (PDO COB-ID/mapping procedure) and of the emulator (consistent motor and drive
+parameters). Writes that break a rule raise :class:`canopen.SdoAbortedError` with the
+standard abort code.
 
 REAL32 parameters keep the exact value given to :class:`plant.device.DriveDevice` until an
 SDO write replaces them with a 32-bit float, so a default emulator equals the pure model
@@ -56,6 +57,16 @@ ACCOUNT_CLEAR = 0x2301
 MOTOR_SUBS = ("J", "R_s", "R_r", "L_s", "L_r", "M")
 DRIVE_SUBS = ("u_dc", "i_trip", "current_loop_bw", "i_offset_a", "i_offset_b", "i_gain_error",
               "i_noise_rms", "f_pwm")
+#: Ranges of the REAL32 parameters. EDS readers take integer LowLimit/HighLimit only
+#: (objdictgen refuses "1e-05", python-canopen skips it), so ``tools/gen_eds.py`` writes the
+#: integral bounds from here into the EDS and lists every range in its [Comments].
+REAL32_LIMITS: dict[Key, tuple[float, float]] = {
+    (MOTOR, 1): (1e-05, 10.0), (MOTOR, 2): (0.001, 100.0), (MOTOR, 3): (0.001, 100.0),
+    (MOTOR, 4): (0.0001, 10.0), (MOTOR, 5): (0.0001, 10.0), (MOTOR, 6): (0.0001, 10.0),
+    (DRIVE, 1): (10.0, 1300.0), (DRIVE, 2): (0.1, 1000.0), (DRIVE, 3): (10.0, 1e6),
+    (DRIVE, 4): (-5.0, 5.0), (DRIVE, 5): (-5.0, 5.0), (DRIVE, 6): (-0.5, 0.5),
+    (DRIVE, 7): (0.0, 5.0),
+}
 #: Written only in PRE-OPERATIONAL (emulator parameters and communication setup).
 PREOP_ONLY = frozenset({0x1005, 0x1006, 0x1014, 0x1019, MOTOR, DRIVE, MODEL, RPDO_APPLY, SEED,
                         0x6060, *range(0x1400, 0x1403), *range(0x1600, 0x1603),
@@ -123,7 +134,7 @@ class ObjectStore:
         self.node_id = node_id
         self.od = load_od(node_id)
         self.vars: dict[Key, ODVariable] = dict(iter_vars(self.od))
-        self.limits = _eds_limits()
+        self.limits = {**_eds_limits(), **REAL32_LIMITS}
         self.defaults: dict[Key, Any] = {}
         for key, var in self.vars.items():
             value = var.default

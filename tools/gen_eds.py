@@ -6,6 +6,11 @@ the DBC signal (bits, signedness) and their ParameterName from the signal name; 
 default PDO mappings are the DBC messages (``RPDO2_AB`` is the alternative of RPDO2 and
 is not a default). Parameter defaults are those of :mod:`dbc.motor` and
 :mod:`plant.params`. This is a development tool, not part of the installed packages.
+
+The text keeps to CiA 306 so that other EDS readers load it (``tests/test_eds.py``: python-
+canopen, objdictgen, eds-utils, and a lint): nothing before [FileInfo], only CiA 306 keys
+(descriptions and units go to [Comments]), no '=' inside a value, limits as integers (the
+REAL32 ranges live in :data:`plant.od.REAL32_LIMITS`; only their integral bounds are written).
 """
 
 from __future__ import annotations
@@ -65,6 +70,22 @@ def _f(x: float) -> str:
     return repr(float(x))
 
 
+def _real32_limits(objs: list[Obj]) -> None:
+    """LowLimit/HighLimit of the REAL32 parameters from :data:`plant.od.REAL32_LIMITS`.
+
+    Only integral bounds go into the EDS, written as integers: objdictgen refuses a
+    non-integer limit and python-canopen parses limits with ``int(x, 0)``. Every range is
+    listed in [Comments] (see :func:`_comments`)."""
+    from plant.od import REAL32_LIMITS
+
+    for o in objs:
+        for sub, v in o.subs.items():
+            rng = REAL32_LIMITS.get((o.index, sub))
+            if v.dtype != REAL32 or rng is None:
+                continue
+            v.low, v.high = (str(int(x)) if float(x).is_integer() else None for x in rng)
+
+
 def _objects() -> list[Obj]:
     from dbc.motor import MotorParams
     from plant.params import DriveParams
@@ -98,9 +119,9 @@ def _objects() -> list[Obj]:
     rec(0x1016, "Consumer heartbeat time", ARRAY, {
         0: Var("Highest sub-index supported", UNSIGNED8, "ro", "1"),
         1: Var("Consumer heartbeat time 1", UNSIGNED32, "rw", "0",
-               desc="bits 16-23 node id, bits 0-15 time in ms (0 = off)"),
+               desc="bits 16-23 node id, bits 0-15 time in ms (0: off)"),
     })
-    var(0x1017, "Producer heartbeat time", UNSIGNED16, "rw", "100", desc="ms (0 = off)")
+    var(0x1017, "Producer heartbeat time", UNSIGNED16, "rw", "100", desc="ms (0: off)")
     rec(0x1018, "Identity object", RECORD, {
         0: Var("Highest sub-index supported", UNSIGNED8, "ro", "4"),
         1: Var("Vendor-ID", UNSIGNED32, "ro", "0x00000000"),
@@ -109,7 +130,7 @@ def _objects() -> list[Obj]:
         4: Var("Serial number", UNSIGNED32, "ro", "0x00000001"),
     })
     var(0x1019, "Synchronous counter overflow value", UNSIGNED8, "rw", "0", high="240",
-        desc="0 = SYNC without counter, else 2..240")
+        desc="0: SYNC without counter, else 2..240")
 
     for msg, n in RPDOS.items():
         cob = messages[msg].frame_id - 1
@@ -119,7 +140,7 @@ def _objects() -> list[Obj]:
             2: Var("Transmission type", UNSIGNED8, "rw", "1",
                    desc="0..240 synchronous; applied per 0x2203"),
             5: Var("Event timer", UNSIGNED16, "rw", "0",
-                   desc="ms; RPDO deadline monitoring (0 = off), EMCY 0x8250"),
+                   desc="ms; RPDO deadline monitoring (0: off), EMCY 0x8250"),
         })
     for msg, n in TPDOS.items():
         cob = messages[msg].frame_id - 1
@@ -127,7 +148,7 @@ def _objects() -> list[Obj]:
             0: Var("Highest sub-index supported", UNSIGNED8, "ro", "6"),
             1: Var("COB-ID used by TPDO", UNSIGNED32, "rw", f"$NODEID+0x{0x40000000 | cob:X}"),
             2: Var("Transmission type", UNSIGNED8, "rw", "1", low="1", high="240",
-                   desc="n = every n-th SYNC"),
+                   desc="n: every n-th SYNC"),
             3: Var("Inhibit time", UNSIGNED16, "rw", "0", desc="100 us (unused)"),
             5: Var("Event timer", UNSIGNED16, "rw", "0", desc="ms (unused, synchronous only)"),
             6: Var("SYNC start value", UNSIGNED8, "rw", "0"),
@@ -160,27 +181,27 @@ def _objects() -> list[Obj]:
     # ---- emulator parameters (writable in PRE-OPERATIONAL only) ----
     rec(0x2200, "Motor parameters", RECORD, {
         0: Var("Highest sub-index supported", UNSIGNED8, "ro", "6"),
-        1: Var("J", REAL32, "rw", _f(m.J), low="1e-05", high="10", desc="kg.m^2"),
-        2: Var("R_s", REAL32, "rw", _f(m.R_s), low="0.001", high="100", desc="Ohm"),
-        3: Var("R_r", REAL32, "rw", _f(m.R_r), low="0.001", high="100", desc="Ohm"),
-        4: Var("L_s", REAL32, "rw", _f(m.L_s), low="0.0001", high="10", desc="H"),
-        5: Var("L_r", REAL32, "rw", _f(m.L_r), low="0.0001", high="10", desc="H"),
-        6: Var("M", REAL32, "rw", _f(m.M), low="0.0001", high="10", desc="H, M^2 < L_s*L_r"),
+        1: Var("J", REAL32, "rw", _f(m.J), desc="kg.m^2"),
+        2: Var("R_s", REAL32, "rw", _f(m.R_s), desc="Ohm"),
+        3: Var("R_r", REAL32, "rw", _f(m.R_r), desc="Ohm"),
+        4: Var("L_s", REAL32, "rw", _f(m.L_s), desc="H"),
+        5: Var("L_r", REAL32, "rw", _f(m.L_r), desc="H"),
+        6: Var("M", REAL32, "rw", _f(m.M), desc="H, M^2 < L_s*L_r"),
     })
     rec(0x2201, "Drive parameters", RECORD, {
         0: Var("Highest sub-index supported", UNSIGNED8, "ro", "8"),
-        1: Var("u_dc", REAL32, "rw", _f(d.u_dc), low="10", high="1300", desc="V"),
-        2: Var("i_trip", REAL32, "rw", _f(d.i_trip), low="0.1", high="1000",
+        1: Var("u_dc", REAL32, "rw", _f(d.u_dc), desc="V"),
+        2: Var("i_trip", REAL32, "rw", _f(d.i_trip),
                desc="A, over-current trip of |i_s|, EMCY 0x2310"),
-        3: Var("current_loop_bw", REAL32, "rw", _f(d.current_loop_bw), low="10",
-               high="1000000", desc="rad/s, below pi*f_pwm"),
-        4: Var("i_offset_a", REAL32, "rw", _f(d.i_offset_ab.real), low="-5", high="5",
+        3: Var("current_loop_bw", REAL32, "rw", _f(d.current_loop_bw),
+               desc="rad/s, below pi*f_pwm"),
+        4: Var("i_offset_a", REAL32, "rw", _f(d.i_offset_ab.real),
                desc="A, current-sensor offset"),
-        5: Var("i_offset_b", REAL32, "rw", _f(d.i_offset_ab.imag), low="-5", high="5",
+        5: Var("i_offset_b", REAL32, "rw", _f(d.i_offset_ab.imag),
                desc="A, current-sensor offset"),
-        6: Var("i_gain_error", REAL32, "rw", _f(d.i_gain_error), low="-0.5", high="0.5",
+        6: Var("i_gain_error", REAL32, "rw", _f(d.i_gain_error),
                desc="relative current-sensor gain error"),
-        7: Var("i_noise_rms", REAL32, "rw", _f(d.i_noise_rms), low="0", high="5",
+        7: Var("i_noise_rms", REAL32, "rw", _f(d.i_noise_rms),
                desc="A rms per axis"),
         8: Var("f_pwm", UNSIGNED32, "rw", str(round(d.f_pwm)), low="1000", high="100000",
                desc="Hz, internal (PWM/current-loop) rate; 0x1006 must be a multiple of 1/f_pwm"),
@@ -209,6 +230,7 @@ def _objects() -> list[Obj]:
         desc="mV")
     var(0x6502, "Supported drive modes", UNSIGNED32, "ro", "0x00030000",
         desc="bit 16: -1 current vector, bit 17: -2 voltage vector")
+    _real32_limits(objs)
     return sorted(objs, key=lambda o: o.index)
 
 
@@ -222,48 +244,92 @@ def _var_lines(v: Var, otype: int = VAR) -> list[str]:
     if v.high is not None:
         lines.append(f"HighLimit={v.high}")
     lines.append(f"PDOMapping={int(v.pdo)}")
-    if v.desc:
-        lines.append(f"Description={v.desc}")
     return lines
 
 
+def _comments(objs: list[Obj]) -> list[str]:
+    """The [Comments] lines: provenance, then the unit or meaning of objects and the ranges of
+    the REAL32 parameters (CiA 306 has no per-object description key)."""
+    from plant.od import REAL32_LIMITS
+
+    lines = ["Generated by python tools/gen_eds.py from tools/gen_eds.py and dbc/drive.dbc;"
+             " do not edit by hand.",
+             "PDO signal objects 2001h..2123h hold raw integers; scalings in dbc/drive.dbc."]
+    for o in objs:
+        items = [(0, o.var)] if o.var is not None else list(o.subs.items())
+        for sub, v in items:
+            assert v is not None
+            notes = [v.desc] if v.desc else []
+            rng = REAL32_LIMITS.get((o.index, sub))
+            if rng is not None:
+                notes.append(f"range {rng[0]:g}..{rng[1]:g}")
+            if notes:
+                # not "0x..." first: objdictgen reads such a value as a number
+                where = f"{o.index:04X}h" + (f" sub {sub}" if o.var is None else "")
+                lines.append(f"{where} {v.name}: {'; '.join(notes)}")
+    return lines
+
+
+#: [FileInfo] dates (CiA 306: hh:mm(AM|PM), mm-dd-yyyy). Bump FileRevision and the
+#: modification date when the generated dictionary changes.
+FILE_VERSION, FILE_REVISION = 1, 1
+CREATED = ("10:00AM", "11-01-2026")
+MODIFIED = ("10:00AM", "11-23-2026")
+
+
 def render() -> str:
-    """The EDS text."""
+    """The EDS text (CiA 306: no text before [FileInfo], only CiA 306 keys, no '=' in values,
+    sections separated by one empty line)."""
     objs = _objects()
-    out = [
-        "; Generated by `python tools/gen_eds.py` from tools/gen_eds.py and dbc/drive.dbc.",
-        "; Do not edit by hand. Scalings of the PDO signal objects: dbc/drive.dbc.",
-        "[FileInfo]", "FileName=drive.eds", "FileVersion=1", "FileRevision=0", "EDSVersion=4.0",
-        "Description=can-drive-hil CiA 402 drive emulator (induction motor)",
-        "CreatedBy=can-drive-hil", "",
-        "[DeviceInfo]", "VendorName=can-drive-hil", "VendorNumber=0x00000000",
-        "ProductName=can-drive-hil emulator", "ProductNumber=0x00000402",
-        "RevisionNumber=0x00010000", "OrderCode=", "BaudRate_10=1", "BaudRate_20=1",
-        "BaudRate_50=1", "BaudRate_125=1", "BaudRate_250=1", "BaudRate_500=1",
-        "BaudRate_800=1", "BaudRate_1000=1", "SimpleBootUpMaster=0", "SimpleBootUpSlave=1",
-        "Granularity=8", "DynamicChannelsSupported=0", "GroupMessaging=0",
-        "NrOfRXPDO=3", "NrOfTXPDO=3", "LSS_Supported=0", "",
-        "[DummyUsage]", *(f"Dummy000{k}=0" for k in range(1, 8)), "",
-    ]
     groups = {
         "MandatoryObjects": [o for o in objs if o.index in (0x1000, 0x1001, 0x1018)],
         "OptionalObjects": [o for o in objs if o.index < 0x2000 or o.index >= 0x6000
                             if o.index not in (0x1000, 0x1001, 0x1018)],
         "ManufacturerObjects": [o for o in objs if 0x2000 <= o.index < 0x6000],
     }
+    nr_rx = sum(1 for o in objs if 0x1400 <= o.index < 0x1600)
+    nr_tx = sum(1 for o in objs if 0x1800 <= o.index < 0x1A00)
+    sections: list[tuple[str, list[str]]] = [
+        ("FileInfo", [
+            "FileName=drive.eds", f"FileVersion={FILE_VERSION}", f"FileRevision={FILE_REVISION}",
+            "EDSVersion=4.0",
+            "Description=can-drive-hil CiA 402 drive emulator (induction motor)",
+            f"CreationTime={CREATED[0]}", f"CreationDate={CREATED[1]}",
+            "CreatedBy=can-drive-hil tools/gen_eds.py",
+            f"ModificationTime={MODIFIED[0]}", f"ModificationDate={MODIFIED[1]}",
+            "ModifiedBy=can-drive-hil tools/gen_eds.py"]),
+        ("DeviceInfo", [
+            "VendorName=can-drive-hil", "VendorNumber=0x00000000",
+            "ProductName=can-drive-hil emulator", "ProductNumber=0x00000402",
+            "RevisionNumber=0x00010000", "OrderCode=can-drive-hil-emulator",
+            *(f"BaudRate_{k}=1" for k in (10, 20, 50, 125, 250, 500, 800, 1000)),
+            "SimpleBootUpMaster=0", "SimpleBootUpSlave=1", "Granularity=8",
+            "DynamicChannelsSupported=0", "GroupMessaging=0", f"NrOfRXPDO={nr_rx}",
+            f"NrOfTXPDO={nr_tx}", "LSS_Supported=0"]),
+        ("DummyUsage", [f"Dummy000{k}=0" for k in range(1, 8)]),
+    ]
+    comments = _comments(objs)
+    sections.append(("Comments", [f"Lines={len(comments)}",
+                                  *(f"Line{k}={c}" for k, c in enumerate(comments, 1))]))
     for group, members in groups.items():
-        out += [f"[{group}]", f"SupportedObjects={len(members)}"]
-        out += [f"{k}=0x{o.index:04X}" for k, o in enumerate(members, 1)]
-        out.append("")
+        sections.append((group, [f"SupportedObjects={len(members)}",
+                                 *(f"{k}=0x{o.index:04X}" for k, o in enumerate(members, 1))]))
     for o in objs:
         if o.otype == VAR:
             assert o.var is not None
-            out += [f"[{o.index:04X}]", *_var_lines(o.var), ""]
+            sections.append((f"{o.index:04X}", _var_lines(o.var)))
             continue
-        out += [f"[{o.index:04X}]", f"ParameterName={o.name}", f"ObjectType=0x{o.otype:X}",
-                f"SubNumber={len(o.subs)}", ""]
+        sections.append((f"{o.index:04X}", [
+            f"ParameterName={o.name}", f"ObjectType=0x{o.otype:X}",
+            f"SubNumber={len(o.subs)}"]))
         for sub, v in o.subs.items():
-            out += [f"[{o.index:04X}sub{sub:X}]", *_var_lines(v), ""]
+            sections.append((f"{o.index:04X}sub{sub:X}", _var_lines(v)))
+    out: list[str] = []
+    for name, lines in sections:
+        for line in lines:  # eds-utils splits each line at every '='
+            if line.count("=") != 1:
+                raise ValueError(f"[{name}] {line!r}: a value must not contain '='")
+        out += [f"[{name}]", *lines, ""]
     return "\n".join(out)
 
 
