@@ -50,6 +50,7 @@ def test_foreign_drive_runs_the_quick_profile_like_the_emulator(foreign, tmp_pat
     rc, s = _run(channel, profile, tmp_path / "foreign")
     assert rc == 0, s["run"]
     assert s["run"]["cycles"] == 500 and s["run"]["missed_cycles"] == 0
+    assert s["run"]["tpdo_events"] == {}  # reversed order, no echo: every TPDO was used
     # no 0x1019, 0x1007, 0x1016 on this drive: not written, and said so
     notes = " ".join(s["configuration_notes"])
     assert "0x1019" in notes and "0x1007" in notes and "0x1016" in notes
