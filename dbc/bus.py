@@ -93,7 +93,14 @@ def open_bus(cfg: BusConfig, receive_own_messages: bool = True) -> can.BusABC:
     if receive_own_messages:
         kwargs["receive_own_messages"] = True
     try:
-        return can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
+        try:
+            return can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
+        except (can.CanInterfaceNotImplementedError, can.CanInitializationError, TypeError):
+            if not kwargs.pop("receive_own_messages", False):
+                raise
+            # an interface without receive_own_messages: open it without (the gateway then
+            # opens its cycles when it sends SYNC, and logs only what it receives)
+            return can.Bus(interface=cfg.interface, channel=cfg.channel, **kwargs)
     except can.CanInterfaceNotImplementedError as exc:
         raise UserError(
             f"CAN interface {cfg.interface!r} is not available: {exc}. Check the name "

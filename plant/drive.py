@@ -81,20 +81,18 @@ import math
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import Literal
 
+from dbc.modes import SetpointFrame
 from dbc.motor import MotorParams
 from plant.motor import coeffs, rk4_step_current_fed, rk4_step_full
 from plant.params import DriveParams
-
-SetpointFrame = Literal["dq", "ab"]
 
 
 @dataclass(frozen=True, slots=True)
 class Setpoints:
     """Setpoints of one interval (docs/ARCHITECTURE.md).
 
-    frame: "dq" (turned by the drive) or "ab" (held).
+    frame: :class:`SetpointFrame` — DQ (turned by the drive) or AB (held).
     i_s_ref: stator-current setpoint in that frame, A (d + jq or a + jb).
     u_s_ref: stator-voltage setpoint in that frame, V (feedforward in ``current-loop``,
         the applied voltage in ``voltage``, unused in ``ideal``).
@@ -102,15 +100,17 @@ class Setpoints:
         (both ignored for "ab").
     """
 
-    frame: SetpointFrame = "dq"
+    frame: SetpointFrame = SetpointFrame.DQ
     i_s_ref: complex = 0j
     u_s_ref: complex = 0j
     eps_0: float = 0.0
     w_0: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.frame not in ("dq", "ab"):
-            raise ValueError(f"Setpoints.frame = {self.frame!r}: use 'dq' or 'ab'")
+        try:
+            object.__setattr__(self, "frame", SetpointFrame(self.frame))
+        except ValueError:
+            raise ValueError(f"Setpoints.frame = {self.frame!r}: use 'dq' or 'ab'") from None
         for name in ("i_s_ref", "u_s_ref", "eps_0", "w_0"):
             if not cmath.isfinite(complex(getattr(self, name))):
                 raise ValueError(f"Setpoints.{name} = {getattr(self, name)!r} is not finite")
@@ -315,7 +315,7 @@ class Drive:
     def _frame(self, n: int) -> tuple[complex, complex, complex]:
         """(e^{jε} at the present step, e^{jω0·h}, e^{jω0·h/2}) for the active setpoints."""
         sp = self._sp
-        if sp.frame == "ab":
+        if sp.frame is SetpointFrame.AB:
             return 1 + 0j, 1 + 0j, 1 + 0j
         if self._n_app is None:
             self._n_app = self._n
@@ -334,7 +334,7 @@ class Drive:
         T_L = float(T_L)
         if self.motor_drift:
             self._drift((self._n + 0.5 * n) * self._h)
-        if self._sp.frame == "dq" and self._n_app is None:
+        if self._sp.frame is SetpointFrame.DQ and self._n_app is None:
             self._n_app = self._n
         if self.params.mode == "ideal":
             u_avg, limited = self._advance_ideal(n, T_L), False
@@ -365,7 +365,8 @@ class Drive:
         if self._enabled:
             rot, step, half = self._frame(n)
             i_ref = sp.i_s_ref
-            mean_i = i_ref * rot * (_mean_turning(sp.w_0 * n * h) if sp.frame == "dq" else 1.0)
+            turning = _mean_turning(sp.w_0 * n * h) if sp.frame is SetpointFrame.DQ else 1.0
+            mean_i = i_ref * rot * turning
             w, psi = self._w, self._psi
             i0 = i_ref * rot
             if self._exact_sensors and self.load is None:

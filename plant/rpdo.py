@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from dbc.modes import SetpointFrame
 from plant.drive import Measurement, Setpoints
 
 
@@ -18,12 +19,12 @@ def setpoints_from_rpdos(rpdo1: Mapping[str, float], rpdo2: Mapping[str, float])
     """
     if "i_sa_ref" in rpdo2 or "u_sa_ref" in rpdo2:
         return Setpoints(
-            frame="ab",
+            frame=SetpointFrame.AB,
             i_s_ref=complex(rpdo2.get("i_sa_ref", 0.0), rpdo2.get("i_sb_ref", 0.0)),
             u_s_ref=complex(rpdo2.get("u_sa_ref", 0.0), rpdo2.get("u_sb_ref", 0.0)),
         )
     return Setpoints(
-        frame="dq",
+        frame=SetpointFrame.DQ,
         i_s_ref=complex(rpdo2.get("i_sd_ref", 0.0), rpdo2.get("i_sq_ref", 0.0)),
         u_s_ref=complex(rpdo2.get("u_sd_ref", 0.0), rpdo2.get("u_sq_ref", 0.0)),
         eps_0=float(rpdo1.get("eps_0", 0.0)),

@@ -374,3 +374,32 @@ class ForeignDrive:
             else:
                 self.active[o] = raw * SCALE[o]
         self.rx = {}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python tests/foreign_drive.py CHANNEL NODE DIR``: write the drive's files into DIR,
+    run the drive on SocketCAN CHANNEL, print one ready line, stop on SIGTERM/SIGINT."""
+    import signal
+    import sys
+
+    channel, node, directory = (argv if argv is not None else sys.argv[1:])[:3]
+    write_files(Path(directory), int(node))
+    bus = can.Bus(interface="socketcan", channel=channel)
+    drive = ForeignDrive(bus, int(node), Path(directory) / "foreign.eds")
+    stop = threading.Event()
+    for s in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(s, lambda *_: stop.set())
+    drive.start()
+    print(f"foreign drive: node {node} ready on {channel}", flush=True)
+    try:
+        while not stop.wait(0.2):
+            pass
+    finally:
+        drive.stop()
+        bus.shutdown()
+    print(f"foreign drive: stopped after {drive.cycles} cycles", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

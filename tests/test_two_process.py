@@ -309,3 +309,28 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
     assert t["sync_jitter"]["median"] < 0.001
     assert 0 < t["sync_to_tpdo"]["median"] < 0.010  # the drive answers within the cycle
     assert 0 < t["reaction"]["median"] < 0.010
+
+
+def test_foreign_drive_runs_from_its_profile_over_vcan(vcan_channel, tmp_path):
+    """A drive that shares nothing with the emulator but the standard (tests/foreign_drive.py)
+    in its own process at node 127, described by a profile file alone."""
+    import sys
+
+    ch = vcan_channel
+    drive = Proc.start([sys.executable, str(Path(__file__).with_name("foreign_drive.py")), ch,
+                        "127", str(tmp_path)], tmp_path, "foreign")
+    try:
+        wait_for(lambda: "ready" in drive.stdout(), 60, "the foreign drive's ready line", drive)
+        text = (tmp_path / "foreign.toml").read_text().replace("gateway_node = 127",
+                                                                "gateway_node = 100")
+        (tmp_path / "foreign.toml").write_text(text)
+        gw = run([*gateway_cmd(), "run", "-i", "socketcan", "-c", ch, "--drive",
+                  str(tmp_path / "foreign.toml"), "--reference", "profiles/quick.toml",
+                  "--out", str(tmp_path / "run")], tmp_path, "gateway", 600)
+        assert gw.popen.returncode == 0, gw.describe()
+    finally:
+        drive.signal(signal.SIGTERM)
+        drive.kill()
+    s = summary(tmp_path / "run")
+    assert s["run"]["cycles"] == 500 and s["run"]["stop"] == "END_OF_PROFILE"
+    assert abs(s["speed_error"]["final"]) < 0.1 and s["shutdown"]["safe"]
