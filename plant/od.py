@@ -47,7 +47,8 @@ ABORT_STATE = 0x08000022
 
 # ---- objects ------------------------------------------------------------------------------
 MOTOR = 0x2200  #: REAL32 J, R_s, R_r, L_s, L_r, M (sub-indices 1..6)
-DRIVE = 0x2201  #: u_dc, i_trip, current_loop_bw, i_offset_a/b, i_gain_error, i_noise_rms, f_pwm
+DRIVE = 0x2201  #: u_dc, i_trip, current_loop_bw, i_offset_a/b, i_gain_error, i_noise_rms, f_pwm,
+#: w_max
 MODEL = 0x2202  #: 0 ideal current source, 1 PI current loop
 RPDO_APPLY = 0x2203  #: 0 at the next SYNC (delay 1), 1 on receipt (delay 0)
 SEED = 0x2204
@@ -55,7 +56,7 @@ ACCOUNT = 0x2300
 ACCOUNT_CLEAR = 0x2301
 MOTOR_SUBS = ("J", "R_s", "R_r", "L_s", "L_r", "M")
 DRIVE_SUBS = ("u_dc", "i_trip", "current_loop_bw", "i_offset_a", "i_offset_b", "i_gain_error",
-              "i_noise_rms", "f_pwm")
+              "i_noise_rms", "f_pwm", "w_max")
 #: Written only in PRE-OPERATIONAL (emulator parameters and communication setup).
 PREOP_ONLY = frozenset({0x1005, 0x1006, 0x1014, 0x1019, MOTOR, DRIVE, MODEL, RPDO_APPLY, SEED,
                         0x6060, *range(0x1400, 0x1403), *range(0x1600, 0x1603),
