@@ -68,6 +68,20 @@ RPDO_MAP = (0x1600, 0x1601, 0x1602)
 TPDO_COMM = (0x1800, 0x1801, 0x1802)
 TPDO_MAP = (0x1A00, 0x1A01, 0x1A02)
 COB_INVALID = 0x80000000
+#: CiA 301 restricted COB-IDs (inclusive ranges): NMT and reserved 0x000..0x07F, 0x101..0x180,
+#: the default SDO 0x581..0x5FF and 0x601..0x67F, reserved 0x6E0..0x6FF, NMT error control
+#: 0x701..0x77F and reserved (LSS) 0x780..0x7FF. They hold the node's own NMT, SDO and
+#: heartbeat identifiers; the defaults of SYNC (0x080) and EMCY (0x080 + n) lie outside.
+RESTRICTED_COB_IDS = ((0x000, 0x07F), (0x101, 0x180), (0x581, 0x5FF), (0x601, 0x67F),
+                      (0x6E0, 0x6FF), (0x701, 0x77F), (0x780, 0x7FF))
+#: The COB-ID objects of the device (index, subindex): SYNC, EMCY, RPDOs, TPDOs.
+COB_ID_OBJECTS = ((0x1005, 0), (0x1014, 0), *((i, 1) for i in (*range(0x1400, 0x1403),
+                                                                *range(0x1800, 0x1803))))
+
+
+def restricted_cob_id(cob_id: int) -> bool:
+    """The 11-bit ``cob_id`` is one CiA 301 restricts (see :data:`RESTRICTED_COB_IDS`)."""
+    return any(lo <= cob_id <= hi for lo, hi in RESTRICTED_COB_IDS)
 
 
 def load_od(node_id: int) -> canopen.ObjectDictionary:
@@ -193,7 +207,9 @@ class ObjectStore:
         if (index in (0x1005, 0x1014) and value & 0x7FFFF800) or (index == 0x1019
                                                                     and value == 1):
             raise SdoAbortedError(ABORT_RANGE)  # 29-bit ids, SYNC production, counter 1
-        elif index == 0x1016 and subindex == 1:
+        if (index, subindex) in COB_ID_OBJECTS:
+            self._check_cob_id(index, subindex, value)
+        if index == 0x1016 and subindex == 1:
             node = (value >> 16) & 0xFF
             if value >> 24 or (value & 0xFFFF and not 1 <= node <= 127):
                 raise SdoAbortedError(ABORT_RANGE)
@@ -219,6 +235,26 @@ class ObjectStore:
             self._check_pdo_comm(index, subindex, value)
         elif index in RPDO_MAP or index in TPDO_MAP:
             self._check_pdo_map(index, subindex, value)
+
+    def _valid_cob_id(self, key: Key, value: int) -> int | None:
+        """The 11-bit id a COB-ID object with ``value`` uses, None if it is not valid
+        (bit 31; SYNC 0x1005 has no such bit: its consumer always listens)."""
+        if key[0] != 0x1005 and value & COB_INVALID:
+            return None
+        return value & 0x7FF
+
+    def _check_cob_id(self, index: int, subindex: int, value: int) -> None:
+        """CiA 301 restricted COB-IDs (0x06090030), whether valid or not, and, for a valid
+        one, a collision with another of the node's own valid COB-IDs (SYNC, EMCY, PDOs)."""
+        cob = value & 0x7FF
+        if restricted_cob_id(cob):
+            raise SdoAbortedError(ABORT_RANGE)
+        key = (index, subindex)
+        if self._valid_cob_id(key, value) is None:
+            return
+        for other in COB_ID_OBJECTS:
+            if other != key and self._valid_cob_id(other, self.values[other]) == cob:
+                raise SdoAbortedError(ABORT_RANGE)
 
     def _check_pdo_comm(self, index: int, subindex: int, value: int) -> None:
         if subindex == 1:
