@@ -15,10 +15,10 @@ a plain upload); a segmented download is bounded by the size its initiate declar
 without one by the object's size (a numeric object's length, else
 :data:`MAX_SEGMENTED`), and aborted with 0x06070012 at the initiate (declared size beyond
 a numeric object's) or at the first segment beyond the bound, so a download that never
-ends cannot grow a buffer; a download segment with no download under way is aborted with
-0x05040001. An exception other than an abort in the device's read/write hooks is answered
-with the general abort 0x08000000 and then re-raised to the device (an internal error),
-not swallowed by python-canopen.
+ends cannot grow a buffer; a download or upload segment with no such transfer under way is
+aborted with 0x05040001. An exception other than an abort in the device's read/write
+hooks is answered with the general abort 0x08000000 and then re-raised to the device (an
+internal error), not swallowed by python-canopen.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ ABORT_TOO_LONG = 0x06070012  #: data type does not match, length of service para
 ABORT_GENERAL = 0x08000000  #: general error
 #: Bound of a segmented download without a declared size to a non-numeric object, bytes.
 MAX_SEGMENTED = 1024
-_CCS_DOWNLOAD_SEGMENT, _CCS_DOWNLOAD, _CCS_UPLOAD, _CCS_ABORT = 0, 1, 2, 4
+_CCS_DOWNLOAD_SEGMENT, _CCS_DOWNLOAD, _CCS_UPLOAD, _CCS_UPLOAD_SEGMENT, _CCS_ABORT = 0, 1, 2, 3, 4
 _CCS_BLOCK = (5, 6)  #: block upload, block download
 
 
@@ -111,6 +111,7 @@ class SdoServer:
         self._node.sdo.network = sender  # type: ignore[assignment]
         #: the segmented download under way: [bound in bytes, bytes received], or None
         self._download: list[int] | None = None
+        self._upload = False  #: a segmented upload under way
         #: an exception a hook raised during the present request (re-raised after it)
         self.failure: Exception | None = None
 
@@ -119,7 +120,13 @@ class SdoServer:
         read/write hook raised (other than an SDO abort), after the abort went out."""
         if self._refused(data):
             return
+        sdo = self._node.sdo
+        ccs = data[0] >> 5
+        if ccs == _CCS_UPLOAD:
+            sdo._buffer = None
         self._node.sdo.on_request(can_id, data, 0.0)
+        if ccs != _CCS_UPLOAD_SEGMENT:
+            self._upload = ccs == _CCS_UPLOAD and sdo._buffer is not None
         if self.failure is not None:
             exc, self.failure = self.failure, None
             raise exc
@@ -128,10 +135,11 @@ class SdoServer:
         """Abort the transfer of the request ``data`` with ``code`` (its index/subindex,
         or the download's under way for a segment)."""
         sdo = self._node.sdo
-        if data[0] >> 5 not in (_CCS_DOWNLOAD_SEGMENT, 3):
+        if data[0] >> 5 not in (_CCS_DOWNLOAD_SEGMENT, _CCS_UPLOAD_SEGMENT):
             sdo._index, sdo._subindex = struct.unpack_from("<HB", data, 1)
         sdo._buffer = None
         self._download = None
+        self._upload = False
         sdo.abort(code)
 
     def _refused(self, data: bytes) -> bool:
@@ -171,6 +179,10 @@ class SdoServer:
             d[1] += n
             if data[0] & 0x01:  # last segment
                 self._download = None
+        elif ccs == _CCS_UPLOAD_SEGMENT:
+            if not self._upload:
+                self._abort(data, ABORT_COMMAND)
+                return True
         elif ccs in (_CCS_UPLOAD, _CCS_ABORT):
             self._download = None
         return False
