@@ -27,14 +27,20 @@ This module composes them and runs the cycle.
   0x1003 entry, 0x603F and the CiA 402 Fault state (power stage off; the model lets the
   currents decay): master heartbeat lost (0x1016, wall clock) 0x8130; RPDO deadline
   (0x14xx sub 5 event timer, counted in SYNC periods of simulated time) 0x8250; RPDO of
-  wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310. The DC-link
-  voltage limit sets statusword bit 11 while it clips (no fault). Fault reset (rising
-  edge of controlword bit 7) sends EMCY 0x0000.
+  wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310; over-speed
+  (|ω| beyond w_max, 0x2201 sub 9, power stage on) 0x8400; a non-finite model state or
+  measurement 0x6100 (the model is put back at rest, so the device stays usable); any
+  handler exception (a bug) 0x1000. The DC-link voltage limit sets statusword bit 11
+  while it clips (no fault). Fault reset (rising edge of controlword bit 7) sends EMCY
+  0x0000. Setpoints never outlive a run: leaving Operation enabled, and entering it with
+  no RPDO data waiting, zeroes them (active and in the dictionary).
 
-Two threads: the receiver (``bus.recv``; every frame handled under one lock, malformed
-frames ignored, any handler exception counted, never fatal) and the timer (heartbeat
-producer and consumer, under the same lock). :meth:`DriveDevice.stop` joins both; the
-caller owns the bus.
+Two threads: the receiver (``bus.recv``; every frame handled under one lock by
+:meth:`DriveDevice._handle`, malformed frames ignored) and the timer (heartbeat producer
+and consumer, under the same lock). A handler exception in either is never silent: it is
+counted (``internal_errors``), logged with its traceback, and answered with EMCY 0x1000
+and Fault (power stage off); the device keeps running and answering SDO.
+:meth:`DriveDevice.stop` joins both threads; the caller owns the bus.
 """
 
 from __future__ import annotations
@@ -162,7 +168,8 @@ class DriveDevice:
 
     def account(self) -> dict[str, Any]:
         """cycles, sync_gaps, faults [(EMCY code, time.time()), the last 100], fault_count,
-        state (CiA 402), nmt, internal_errors (handler exceptions: always 0 unless a bug)."""
+        state (CiA 402), nmt, internal_errors (handler exceptions, each also an EMCY 0x1000
+        and a Fault: always 0 unless a bug)."""
         with self._lock:
             return {
                 "cycles": self._cycles_total,
