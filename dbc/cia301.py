@@ -86,10 +86,19 @@ class Emcy(IntEnum):
     gateway names."""
 
     NO_ERROR = 0x0000  #: error reset / no error
+    #: generic error: a handler of the emulator raised (a bug; the cause is not known, so
+    #: the code names no class)
+    INTERNAL = 0x1000
     OVERCURRENT = 0x2310  #: continuous over-current
+    #: device software, internal: the emulated motor model reached a non-finite state
+    #: (NaN/inf: the numerical model failed, no physical quantity to name)
+    MODEL_NON_FINITE = 0x6100
     HEARTBEAT = 0x8130  #: life guard / heartbeat error (the master's heartbeat lost)
     PDO_LENGTH = 0x8210  #: PDO not processed due to length error
     RPDO_TIMEOUT = 0x8250  #: RPDO timeout
+    #: CiA 402 (IEC 61800-7-201) 0x8400 velocity speed controller: over-speed |ω| > w_max.
+    #: 0x7310 (sensor: speed) would name a faulty speed sensor, not a speed too high.
+    OVERSPEED = 0x8400
 
     @property
     def text(self) -> str:
@@ -107,16 +116,20 @@ class Emcy(IntEnum):
     @property
     def error_register(self) -> int:
         """Bits of the error register 0x1001 this code sets: generic (bit 0) plus current
-        (bit 1) or communication (bit 4) by the code's class."""
-        return _ERROR_REGISTER.get(self >> 12, 0x01)
+        (bit 1), communication (bit 4, 0x81xx/0x82xx) or device profile specific (bit 5,
+        CiA 402's 0x84xx) by the code's class."""
+        return _ERROR_REGISTER.get(self >> 8, _ERROR_REGISTER.get(self >> 12, 0x01))
 
 
 _EMCY_TEXT = {
     Emcy.NO_ERROR: "error reset / no error",
+    Emcy.INTERNAL: "internal error of the drive (a handler failed)",
     Emcy.OVERCURRENT: "over-current",
+    Emcy.MODEL_NON_FINITE: "drive model state not finite (NaN/inf); model reset to rest",
     Emcy.HEARTBEAT: "heartbeat of the master lost",
     Emcy.PDO_LENGTH: "PDO of wrong length",
     Emcy.RPDO_TIMEOUT: "RPDO timeout",
+    Emcy.OVERSPEED: "over-speed (|w_m| beyond w_max)",
 }
-#: Error register 0x1001 bits per EMCY code class (first hex digit).
-_ERROR_REGISTER = {0x2: 0x03, 0x8: 0x11}
+#: Error register 0x1001 bits per EMCY code class (first hex digit, or the first two).
+_ERROR_REGISTER = {0x2: 0x03, 0x81: 0x11, 0x82: 0x11, 0x84: 0x21}

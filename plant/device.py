@@ -27,19 +27,27 @@ This module composes them and runs the cycle.
   0x1003 entry, 0x603F and the CiA 402 Fault state (power stage off; the model lets the
   currents decay): master heartbeat lost (0x1016, wall clock) 0x8130; RPDO deadline
   (0x14xx sub 5 event timer, counted in SYNC periods of simulated time) 0x8250; RPDO of
-  wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310. The DC-link
-  voltage limit sets statusword bit 11 while it clips (no fault). Fault reset (rising
-  edge of controlword bit 7) sends EMCY 0x0000.
+  wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310; over-speed
+  (|ω| beyond w_max, 0x2201 sub 9, power stage on) 0x8400; a non-finite model state or
+  measurement 0x6100 (the model is put back at rest, so the device stays usable); any
+  handler exception (a bug) 0x1000. The DC-link voltage limit sets statusword bit 11
+  while it clips (no fault). Fault reset (rising edge of controlword bit 7) sends EMCY
+  0x0000. Setpoints never outlive a run: leaving Operation enabled, and entering it with
+  no RPDO data waiting, zeroes them (active and in the dictionary).
 
-Two threads: the receiver (``bus.recv``; every frame handled under one lock, malformed
-frames ignored, any handler exception counted, never fatal) and the timer (heartbeat
-producer and consumer, under the same lock). :meth:`DriveDevice.stop` joins both; the
-caller owns the bus.
+Two threads: the receiver (``bus.recv``; every frame handled under one lock by
+:meth:`DriveDevice._handle`, malformed frames ignored) and the timer (heartbeat producer
+and consumer, under the same lock). A handler exception in either is never silent: it is
+counted (``internal_errors``), logged with its traceback, and answered with EMCY 0x1000
+and Fault (power stage off); the device keeps running and answering SDO.
+:meth:`DriveDevice.stop` joins both threads; the caller owns the bus.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import sys
 import threading
 import time
 from collections import deque
@@ -54,11 +62,11 @@ from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from plant import od as odm
 from plant.cia402 import PowerStateMachine, State
-from plant.drive import Drive, Measurement, Setpoints
+from plant.drive import Drive, Measurement, MotorState, Setpoints
 from plant.emcy import EmcyProducer
 from plant.nmt import NmtSlave
 from plant.params import DriveParams
-from plant.pdo import PdoRuntime, Rpdo
+from plant.pdo import SETPOINT_SIGNALS, PdoRuntime, Rpdo
 from plant.rpdo import setpoints_from_rpdos
 from plant.sdo import SdoHooks, SdoServer, Sender
 from plant.timing import sync_cycle
@@ -117,6 +125,8 @@ class DriveDevice:
         self._sm = PowerStateMachine()
         self._factor = {n: scaling(n)[0] for n in self._store.by_name}
         self._k = {n: self._store.by_name[n] for n in self._store.by_name}
+        self._setpoint_keys = tuple(k for n, k in self._k.items() if n in SETPOINT_SIGNALS)
+        self._logged: set[tuple[str, type]] = set()  # internal errors logged with traceback
         # account (cumulative since construction)
         self._cycles_total = 0
         self._sync_gaps = 0
@@ -162,7 +172,8 @@ class DriveDevice:
 
     def account(self) -> dict[str, Any]:
         """cycles, sync_gaps, faults [(EMCY code, time.time()), the last 100], fault_count,
-        state (CiA 402), nmt, internal_errors (handler exceptions: always 0 unless a bug)."""
+        state (CiA 402), nmt, internal_errors (handler exceptions, each also an EMCY 0x1000
+        and a Fault: always 0 unless a bug)."""
         with self._lock:
             return {
                 "cycles": self._cycles_total,
@@ -200,7 +211,8 @@ class DriveDevice:
             (odm.DRIVE, 4): float(complex(p.i_offset_ab).real),
             (odm.DRIVE, 5): float(complex(p.i_offset_ab).imag),
             (odm.DRIVE, 6): float(p.i_gain_error), (odm.DRIVE, 7): float(p.i_noise_rms),
-            (odm.DRIVE, 8): round(p.f_pwm), (odm.SEED, 0): p.seed & 0xFFFFFFFF,
+            (odm.DRIVE, 8): round(p.f_pwm), (odm.DRIVE, 9): float(p.w_max),
+            (odm.SEED, 0): p.seed & 0xFFFFFFFF,
             (0x6060, 0): p.mode.mode_of_operation,
             (0x6061, 0): p.mode.mode_of_operation,
             (odm.MODEL, 0): p.mode.emulator_model,
@@ -222,6 +234,7 @@ class DriveDevice:
             i_offset_ab=complex(v[(odm.DRIVE, 4)], v[(odm.DRIVE, 5)]),
             i_gain_error=v[(odm.DRIVE, 6)], i_noise_rms=v[(odm.DRIVE, 7)],
             f_pwm=self._params0.f_pwm if f_pwm == round(self._params0.f_pwm) else float(f_pwm),
+            w_max=v[(odm.DRIVE, 9)],
             seed=v[(odm.SEED, 0)])
         return motor, params
 
@@ -234,6 +247,7 @@ class DriveDevice:
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
         self._limit = False
+        self._off_since: float | None = None  # monotonic time the power stage went off
         self.emcy.reset()
         self._sm = PowerStateMachine()
 
@@ -294,7 +308,33 @@ class DriveDevice:
             self.emcy.clear()
         if after is not before:
             log.debug("node %d: %s -> %s", self.node_id, before.name, after.name)
+            was_on = self._drive.enabled
+            if self._sm.power and not was_on and self._off_since is not None:
+                self._rest(time.monotonic() - self._off_since)
             self._drive.enable(self._sm.power)
+            if was_on and not self._sm.power:
+                self._off_since = time.monotonic()
+                self._clear_setpoints()  # the run's setpoints end with it
+            elif self._sm.power and not self._sp_fresh:
+                self._clear_setpoints()  # a run starts from zero (data pending: latched next)
+
+    def _rest(self, idle: float) -> None:
+        """The model advances only on SYNC, but the real motor does not wait: after ``idle``
+        seconds with the power stage off, the stator currents are gone and the rotor flux has
+        decayed by e^{−α·idle}; the speed is kept (model (1) has no friction). The model
+        restarts from there at t = 0, like the gateway's new run."""
+        s, m = self._drive.state, self._drive.motor
+        decay = math.exp(-m.R_r / m.L_r * max(idle, 0.0))
+        self._drive.reset(MotorState(s.w_m, s.psi_r_ab * decay, 0j))
+
+    def _clear_setpoints(self) -> None:
+        """Zero setpoints, active and in the dictionary's setpoint objects (eps_0, w_0 and the
+        current/voltage references of either frame): a run never starts with the setpoints
+        of the one before; the frame comes with the next RPDO. T_L (the emulated load, not
+        a setpoint of the drive) is kept."""
+        for key in self._setpoint_keys:
+            self._values[key] = 0
+        self._drive.set_setpoints(Setpoints())
 
     def _fault(self, code: Emcy) -> None:
         """Safe reaction: EMCY, error register, 0x1003, 0x603F, Fault, power stage off."""
@@ -302,9 +342,39 @@ class DriveDevice:
         self._faults.append((code, time.time()))
         self._fault_count += 1
         self._sm.fault()
+        if self._drive.enabled:
+            self._off_since = time.monotonic()
         self._drive.enable(False)
-        self._drive.set_setpoints(Setpoints())  # re-enabling needs fresh setpoints
+        self._clear_setpoints()  # re-enabling needs fresh setpoints
+        self._sp_fresh = False
         self.emcy.error(code)
+
+    def _internal_error(self, where: str) -> None:
+        """A handler raised (a bug): counted, logged (with the traceback the first time for
+        this place and exception type), EMCY 0x1000 and Fault (power stage off); a model
+        left non-finite is put back at rest. Called from an ``except`` block."""
+        self._internal_errors += 1
+        exc = sys.exc_info()[1]
+        kind = (where.split(" ", 1)[0], type(exc))
+        if kind in self._logged:
+            log.error("node %d: %s failed again: %r", self.node_id, where, exc)
+        else:
+            self._logged.add(kind)
+            log.exception("node %d: %s failed", self.node_id, where)
+        try:
+            if not self._model_finite():
+                self._drive.reset(MotorState())
+            self._fault(Emcy.INTERNAL)
+        except Exception:  # the bus refuses the EMCY, …: the power stage is off regardless
+            self._sm.fault()
+            self._drive.enable(False)
+            log.exception("node %d: reaction to an internal error failed", self.node_id)
+
+    def _model_finite(self) -> bool:
+        s = self._drive.state
+        return (math.isfinite(s.w_m) and math.isfinite(s.psi_r_ab.real)
+                and math.isfinite(s.psi_r_ab.imag) and math.isfinite(s.i_s_ab.real)
+                and math.isfinite(s.i_s_ab.imag))
 
     # ---- PDOs and the cycle -----------------------------------------------------------------
     def _on_rpdo(self, r: Rpdo, data: bytes) -> None:
@@ -370,8 +440,15 @@ class DriveDevice:
         was_on = drive.enabled
         meas = drive.advance(self.pdo.period, self._T_L)
         self._cycles_total = m
-        if was_on and drive.tripped:
+        if not (self._model_finite() and _finite(meas)):
+            # the model failed numerically: Fault, and back at rest so the device stays usable
+            drive.reset(MotorState())
+            self._fault(Emcy.MODEL_NON_FINITE)
+            meas = _at_rest(drive.params.u_dc)
+        elif was_on and drive.tripped:
             self._fault(Emcy.OVERCURRENT)
+        elif was_on and abs(meas.w_m) > drive.params.w_max:
+            self._fault(Emcy.OVERSPEED)
         self._limit = meas.limit_active
         self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
         self.pdo.transmit(m)
@@ -410,12 +487,15 @@ class DriveDevice:
             with self._lock:
                 if stop.is_set():
                     break
-                try:
-                    self._dispatch(msg.arbitration_id, bytes(msg.data))
-                except Exception:
-                    self._internal_errors += 1
-                    log.exception("node %d: frame 0x%03X %s not handled", self.node_id,
-                                  msg.arbitration_id, bytes(msg.data).hex())
+                self._handle(msg.arbitration_id, bytes(msg.data))
+
+    def _handle(self, can_id: int, data: bytes) -> None:
+        """One received frame (the caller holds the lock); a handler exception is an
+        internal error (EMCY 0x1000, Fault), never silent."""
+        try:
+            self._dispatch(can_id, data)
+        except Exception:
+            self._internal_error(f"frame 0x{can_id:03X} {data.hex()}")
 
     def _timer_loop(self) -> None:
         stop = self._stop_event
@@ -428,11 +508,22 @@ class DriveDevice:
                 try:
                     wait = self._timers(now)
                 except Exception:
-                    self._internal_errors += 1
-                    log.exception("node %d: timer failed", self.node_id)
+                    self._internal_error("timer")
             self._wake.wait(max(wait, 0.0005))
             self._wake.clear()
 
     def _timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""
         return self.nmt.timers(now)
+
+
+def _finite(meas: Measurement) -> bool:
+    """Every number of a measurement is finite."""
+    return all(math.isfinite(x) for x in (
+        meas.i_s_ab.real, meas.i_s_ab.imag, meas.u_s_ab.real, meas.u_s_ab.imag, meas.w_m,
+        meas.psi_r_ab.real, meas.psi_r_ab.imag, meas.T_e))
+
+
+def _at_rest(u_dc: float) -> Measurement:
+    """The measurement of a model at rest (after a reset from a non-finite state)."""
+    return Measurement(0j, 0j, u_dc, 0.0, 0j, 0.0, False)

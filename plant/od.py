@@ -48,7 +48,8 @@ ABORT_STATE = 0x08000022
 
 # ---- objects ------------------------------------------------------------------------------
 MOTOR = 0x2200  #: REAL32 J, R_s, R_r, L_s, L_r, M (sub-indices 1..6)
-DRIVE = 0x2201  #: u_dc, i_trip, current_loop_bw, i_offset_a/b, i_gain_error, i_noise_rms, f_pwm
+DRIVE = 0x2201  #: u_dc, i_trip, current_loop_bw, i_offset_a/b, i_gain_error, i_noise_rms, f_pwm,
+#: w_max
 MODEL = 0x2202  #: 0 ideal current source, 1 PI current loop
 RPDO_APPLY = 0x2203  #: 0 at the next SYNC (delay 1), 1 on receipt (delay 0)
 SEED = 0x2204
@@ -56,7 +57,7 @@ ACCOUNT = 0x2300
 ACCOUNT_CLEAR = 0x2301
 MOTOR_SUBS = ("J", "R_s", "R_r", "L_s", "L_r", "M")
 DRIVE_SUBS = ("u_dc", "i_trip", "current_loop_bw", "i_offset_a", "i_offset_b", "i_gain_error",
-              "i_noise_rms", "f_pwm")
+              "i_noise_rms", "f_pwm", "w_max")
 #: Ranges of the REAL32 parameters. EDS readers take integer LowLimit/HighLimit only
 #: (objdictgen refuses "1e-05", python-canopen skips it), so ``tools/gen_eds.py`` writes the
 #: integral bounds from here into the EDS and lists every range in its [Comments].
@@ -65,7 +66,7 @@ REAL32_LIMITS: dict[Key, tuple[float, float]] = {
     (MOTOR, 4): (0.0001, 10.0), (MOTOR, 5): (0.0001, 10.0), (MOTOR, 6): (0.0001, 10.0),
     (DRIVE, 1): (10.0, 1300.0), (DRIVE, 2): (0.1, 1000.0), (DRIVE, 3): (10.0, 1e6),
     (DRIVE, 4): (-5.0, 5.0), (DRIVE, 5): (-5.0, 5.0), (DRIVE, 6): (-0.5, 0.5),
-    (DRIVE, 7): (0.0, 5.0),
+    (DRIVE, 7): (0.0, 5.0), (DRIVE, 9): (1.0, 10000.0),
 }
 #: Written only in PRE-OPERATIONAL (emulator parameters and communication setup).
 PREOP_ONLY = frozenset({0x1005, 0x1006, 0x1014, 0x1019, MOTOR, DRIVE, MODEL, RPDO_APPLY, SEED,
@@ -78,6 +79,20 @@ RPDO_MAP = (0x1600, 0x1601, 0x1602)
 TPDO_COMM = (0x1800, 0x1801, 0x1802)
 TPDO_MAP = (0x1A00, 0x1A01, 0x1A02)
 COB_INVALID = 0x80000000
+#: CiA 301 restricted COB-IDs (inclusive ranges): NMT and reserved 0x000..0x07F, 0x101..0x180,
+#: the default SDO 0x581..0x5FF and 0x601..0x67F, reserved 0x6E0..0x6FF, NMT error control
+#: 0x701..0x77F and reserved (LSS) 0x780..0x7FF. They hold the node's own NMT, SDO and
+#: heartbeat identifiers; the defaults of SYNC (0x080) and EMCY (0x080 + n) lie outside.
+RESTRICTED_COB_IDS = ((0x000, 0x07F), (0x101, 0x180), (0x581, 0x5FF), (0x601, 0x67F),
+                      (0x6E0, 0x6FF), (0x701, 0x77F), (0x780, 0x7FF))
+#: The COB-ID objects of the device (index, subindex): SYNC, EMCY, RPDOs, TPDOs.
+COB_ID_OBJECTS = ((0x1005, 0), (0x1014, 0), *((i, 1) for i in (*range(0x1400, 0x1403),
+                                                                *range(0x1800, 0x1803))))
+
+
+def restricted_cob_id(cob_id: int) -> bool:
+    """The 11-bit ``cob_id`` is one CiA 301 restricts (see :data:`RESTRICTED_COB_IDS`)."""
+    return any(lo <= cob_id <= hi for lo, hi in RESTRICTED_COB_IDS)
 
 
 def load_od(node_id: int) -> canopen.ObjectDictionary:
@@ -203,7 +218,9 @@ class ObjectStore:
         if (index in (0x1005, 0x1014) and value & 0x7FFFF800) or (index == 0x1019
                                                                     and value == 1):
             raise SdoAbortedError(ABORT_RANGE)  # 29-bit ids, SYNC production, counter 1
-        elif index == 0x1016 and subindex == 1:
+        if (index, subindex) in COB_ID_OBJECTS:
+            self._check_cob_id(index, subindex, value)
+        if index == 0x1016 and subindex == 1:
             node = (value >> 16) & 0xFF
             if value >> 24 or (value & 0xFFFF and not 1 <= node <= 127):
                 raise SdoAbortedError(ABORT_RANGE)
@@ -229,6 +246,26 @@ class ObjectStore:
             self._check_pdo_comm(index, subindex, value)
         elif index in RPDO_MAP or index in TPDO_MAP:
             self._check_pdo_map(index, subindex, value)
+
+    def _valid_cob_id(self, key: Key, value: int) -> int | None:
+        """The 11-bit id a COB-ID object with ``value`` uses, None if it is not valid
+        (bit 31; SYNC 0x1005 has no such bit: its consumer always listens)."""
+        if key[0] != 0x1005 and value & COB_INVALID:
+            return None
+        return value & 0x7FF
+
+    def _check_cob_id(self, index: int, subindex: int, value: int) -> None:
+        """CiA 301 restricted COB-IDs (0x06090030), whether valid or not, and, for a valid
+        one, a collision with another of the node's own valid COB-IDs (SYNC, EMCY, PDOs)."""
+        cob = value & 0x7FF
+        if restricted_cob_id(cob):
+            raise SdoAbortedError(ABORT_RANGE)
+        key = (index, subindex)
+        if self._valid_cob_id(key, value) is None:
+            return
+        for other in COB_ID_OBJECTS:
+            if other != key and self._valid_cob_id(other, self.values[other]) == cob:
+                raise SdoAbortedError(ABORT_RANGE)
 
     def _check_pdo_comm(self, index: int, subindex: int, value: int) -> None:
         if subindex == 1:

@@ -35,6 +35,10 @@ class DriveParams:
     f_pwm: internal rate (PWM/current-control frequency), Hz.
     u_dc: DC-link voltage, V; the voltage vector is limited to ``u_lim`` = u_dc/√3.
     i_trip: over-current trip level of |i_s|, A (``math.inf`` disables the trip).
+    w_max: over-speed limit of |ω|, rad/s: the emulated device faults (EMCY 0x8400) beyond
+        it (``math.inf`` disables it; the pure model does not check it). Default 600 rad/s:
+        3× the highest speed of the paper's test (200 rad/s, field weakening; one pole
+        pair) and well inside the TPDO's ±1024 rad/s.
     current_loop_bw: closed-loop bandwidth of the current controller, rad/s.
     i_offset_ab: current-sensor offset, A (complex a + jb).
     i_gain_error: relative current-sensor gain error (0.01 = +1 %).
@@ -54,6 +58,7 @@ class DriveParams:
     f_pwm: float = 10e3
     u_dc: float = 560.0
     i_trip: float = 25.0
+    w_max: float = 600.0
     current_loop_bw: float = 2.0 * math.pi * 1500.0
     i_offset_ab: complex = 0j
     i_gain_error: float = 0.0
@@ -78,6 +83,7 @@ class DriveParams:
         positive(source, "f_pwm", self.f_pwm)
         positive(source, "u_dc", self.u_dc)
         positive(source, "i_trip", self.i_trip, allow_inf=True)
+        positive(source, "w_max", self.w_max, allow_inf=True)
         bw = positive(source, "current_loop_bw", self.current_loop_bw)
         if bw >= math.pi * self.f_pwm:
             raise ParamsError(
@@ -149,7 +155,8 @@ class DriveParams:
             values["i_offset_ab"] = complex(off[0], off[1])
         if isinstance(values.get("i_gain_phase"), list):
             values["i_gain_phase"] = tuple(values["i_gain_phase"])
-        for key in ("f_pwm", "u_dc", "i_trip", "current_loop_bw", "i_gain_error", "i_noise_rms",
+        for key in ("f_pwm", "u_dc", "i_trip", "w_max", "current_loop_bw", "i_gain_error",
+                    "i_noise_rms",
                     "dead_time", "u_dc_ripple", "u_dc_ripple_hz"):
             if isinstance(values.get(key), int) and not isinstance(values.get(key), bool):
                 values[key] = float(values[key])

@@ -7,18 +7,41 @@ for the values and the access rules. Reads of 0x6041 and of the account 0x2300 s
 present state; a successful write stores the value, keeps the mirrored objects in step
 (0x6061 = 0x6060, 0x6079 = u_dc in mV) and tells the rest of the device through
 :class:`SdoHooks`.
+
+Before a request reaches python-canopen's server, this module enforces what that server
+does not (issue 11): block transfers (initiate upload ccs 5, download ccs 6) are aborted
+with 0x05040001 (this server offers none; python-canopen would answer a block upload with
+a plain upload); a segmented download is bounded by the size its initiate declared, or
+without one by the object's size (a numeric object's length, else
+:data:`MAX_SEGMENTED`), and aborted with 0x06070012 at the initiate (declared size beyond
+a numeric object's) or at the first segment beyond the bound, so a download that never
+ends cannot grow a buffer; a download or upload segment with no such transfer under way is
+aborted with 0x05040001. An exception other than an abort in the device's read/write
+hooks is answered with the general abort 0x08000000 and then re-raised to the device (an
+internal error), not swallowed by python-canopen.
 """
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import can
 from canopen import LocalNode
+from canopen.objectdictionary import datatypes
+from canopen.sdo import SdoAbortedError
 
 from dbc.cia301 import NmtState
 from plant import od as odm
+
+ABORT_COMMAND = 0x05040001  #: client/server command specifier not valid or unknown
+ABORT_TOO_LONG = 0x06070012  #: data type does not match, length of service parameter too high
+ABORT_GENERAL = 0x08000000  #: general error
+#: Bound of a segmented download without a declared size to a non-numeric object, bytes.
+MAX_SEGMENTED = 1024
+_CCS_DOWNLOAD_SEGMENT, _CCS_DOWNLOAD, _CCS_UPLOAD, _CCS_UPLOAD_SEGMENT, _CCS_ABORT = 0, 1, 2, 3, 4
+_CCS_BLOCK = (5, 6)  #: block upload, block download
 
 
 class Sender:
@@ -58,11 +81,23 @@ class _LocalNode(LocalNode):
         self.sdo._subindex = 0
 
     def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
-        return self._server.read(index, subindex)
+        try:
+            return self._server.read(index, subindex)
+        except SdoAbortedError:
+            raise
+        except Exception as exc:  # a bug: answered with an abort, then raised to the device
+            self._server.failure = exc
+            raise SdoAbortedError(ABORT_GENERAL) from exc
 
     def set_data(self, index: int, subindex: int, data: bytes,
                  check_writable: bool = False) -> None:
-        self._server.write(index, subindex, bytes(data))
+        try:
+            self._server.write(index, subindex, bytes(data))
+        except SdoAbortedError:
+            raise
+        except Exception as exc:
+            self._server.failure = exc
+            raise SdoAbortedError(ABORT_GENERAL) from exc
 
 
 class SdoServer:
@@ -74,10 +109,83 @@ class SdoServer:
         self._hooks = hooks
         self._node = _LocalNode(self, store)
         self._node.sdo.network = sender  # type: ignore[assignment]
+        #: the segmented download under way: [bound in bytes, bytes received], or None
+        self._download: list[int] | None = None
+        self._upload = False  #: a segmented upload under way
+        #: an exception a hook raised during the present request (re-raised after it)
+        self.failure: Exception | None = None
 
     def on_request(self, can_id: int, data: bytes) -> None:
-        """An SDO request frame (8 bytes, the device checks the NMT state)."""
+        """An SDO request frame (8 bytes, the device checks the NMT state). Raises what a
+        read/write hook raised (other than an SDO abort), after the abort went out."""
+        if self._refused(data):
+            return
+        sdo = self._node.sdo
+        ccs = data[0] >> 5
+        if ccs == _CCS_UPLOAD:
+            sdo._buffer = None
         self._node.sdo.on_request(can_id, data, 0.0)
+        if ccs != _CCS_UPLOAD_SEGMENT:
+            self._upload = ccs == _CCS_UPLOAD and sdo._buffer is not None
+        if self.failure is not None:
+            exc, self.failure = self.failure, None
+            raise exc
+
+    def _abort(self, data: bytes, code: int) -> None:
+        """Abort the transfer of the request ``data`` with ``code`` (its index/subindex,
+        or the download's under way for a segment)."""
+        sdo = self._node.sdo
+        if data[0] >> 5 not in (_CCS_DOWNLOAD_SEGMENT, _CCS_UPLOAD_SEGMENT):
+            sdo._index, sdo._subindex = struct.unpack_from("<HB", data, 1)
+        sdo._buffer = None
+        self._download = None
+        self._upload = False
+        sdo.abort(code)
+
+    def _refused(self, data: bytes) -> bool:
+        """Block transfers and unbounded segmented downloads, aborted here (True)."""
+        ccs = data[0] >> 5
+        if ccs in _CCS_BLOCK:
+            self._abort(data, ABORT_COMMAND)
+            return True
+        if ccs == _CCS_DOWNLOAD:
+            self._download = None
+            if data[0] & 0x02:  # expedited
+                return False
+            index, subindex = struct.unpack_from("<HB", data, 1)
+            try:
+                var = self._store.var(index, subindex)
+            except SdoAbortedError as exc:
+                self._abort(data, exc.code)
+                return True
+            numeric = var.data_type in datatypes.NUMBER_TYPES
+            bound = len(var) // 8 if numeric else MAX_SEGMENTED
+            if data[0] & 0x01:  # size indicated
+                declared = struct.unpack_from("<L", data, 4)[0]
+                if declared > bound:
+                    self._abort(data, ABORT_TOO_LONG)
+                    return True
+                bound = declared
+            self._download = [bound, 0]
+        elif ccs == _CCS_DOWNLOAD_SEGMENT:
+            d = self._download
+            if d is None:
+                self._abort(data, ABORT_COMMAND)
+                return True
+            n = 7 - ((data[0] >> 1) & 0x7)
+            if d[1] + n > d[0]:
+                self._abort(data, ABORT_TOO_LONG)
+                return True
+            d[1] += n
+            if data[0] & 0x01:  # last segment
+                self._download = None
+        elif ccs == _CCS_UPLOAD_SEGMENT:
+            if not self._upload:
+                self._abort(data, ABORT_COMMAND)
+                return True
+        elif ccs in (_CCS_UPLOAD, _CCS_ABORT):
+            self._download = None
+        return False
 
     def read(self, index: int, subindex: int) -> bytes:
         v = self._values

@@ -390,3 +390,16 @@ def test_blf_cut_short_is_read_up_to_the_cut(tmp_path):
     frames = read_log(path)  # python-can stops at the cut container without an error
     assert 2000 <= len(frames) < 3000
     assert [m.data[0] for m in frames] == [i % 256 for i in range(len(frames))]
+
+
+def test_a_second_run_after_a_fault_starts_from_a_motor_at_rest(emulator, tmp_path):
+    """The emulated model advances only on SYNC; between runs the real motor's flux decays.
+    After a fault mid-run, a new run on the same drive must not inherit a magnetised model."""
+    emu = emulator()
+    th, result = _run_until(emu, tmp_path / "r1", 300)
+    _intrude(emu, (0x201, b"\x00"))  # an RPDO of wrong length: the drive faults (0x8210)
+    assert _finished(th, result)["run"]["stop"] == "DRIVE_FAULT"
+    time.sleep(0.3)  # about three rotor time constants
+    assert gateway_run(emu, tmp_path / "r2", "--duration", "0.5s") == 0
+    s = _summary(tmp_path / "r2")
+    assert s["run"]["stop"] == "END_OF_PROFILE" and s["speed_error"]["max"] < 0.5

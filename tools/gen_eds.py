@@ -189,7 +189,7 @@ def _objects() -> list[Obj]:
         6: Var("M", REAL32, "rw", _f(m.M), desc="H, M^2 < L_s*L_r"),
     })
     rec(0x2201, "Drive parameters", RECORD, {
-        0: Var("Highest sub-index supported", UNSIGNED8, "ro", "8"),
+        0: Var("Highest sub-index supported", UNSIGNED8, "ro", "9"),
         1: Var("u_dc", REAL32, "rw", _f(d.u_dc), desc="V"),
         2: Var("i_trip", REAL32, "rw", _f(d.i_trip),
                desc="A, over-current trip of |i_s|, EMCY 0x2310"),
@@ -205,6 +205,8 @@ def _objects() -> list[Obj]:
                desc="A rms per axis"),
         8: Var("f_pwm", UNSIGNED32, "rw", str(round(d.f_pwm)), low="1000", high="100000",
                desc="Hz, internal (PWM/current-loop) rate; 0x1006 must be a multiple of 1/f_pwm"),
+        9: Var("w_max", REAL32, "rw", _f(d.w_max),
+               desc="rad/s, over-speed limit of |w_m|, EMCY 0x8400"),
     })
     var(0x2202, "Emulator model", UNSIGNED8, "rw", "1", high="1",
         desc="current vector mode: 0 ideal current source, 1 PI current loop")
