@@ -35,6 +35,7 @@ from typing import Any, TextIO
 import can
 
 from dbc.bus import add_bus_options, bus_config, open_bus
+from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -199,25 +200,65 @@ def _codec(node_id: int) -> Any:
         raise UserError(f"--node {node_id}: {exc}; a CANopen node id is 1..127") from exc
 
 
-def _decoders(node_id: int, prefer: Iterable[str] = ()) -> dict[int, tuple[str, Any]]:
+def _checked(codec: Any) -> Any:
+    """``codec.decode`` refusing (struct.error) a frame not of the PDO's length."""
+    def decode(data: bytes) -> dict[str, float]:
+        if len(data) != codec.length:
+            raise struct.error(f"{len(data)} bytes, the PDO has {codec.length}")
+        return codec.decode(data)
+    return decode
+
+
+def _profile_decoders(drive: DriveProfile, node_id: int | None
+                      ) -> dict[int, tuple[str, Any]]:
+    """COB-ID → (message name, decode → {role: value}) of a drive profile's PDOs (its DBC,
+    its [signals]; the setpoint layout is the profile's setpoint message)."""
+    from gateway.process_data import process_data
+
+    pd = process_data(drive, node_id)
+    return {p.cob_id: (p.name, _checked(p.codec)) for p in pd.pdos}
+
+
+def _drive_columns(drive: DriveProfile, node_id: int | None) -> list[str]:
+    from gateway.process_data import process_data
+
+    cols = ["t", "name"]
+    for p in sorted(process_data(drive, node_id).pdos, key=lambda p: p.name):
+        cols += [r for r in p.roles if r not in cols]
+    return cols
+
+
+def _decoders(node_id: int | None, prefer: Iterable[str] = (),
+              drive: DriveProfile | None = None) -> dict[int, tuple[str, Any]]:
     """COB-ID → (message name, decode(data) → {signal: value}) for the node's PDOs.
 
-    ``prefer`` names alternative layouts that share a COB-ID (``RPDO2_AB``) to use instead
-    of the default one.
+    With ``drive`` the drive profile's process data (values by role name, at ``node_id`` or
+    the profile's node). Without it the built-in DBC at ``node_id``: ``prefer`` names
+    alternative layouts that share a COB-ID (``RPDO2_AB``) to use instead of the default
+    one. A frame whose length is not its PDO's raises ``struct.error``.
     """
+    if drive is not None:
+        if prefer:
+            raise UserError("with a drive profile its setpoint message gives the layout; "
+                            "prefer is for the built-in DBC")
+        return _profile_decoders(drive, node_id)
+    node_id = 1 if node_id is None else node_id
     codec = _codec(node_id)
-    table = {fid: (name, codec.messages[name].decode) for fid, name in codec.by_frame_id.items()}
+    table = {fid: (name, _checked(codec.messages[name]))
+             for fid, name in codec.by_frame_id.items()}
     for name in prefer:
         if name not in codec.messages:
             raise UserError(f"{name!r} is not a message of the DBC; known: "
                             f"{', '.join(codec.names)}")
         c = codec.messages[name]
-        table[c.frame_id] = (name, c.decode)
+        table[c.frame_id] = (name, _checked(c))
     return table
 
 
-def _iter_decoded(messages: Iterable[can.Message],
-                  table: dict[int, tuple[str, Any]]) -> Iterator[dict[str, Any]]:
+def _iter_decoded(messages: Iterable[can.Message], table: dict[int, tuple[str, Any]],
+                  errors: Counter[str] | None = None) -> Iterator[dict[str, Any]]:
+    """Decoded rows; frames of a PDO's COB-ID with another length are counted in ``errors``
+    (by message name), not decoded."""
     for m in messages:
         if m.is_extended_id or m.is_remote_frame or m.is_error_frame:
             continue
@@ -227,25 +268,36 @@ def _iter_decoded(messages: Iterable[can.Message],
         name, decode = entry
         try:
             values = decode(bytes(m.data))
-        except struct.error:  # wrong length: not this layout
+        except struct.error:  # wrong length: not this PDO's frame
+            if errors is not None:
+                errors[name] += 1
             continue
         yield {"t": m.timestamp, "name": name, **values}
 
 
-def decode_frames(messages: Iterable[can.Message], node_id: int = 1,
-                  prefer: Iterable[str] = ()) -> list[dict[str, Any]]:
+def decode_frames(messages: Iterable[can.Message], node_id: int | None = None,
+                  prefer: Iterable[str] = (), drive: DriveProfile | None = None,
+                  errors: Counter[str] | None = None) -> list[dict[str, Any]]:
     """Decode the PDOs of ``node_id`` among ``messages`` with the DBC, in order.
 
     Each row is ``{'t': timestamp, 'name': 'TPDO1', <signal>: <physical value>, ...}`` (SI
     units; controlword, statusword and sync_counter as int). Frames that are not one of the
     node's PDOs, or have the wrong length for it, are skipped. ``prefer=("RPDO2_AB",)``
     decodes COB-ID 0x300 + node with the (a, b) setpoint layout instead of (d, q).
+
+    ``drive``: decode with that drive profile's process data instead (role names, its DBC's
+    scalings, its setpoint layout); ``node_id`` defaults to the profile's (else 1). Frames
+    of a PDO's COB-ID with another length are counted in ``errors`` (by name) if given.
     """
-    return list(_iter_decoded(messages, _decoders(node_id, prefer)))
+    return list(_iter_decoded(messages, _decoders(node_id, prefer, drive), errors))
 
 
-def csv_columns(node_id: int = 1, prefer: Iterable[str] = ()) -> list[str]:
+def csv_columns(node_id: int | None = 1, prefer: Iterable[str] = (),
+                drive: DriveProfile | None = None) -> list[str]:
     """The header of the decoded CSV: t, name and every signal of the decoded messages."""
+    if drive is not None:
+        return _drive_columns(drive, node_id)
+    node_id = 1 if node_id is None else node_id
     cols = ["t", "name"]
     codec = _codec(node_id)
     for name, _ in sorted(_decoders(node_id, prefer).values(), key=lambda e: e[0]):
@@ -311,6 +363,8 @@ class LogResult:
     counts: Counter[str] = field(default_factory=Counter)
     csv_path: Path | None = None
     error: BaseException | None = None
+    #: frames on a decoded PDO's COB-ID whose length is not the PDO's, by message name
+    decode_errors: Counter[str] = field(default_factory=Counter)
 
     def account(self) -> str:
         """Frames logged, per-message counts and duration, a few lines."""
@@ -323,6 +377,10 @@ class LogResult:
             items = [f"{k} {v}" for k, v in sorted(self.counts.items(),
                                                     key=lambda kv: (-kv[1], kv[0]))]
             lines.append("  " + ", ".join(items))
+        if self.decode_errors:
+            items = [f"{k} {v}" for k, v in sorted(self.decode_errors.items())]
+            lines.append(f"  {sum(self.decode_errors.values())} frame(s) not decoded, their "
+                         f"length is not their PDO's: {', '.join(items)}")
         return "\n".join(lines)
 
 
@@ -334,10 +392,12 @@ class _Recorder(can.Listener):
     """
 
     def __init__(self, writer: can.Listener, node_id: int, decode: bool,
-                 csv_file: TextIO | None, prefer: Iterable[str] = ()) -> None:
+                 csv_file: TextIO | None, prefer: Iterable[str] = (),
+                 drive: DriveProfile | None = None) -> None:
         self.writer = writer
         self.node_id = node_id
-        self.table = _decoders(node_id, prefer)
+        self.table = _decoders(node_id, prefer, drive)
+        self.errors: Counter[str] = Counter()
         self.pdo_names = {fid: name for fid, (name, _) in self.table.items()}
         self.decode = decode or csv_file is not None
         self.lock = threading.Lock()
@@ -352,7 +412,8 @@ class _Recorder(can.Listener):
         self.csv_file = csv_file
         self.csv: csv.DictWriter | None = None
         if csv_file is not None:
-            self.csv = csv.DictWriter(csv_file, csv_columns(node_id, prefer), restval="",
+            self.csv = csv.DictWriter(csv_file, csv_columns(node_id, prefer, drive),
+                                      restval="",
                                       lineterminator="\n")
             self.csv.writeheader()
 
@@ -367,7 +428,7 @@ class _Recorder(can.Listener):
             self.counts[classify(msg, self.node_id, self.pdo_names)] += 1
             if not self.decode:
                 return
-            for row in _iter_decoded((msg,), self.table):
+            for row in _iter_decoded((msg,), self.table, self.errors):
                 self.decoded += 1
                 self.latest[row["name"]] = row
                 self.fresh.add(row["name"])
@@ -448,11 +509,12 @@ class _Display:
         self.out.flush()
 
 
-def run_log(bus: can.BusABC, path: str | Path, *, node_id: int = 1, decode: bool = False,
+def run_log(bus: can.BusABC, path: str | Path, *, node_id: int | None = None,
+            decode: bool = False,
             csv_path: str | Path | None = None, duration: float | None = None,
             stop: threading.Event | None = None, quiet: bool = False,
             out: TextIO | None = None, tty: bool | None = None,
-            prefer: Iterable[str] = ()) -> LogResult:
+            prefer: Iterable[str] = (), drive: DriveProfile | None = None) -> LogResult:
     """Log ``bus`` to ``path`` until ``duration`` (s) elapsed, ``stop`` is set or a bus error.
 
     The caller owns the bus (opens and shuts it down). Returns the account; a bus error is
@@ -468,7 +530,9 @@ def run_log(bus: can.BusABC, path: str | Path, *, node_id: int = 1, decode: bool
         _check_writable(cp, "--csv")
         if cp.resolve() == p.resolve():
             raise UserError(f"--csv {str(cp)!r} is the raw log file itself; give another name")
-    _decoders(node_id, prefer)  # bad node id or message name → UserError before any file
+    if node_id is None:
+        node_id = drive.node if drive is not None else 1
+    _decoders(node_id, prefer, drive)  # bad node/message/profile → UserError before any file
     try:
         writer = can.Logger(p)
     except ValueError as exc:
@@ -482,7 +546,7 @@ def run_log(bus: can.BusABC, path: str | Path, *, node_id: int = 1, decode: bool
                 csv_file = open(cp, "w", newline="", encoding="utf-8")  # noqa: SIM115
             except OSError as exc:
                 raise UserError(f"cannot write --csv {str(cp)!r}: {exc.strerror or exc}") from exc
-        rec = _Recorder(writer, node_id, decode, csv_file, prefer)
+        rec = _Recorder(writer, node_id, decode, csv_file, prefer, drive)
     except BaseException:
         writer.stop()
         if csv_file is not None:
@@ -522,6 +586,7 @@ def run_log(bus: can.BusABC, path: str | Path, *, node_id: int = 1, decode: bool
                 display.tick(final=True)
     result.frames, result.decoded = rec.frames, rec.decoded
     result.counts = Counter(rec.counts)
+    result.decode_errors = Counter(rec.errors)
     result.error = rec.error
     return result
 
@@ -553,18 +618,27 @@ def cmd_log(args: argparse.Namespace) -> int:
     if args.csv is not None:
         _check_writable(Path(args.csv), "--csv")
     duration = None if args.duration is None else parse_duration(args.duration, "--duration")
-    _decoders(args.node)
+    drive = None
+    if args.drive is not None:
+        from gateway.drive_profile import load_drive_profile
+
+        drive = load_drive_profile(args.drive)
+    node = args.node if args.node is not None else (drive.node if drive is not None else 1)
+    _decoders(node, (), drive)
     cfg = bus_config(args)
     bus = open_bus(cfg, receive_own_messages=False)
     stop = threading.Event()
     try:
         if not args.quiet:
             until = f"for {format_duration(duration)}" if duration else "until Ctrl-C"
-            what = f", decoding node {args.node}" if args.decode or args.csv else ""
+            what = f", decoding node {node}" if args.decode or args.csv else ""
+            if what and drive is not None:
+                what += f" with {drive.source}"
             print(f"logging {cfg.label()} to {path}{what} {until}", flush=True)
         with _stop_on_signals(stop):
-            result = run_log(bus, path, node_id=args.node, decode=args.decode,
-                             csv_path=args.csv, duration=duration, stop=stop, quiet=args.quiet)
+            result = run_log(bus, path, node_id=node, decode=args.decode,
+                             csv_path=args.csv, duration=duration, stop=stop, quiet=args.quiet,
+                             drive=drive)
     finally:
         bus.shutdown()
     print(result.account())
@@ -593,8 +667,12 @@ def add_parser(sub: Any) -> None:
                    help="write one row per decoded PDO (t, name, signals in SI units)")
     p.add_argument("--duration", metavar="S",
                    help="stop after this long (10, 2.5s, 500ms); default: until Ctrl-C")
-    p.add_argument("--node", type=int, default=1, metavar="N",
-                   help="node id of the drive whose PDOs are decoded (default 1)")
+    p.add_argument("--node", type=int, metavar="N",
+                   help="node id of the drive whose PDOs are decoded (default: the drive "
+                        "profile's, 1 for the emulator)")
+    p.add_argument("--drive", metavar="PROFILE",
+                   help="drive profile (TOML) whose process data decodes the PDOs (its DBC, "
+                        "roles and setpoint layout); default: the built-in emulator DBC")
     p.add_argument("--quiet", action="store_true",
                    help="no live output; only the account at the end")
     add_bus_options(p)

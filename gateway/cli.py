@@ -595,10 +595,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "emulator (gateway/drives/emulator.toml)")
     p.set_defaults(func=cmd_run)
 
-    from gateway import buslog, scan
+    from gateway import buslog, check, scan
 
     buslog.add_parser(sub)
     scan.add_parser(sub)
+    check.add_parser(sub)
 
     p = sub.add_parser("reference", aliases=["profile"],
                        help="check or plot a reference profile (alias: profile)",

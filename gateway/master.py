@@ -28,6 +28,7 @@ it), which the loop checks every cycle.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import struct
 import threading
@@ -343,16 +344,22 @@ class DriveMaster:
                             f"(COB-ID 0x{pdo.cob_id:03X}); check the drive profile "
                             f"({self.profile.source})") from None
 
+    def object_of(self, signal: str, role: str
+                  ) -> canopen.objectdictionary.ODVariable | None:
+        """The EDS object a PDO signal maps: named like the DBC signal (CiA 402's controlword
+        and statusword by index); None if the EDS has none."""
+        if role in ("controlword", "statusword"):
+            index = CONTROLWORD if role == "controlword" else STATUSWORD
+            obj = self.node.object_dictionary[index] if self.has(index) else None
+            return obj if isinstance(obj, canopen.objectdictionary.ODVariable) else None
+        return self.find_object(signal)
+
     def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
         """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and
         statusword by index)."""
         entries = []
         for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
-            if role in ("controlword", "statusword"):
-                var = self.node.object_dictionary[CONTROLWORD if role == "controlword"
-                                                   else STATUSWORD]
-            else:
-                var = self.find_object(signal)
+            var = self.object_of(signal, role)
             if var is None:
                 raise UserError(
                     f"the drive's EDS ({self.profile.eds}) has no object named {signal!r} for "
@@ -387,14 +394,30 @@ class DriveMaster:
     def _check_mapping(self, pdo: Pdo) -> None:
         """remap = false: read the drive's mapping of that PDO and check it carries the DBC
         message's layout (sizes in order) on its COB-ID."""
+        problems = self.mapping_problems(pdo)
+        if problems:
+            raise UserError(f"{pdo.name} on node {self.node_id} does not match the drive "
+                            f"profile's DBC ({'; '.join(problems)}): map it on the drive as "
+                            f"the DBC says, or set remap = true ({self.profile.source})")
+
+    def read_mapping(self, pdo: Pdo) -> PdoMap:
+        """The drive's mapping of that PDO, read by SDO (python-canopen's map object)."""
         m = self._pdo_map(pdo)
         try:
             m.read(from_od=False)
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id} "
                             f"failed: {exc}") from exc
-        finally:
-            self.network.unsubscribe(pdo.cob_id, m.on_message)
+        finally:  # the map subscribed on the COB-ID it read, which may not be the DBC's
+            for cob_id in {pdo.cob_id, (m.cob_id or 0) & 0x7FF}:
+                with contextlib.suppress(KeyError, ValueError):
+                    self.network.unsubscribe(cob_id, m.on_message)
+        return m
+
+    def mapping_problems(self, pdo: Pdo) -> list[str]:
+        """Read the drive's mapping of that PDO by SDO and compare it with the DBC message's
+        layout (sizes in order), COB-ID and enable bit; the differences ([] if none)."""
+        m = self.read_mapping(pdo)
         bits = [v.length for v in m.map]
         want = [s.bits for s in pdo.codec.signals]
         problems = []
@@ -405,10 +428,7 @@ class DriveMaster:
             problems.append("not enabled")
         if bits != want:
             problems.append(f"mapped sizes {bits} bits, the DBC's signals {want}")
-        if problems:
-            raise UserError(f"{pdo.name} on node {self.node_id} does not match the drive "
-                            f"profile's DBC ({'; '.join(problems)}): map it on the drive as "
-                            f"the DBC says, or set remap = true ({self.profile.source})")
+        return problems
 
     # ------------------------------------------------------------------ operation
 
