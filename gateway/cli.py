@@ -461,8 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sampling period (1ms, 250us, ...) or 'continuous' (default 1ms)")
     p.add_argument("--setpoint-frame", type=SetpointFrame, choices=list(SetpointFrame),
                    default=SetpointFrame.DQ,
-                   help="dq: the drive turns the frame itself (ERRATA 9); ab: setpoints held "
-                        "in the fixed frame over the period")
+                   help="dq: the drive turns the frame itself (docs/paper.md §E9); ab: setpoints "
+                        "held in the fixed frame over the period")
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
                    help="periods between a sample and its setpoints acting (1 = CANopen SYNC)")
     p.add_argument("--no-quantize", action="store_true",

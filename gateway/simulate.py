@@ -250,7 +250,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     last = [0.0]
 
     def psi_r_used(x: np.ndarray) -> complex:
-        if estimated:  # (24), ERRATA 1: ψ_r = (L_r/M)(ψ_s − σ i_s)
+        if estimated:  # (24), §E1: ψ_r = (L_r/M)(ψ_s − σ i_s)
             return (complex(x[7], x[8]) - m.sigma * complex(x[3], x[4])) / k_r
         return complex(x[1], x[2])
 

@@ -1,6 +1,6 @@
 """The discrete-time sensorless controller: one object, one step per sampling period.
 
-It implements the laws of :mod:`gateway.control.laws` sampled with period T (ERRATA 9):
+It implements the laws of :mod:`gateway.control.laws` sampled with period T (§E9):
 at each sample t_k it takes the measured currents i_s_ab(t_k), the average applied voltage
 over (t_{k−1}, t_k] and, only in the comparison mode ``flux="true"``, the true rotor flux;
 it returns the setpoints for the next interval and integrates its own states (frame angle

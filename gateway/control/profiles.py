@@ -2,7 +2,7 @@
 
 The laws of Marino, Tomei & Verrelli (IFAC 2002) need smooth references: (15) uses ψ̇* and
 ω̇* (through (9), (10)), the full-order law (25)–(32) also ψ̈*, ω̈* and dT_L/dt in φ_d0, φ_q0
-(ERRATA 7: references must be at least C²; ERRATA 6: T_L is treated as known). Every signal
+(§E7: references must be at least C²; §E6: T_L is treated as known). Every signal
 here is a constant ``initial`` value followed by transitions to new set points. Each
 transition starts at ``t`` and lasts ``ramp`` > 0 and follows the **quintic smoothstep**
 
@@ -92,7 +92,7 @@ class References:
 
     w_ref, dw_ref, ddw_ref: ω* (rad/s), dω*/dt (rad/s²), d²ω*/dt² (rad/s³).
     psi_ref, dpsi_ref, ddpsi_ref: ψ* > 0 (Wb), ψ̇* (Wb/s), ψ̈* (Wb/s²).
-    T_L, dT_L: load torque (N·m) and its derivative (N·m/s), known to the laws (ERRATA 6).
+    T_L, dT_L: load torque (N·m) and its derivative (N·m/s), known to the laws (§E6).
     """
 
     w_ref: float
@@ -448,7 +448,8 @@ def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any
             raise _fail(
                 src, f"{w}.ramp = {ramp_raw!r}",
                 f"must be > 0: a jump has no derivative and the laws need C² references "
-                f"(ERRATA 7); use a short ramp, e.g. ramp = {0.01 / tscale:g} ({tunit_name})",
+                f"(docs/paper.md §E7); use a short ramp, e.g. ramp = {0.01 / tscale:g} "
+                f"({tunit_name})",
             )
         if t < prev_end * (1.0 - 1e-12):
             raise _fail(
@@ -594,7 +595,7 @@ def demand_trace(profile: Profile, motor: MotorLike, dt: float | None = None
       i_sd* = ψ*/M + ψ̇*/(αM)                  (9)
       i_sq* = (T_L/J + ω̇*)/(μψ*)              (10)
       ω0 = ω* + αM·i_sq*/ψ*                     (11)
-      ψ_sd = σ·i_sd* + (M/L_r)·ψ*,  ψ_sq = σ·i_sq*   (stator flux, ERRATA 1)
+      ψ_sd = σ·i_sd* + (M/L_r)·ψ*,  ψ_sq = σ·i_sq*   (stator flux, §E1)
       u_sd = dψ_sd/dt + R_s·i_sd* − ω0·ψ_sq,  u_sq = dψ_sq/dt + R_s·i_sq* + ω0·ψ_sd
     with dψ_s/dt by central finite differences (numpy.gradient) on the grid.
     Keys: t, w_ref, psi_ref, T_L, i_sd, i_sq, w_0, u_sd, u_sq, T_e (N·m).
