@@ -125,15 +125,20 @@ class SimConfig:
 Progress = Callable[[float], None]
 
 
+def emulator_rate() -> float:
+    """The emulated drive's nominal internal rate (PWM/current loop), Hz."""
+    return DriveParams().f_pwm
+
+
 def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
         progress: Progress | None = None, stop: threading.Event | None = None) -> Record:
     """Simulate the profile; the record holds one row per period (or record step).
 
-    ``stop`` (sampled runs): when set, the run ends after the current cycle and the record
-    holds what was simulated so far.
+    ``stop``: when set, the run ends after the current cycle (continuous time: the current
+    solver step) and the record holds what was simulated so far.
     """
     if cfg.sampling is None:
-        return run_continuous(profile, motor, cfg, progress)
+        return run_continuous(profile, motor, cfg, progress, stop)
     return run_sampled(profile, motor, cfg, progress, stop)
 
 
@@ -212,11 +217,10 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
         pending.update({name: link.quantize(name, values)
                         for name, values in out.rpdos.items()})
         rec.append(out.row)
-        if k % step_progress == 0:
-            if progress is not None:
-                progress(k / n_cycles)
-            if stop is not None and stop.is_set():
-                break
+        if progress is not None and k % step_progress == 0:
+            progress(k / n_cycles)
+        if stop is not None and stop.is_set():  # every cycle: a stop acts within one
+            break
     return rec
 
 
@@ -224,7 +228,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
 
 
 def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
-                   progress: Progress | None = None) -> Record:
+                   progress: Progress | None = None, stop: threading.Event | None = None
+                   ) -> Record:
     """The paper's continuous-time closed loop, integrated by scipy (LSODA, tight tolerances).
 
     Current-fed law with an ideal current source: state (ω, ψ_ra, ψ_rb, ε0, ω̂); the
@@ -290,8 +295,18 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
             x0[7:9] = (psi_s0.real, psi_s0.imag)
     else:
         x0[3:5] = (cfg.eps_0, cfg.w_hat_0)
+    t_stop: list[float] = []
+
+    def stopped(t: float, x: np.ndarray) -> float:
+        """Terminal event: +1 until ``stop`` is seen, −1 from the time it was first seen."""
+        if not t_stop and stop is not None and stop.is_set():
+            t_stop.append(t)
+        return 1.0 if not t_stop or t < t_stop[0] else -1.0
+
+    stopped.terminal = True  # type: ignore[attr-defined]
     sol = solve_ivp(rhs, (0.0, t_eval[-1]), x0, method="LSODA", t_eval=t_eval,
-                    rtol=1e-9, atol=1e-10, max_step=h)
+                    rtol=1e-9, atol=1e-10, max_step=h,
+                    events=stopped if stop is not None else None)
     if not sol.success:
         raise RuntimeError(f"continuous simulation failed: {sol.message}")
     rec = Record(CycleRow)

@@ -37,6 +37,7 @@ import struct
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -117,14 +118,19 @@ class DriveDevice:
     ``drive_params`` (default: the paper's motor, the default current-loop inverter) are the
     device's defaults, to which reset node returns; ``drive_params.mode`` sets the defaults
     of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1).
+    ``on_sample(cycle, measurement)``, optional: called in the receive thread after each
+    cycle's model step with the cycle number and the full-resolution :class:`Measurement`
+    (for diagnostics in the same process, e.g. `hil-gateway sim`'s truth record).
     """
 
     def __init__(self, bus: can.BusABC, node_id: int = 1, motor: MotorParams | None = None,
-                 drive_params: DriveParams | None = None) -> None:
+                 drive_params: DriveParams | None = None,
+                 on_sample: Callable[[int, Measurement], None] | None = None) -> None:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
         self.node_id = node_id
+        self.on_sample = on_sample
         self._motor0 = motor if motor is not None else MotorParams()
         self._params0 = drive_params if drive_params is not None else DriveParams()
         self._store = odm.ObjectStore(node_id, self._overrides())
@@ -510,6 +516,8 @@ class DriveDevice:
         was_on = drive.enabled
         meas = drive.advance(self._T, self._T_L)
         self._cycles_total = m
+        if self.on_sample is not None:
+            self.on_sample(m, meas)
         if was_on and drive.tripped:
             self._fault(Emcy.OVERCURRENT)
         self._limit = meas.limit_active
