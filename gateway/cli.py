@@ -31,6 +31,7 @@ examples:
                                                     the paper's section 6, continuous time
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
+  hil-gateway compare runs/A runs/B                  did my change help? errors side by side
   hil-gateway reference check profiles/paper.toml
 """
 
@@ -571,10 +572,20 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_profile_plot(args: argparse.Namespace) -> int:
-    """`hil-gateway profile plot FILE`: references and derivatives as PNG."""
-    import numpy as np
+#: What `profile plot -o` can write (matplotlib picks the format from the suffix).
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
+
+def cmd_profile_plot(args: argparse.Namespace) -> int:
+    """`hil-gateway profile plot FILE`: references and their derivatives, in real units."""
+    if args.output:
+        out = Path(args.output)
+        if out.suffix.lower() not in PLOT_SUFFIXES:
+            raise UserError(f"-o {args.output!r}: a plot is written as "
+                            f"{', '.join(PLOT_SUFFIXES)} (by the suffix); e.g. -o "
+                            f"{out.with_suffix('.png')}")
+    else:
+        out = Path("runs") / f"profile-{Path(args.file).stem}.png"
     profile = _load_profile(args.file)
     try:
         import matplotlib
@@ -583,28 +594,59 @@ def cmd_profile_plot(args: argparse.Namespace) -> int:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise UserError("profile plot needs matplotlib: pip install 'can-drive-hil[plot]'") from exc
-    out = Path(args.output) if args.output else Path(Path(args.file).stem + ".png")
-    t = np.linspace(0.0, profile.duration, 2001)
+    from gateway.control.profiles import sample_times
+
+    t = sample_times(profile, max_points=4000)
     s = profile.sample(t)
-    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(7, 7), layout="constrained")
-    ax[0].plot(t, s["w_ref"], label="ω* [rad/s]")
-    ax[0].plot(t, s["dw_ref"] / 10, ":", label="dω*/dt / 10 [rad/s²]")
-    ax[1].plot(t, s["psi_ref"], label="ψ* [Wb]")
-    ax[1].plot(t, s["dpsi_ref"] / 10, ":", label="dψ*/dt / 10 [Wb/s]")
-    ax[2].plot(t, s["T_L"], color="C3", label="T_L [N·m]")
-    ax[2].set_xlabel("time [s]")
-    for a in ax:
-        a.grid(True, alpha=0.3)
-        a.legend(loc="best", fontsize="small")
-    fig.suptitle(f"profile {profile.name}")
+    fig, ax = plt.subplots(3, 2, sharex=True, figsize=(10, 7), layout="constrained")
+    rows = (("w_ref", "dw_ref", "speed ω*", "rad/s", "C0"),
+            ("psi_ref", "dpsi_ref", "rotor flux ψ*", "Wb", "C1"),
+            ("T_L", "dT_L", "load torque T_L", "N·m", "C3"))
+    for j, (key, dkey, name, unit, color) in enumerate(rows):
+        ax[j, 0].plot(t, s[key], color=color)
+        ax[j, 0].set_ylabel(f"{name} [{unit}]")
+        ax[j, 1].plot(t, s[dkey], color=color, lw=0.9)
+        dunit = {"rad/s": "rad/s²"}.get(unit, f"{unit}/s")
+        ax[j, 1].set_ylabel(f"d/dt {name.split()[-1]} [{dunit}]")
+        for a in ax[j]:
+            a.grid(True, alpha=0.3)
+    ax[0, 0].set_title("references")
+    ax[0, 1].set_title("first derivatives (what the laws use)")
+    for a in ax[2]:
+        a.set_xlabel("time [s]")
+    fig.suptitle(f"reference profile {profile.name!r} ({args.file}), {profile.duration:g} s")
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
-                        "file with -o") from exc
+    except (OSError, ValueError) as exc:
+        raise UserError(f"cannot write {str(out)!r}: {getattr(exc, 'strerror', None) or exc}; "
+                        "choose another file with -o") from exc
     finally:
         plt.close(fig)
     print(f"wrote {out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- compare
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """`hil-gateway compare RUN_DIR…`: errors side by side, configuration differences, and
+    a figure of the speed and flux errors of every run overlaid."""
+    from gateway import report
+
+    runs = [report.load_run(Path(d)) for d in args.runs]
+    print(report.compare_table(runs))
+    out = Path(args.output) if args.output else runs[0].path / "compare.png"
+    if out.suffix.lower() not in PLOT_SUFFIXES:
+        raise UserError(f"-o {args.output!r}: the figure is written as "
+                        f"{', '.join(PLOT_SUFFIXES)} (by the suffix)")
+    try:
+        written = report.plot_compare(runs, out)
+    except OSError as exc:
+        raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
+                        "file with -o") from exc
+    print(f"wrote {written}" if written else "(install matplotlib for the figure)")
     return 0
 
 
@@ -685,6 +727,18 @@ def build_parser() -> argparse.ArgumentParser:
     buslog.add_parser(sub)
     scan.add_parser(sub)
 
+    p = sub.add_parser(
+        "compare", help="compare runs: errors side by side, configuration differences, figure",
+        description="Compare run directories (of simulate, sim or run): print the errors of "
+                    "each side by side with the configuration keys that differ, and write a "
+                    "figure with every run's speed and flux errors overlaid (compare.png in "
+                    "the first run's directory, or -o FILE). See docs/outputs.md.")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="figure file, .png, .svg or .pdf (default RUN_DIR/compare.png of the "
+                        "first run)")
+    p.set_defaults(func=cmd_compare)
+
     p = sub.add_parser("reference", aliases=["profile"],
                        help="check or plot a reference profile (alias: profile)",
                        description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
@@ -696,10 +750,13 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("file", metavar="FILE")
     pc.add_argument("--motor", metavar="FILE", help="motor parameters (TOML)")
     pc.set_defaults(func=cmd_profile_check)
-    pp = psub.add_parser("plot", help="plot the references as PNG",
-                         description="Plot ω*, ψ*, T_L and derivatives of a profile as PNG.")
+    pp = psub.add_parser("plot", help="plot the references and their derivatives",
+                         description="Plot ω*, ψ*, T_L and their time derivatives (each on "
+                                     "its own axis, in real units) of a profile.")
     pp.add_argument("file", metavar="FILE")
-    pp.add_argument("-o", "--output", metavar="PNG", help="output file (default FILE's stem.png)")
+    pp.add_argument("-o", "--output", metavar="FILE",
+                    help="output file, .png, .svg or .pdf (default runs/profile-<FILE's "
+                         "stem>.png; an existing file is replaced)")
     pp.set_defaults(func=cmd_profile_plot)
     p.set_defaults(func=lambda a: _usage(p))
     _debug_everywhere(parser)

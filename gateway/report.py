@@ -10,6 +10,7 @@ import csv
 import json
 import math
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -519,3 +520,146 @@ def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
     fig.savefig(p, dpi=110)
     plt.close(fig)
     return p
+
+
+# --------------------------------------------------------------------------- comparison
+
+
+@dataclass
+class Run:
+    """A finished run read back from its directory: ``summary.json`` and ``signals.csv``."""
+
+    path: Path
+    summary: dict[str, Any]
+    signals: dict[str, np.ndarray]
+
+    @property
+    def name(self) -> str:
+        return self.path.name or str(self.path)
+
+
+def load_run(path: Path) -> Run:
+    """Read a run directory; :class:`UserError` naming what is missing."""
+    from gateway.errors import UserError
+
+    if not (path / "summary.json").is_file():
+        raise UserError(f"{str(path)!r} is not a run directory (no summary.json): give "
+                        "directories written by simulate, sim or run")
+    try:
+        summary = json.loads((path / "summary.json").read_text())
+        sig = read_csv(path / "signals.csv") if (path / "signals.csv").is_file() else {}
+    except (OSError, ValueError, StopIteration) as exc:
+        raise UserError(f"{str(path)!r}: cannot read the run's files ({exc})") from exc
+    return Run(path, summary, sig)
+
+
+def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_differences(runs: list[Run]) -> dict[str, list[Any]]:
+    """The configuration keys (flattened, e.g. ``gains.k_w``) that every run has and whose
+    values differ."""
+    flats = [_flat(r.summary.get("configuration", {})) for r in runs]
+    keys = sorted(set.intersection(*(set(f) for f in flats)))
+    return {k: [f.get(k) for f in flats] for k in keys
+            if len({json.dumps(f.get(k), sort_keys=True) for f in flats}) > 1}
+
+
+def config_only_in_some(runs: list[Run]) -> list[str]:
+    """Top-level configuration keys that only some runs have (simulate vs bus runs)."""
+    keys = [set(r.summary.get("configuration", {})) for r in runs]
+    return sorted(set.union(*keys) - set.intersection(*keys))
+
+
+def compare_table(runs: list[Run]) -> str:
+    """Errors side by side (one column per run) and the configuration keys that differ."""
+    rows: list[tuple[str, str, str, tuple[str, ...]]] = [
+        ("speed error max", "rad/s", "speed_error", ("max",)),
+        ("speed error rms", "rad/s", "speed_error", ("rms",)),
+        ("speed error final", "rad/s", "speed_error", ("final",)),
+        ("flux error max", "Wb", "flux_error", ("max",)),
+        ("flux error rms", "Wb", "flux_error", ("rms",)),
+        ("estimation error max", "rad/s", "estimation_error", ("max",)),
+        ("estimation error rms", "rad/s", "estimation_error", ("rms",)),
+        ("peak current", "A", "peak_current", ()),
+        ("peak voltage", "V", "peak_voltage", ()),
+    ]
+    heads = ["", *(r.name for r in runs)]
+    lines = [heads]
+    for label, unit, key, sub in rows:
+        cells = [label]
+        for r in runs:
+            v: Any = r.summary.get(key)
+            for k in sub:
+                v = v.get(k) if isinstance(v, Mapping) else None
+            cells.append("—" if v is None else _fmt(float(v), unit))
+        lines.append(cells)
+    win_sets = [tuple((w["from"], w.get("label", "")) for w in
+                      r.summary.get("speed_error", {}).get("windows", [])) for r in runs]
+    if win_sets and all(ws == win_sets[0] for ws in win_sets) and win_sets[0]:
+        for j, (lo, _) in enumerate(win_sets[0]):
+            cells = [f"speed max from {lo:g} s"]
+            cells += [_fmt(r.summary["speed_error"]["windows"][j]["max"], "rad/s")
+                      for r in runs]
+            lines.append(cells)
+    widths = [max(len(r[j]) for r in lines) for j in range(len(heads))]
+    text = "\n".join("  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j])
+                               for j, c in enumerate(r)) for r in lines)
+    diffs = config_differences(runs)
+    if diffs:
+        text += "\nconfiguration differences:"
+        for k, vals in diffs.items():
+            text += f"\n  {k}: " + " | ".join("—" if v is None else str(v) for v in vals)
+    else:
+        text += "\nsame configuration"
+    some = config_only_in_some(runs)
+    if some:
+        text += f"\nnot compared (only in some runs): {', '.join(some)}"
+    return text
+
+
+def plot_compare(runs: list[Run], out: Path) -> Path | None:
+    """Speed and flux errors of every run overlaid, labelled by run and by the
+    configuration keys that differ; None when matplotlib is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    diffs = config_differences(runs)
+    shown = [k for k in diffs if not k.endswith(("bus", "profile", "duration"))][:3]
+    fig, ax = plt.subplots(2, 1, sharex=True, figsize=(9, 6.5), layout="constrained")
+    for j, r in enumerate(runs):
+        sig = r.signals
+        if not sig or "w_m" not in sig or not np.any(np.isfinite(sig["w_m"])):
+            continue
+        extra = ", ".join(f"{k.split('.')[-1]} {diffs[k][j]}" for k in shown)
+        label = r.name + (f" ({extra})" if extra else "")
+        style = ("-", "--", ":", "-.")[j % 4]  # identical runs stay visible
+        ax[0].plot(sig["t"], sig["w_m"] - sig["w_ref"], style, lw=1, label=label)
+        ax[1].plot(sig["t"], sig["psi_r_mod"] - sig["psi_ref"], style, lw=1, label=label)
+    ax[0].set_ylabel("speed error ω − ω* [rad/s]")
+    ax[1].set_ylabel("flux error |ψr| − ψ* [Wb]")
+    ax[1].set_xlabel("time [s]")
+    for a in ax:
+        a.grid(True, alpha=0.3)
+    ax[0].legend(loc="best", fontsize="x-small")
+    conf0 = runs[0].summary.get("configuration", {})
+    title = ", ".join(f"{k.replace('_', ' ')} {conf0[k]}" for k in
+                      ("law", "flux", "estimator", "drive_mode", "delay", "setpoint_frame")
+                      if k in conf0 and k not in diffs)
+    fig.suptitle("Comparison of runs — speed and flux errors"
+                 + (f"\ncommon: {title}" if title else ""), fontsize="medium")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
