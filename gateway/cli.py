@@ -96,6 +96,7 @@ def _run_dir(arg: str | None, kind: str, force: bool = False,
              extra_files: Sequence[str] = ()) -> Iterator[Path]:
     """:func:`_out_dir`, removed again if the run fails and leaves it empty."""
     existed = bool(arg) and Path(arg).exists()
+    parent_existed = Path(arg).parent.exists() if arg else Path("runs").exists()
     path = _out_dir(arg, kind, force, extra_files)
     try:
         yield path
@@ -103,6 +104,8 @@ def _run_dir(arg: str | None, kind: str, force: bool = False,
         if not existed:
             with suppress(OSError):
                 path.rmdir()  # only when empty
+                if not parent_existed:
+                    path.parent.rmdir()
         raise
 
 
@@ -239,15 +242,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     n_rows = _check_duration(total, period or cfg.record_step, what)
     report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
                              f"simulating {total:g} s at {label}")
+    windows = report.profile_windows(profile, args.windows)
     with _run_dir(args.out, f"simulate-{args.law}", args.force) as out:
-        return _simulate_into(out, args, profile, motor, cfg, label, report, StopSignals, run)
+        return _simulate_into(out, args, profile, motor, cfg, label, windows, StopSignals,
+                              run)
 
 
 def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any, cfg: Any,
-                   label: str, report: Any, stop_signals: Any, run: Any) -> int:
+                   label: str, windows: Any, stop_signals: Any, run: Any) -> int:
     """The simulation proper, its files and the printout (the run directory exists)."""
     from dbc.modes import DriveMode
     from dbc.signals import SETPOINT_MESSAGE
+    from gateway import report
 
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     t0 = time.perf_counter()
@@ -272,8 +278,7 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
             raise UserError(f"the simulation stopped before its first period "
                             f"({signals.reason})", exit_code=130)
         sig = rec.arrays()
-        summary: dict[str, Any] = report.metrics(sig, windows=report.profile_windows(
-            profile, args.windows))
+        summary: dict[str, Any] = report.metrics(sig, windows=windows)
         summary["truth"] = report.TRUTH_MODEL
         sampled = cfg.sampling is not None
         summary["quantisation"] = report.quantisation(
