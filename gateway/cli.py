@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
+import math
+import os
 import sys
 import threading
 import time
@@ -206,6 +208,10 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
 def _gains(args: argparse.Namespace):
     from gateway.control.laws import Gains
 
+    for name in ("k_w", "gamma_1", "gamma_2", "k_e"):
+        if not math.isfinite(getattr(args, name)):
+            raise UserError(f"--{name.replace('_', '-')} {getattr(args, name)}: give a finite "
+                            "positive number")
     try:
         return Gains(k_w=args.k_w, gamma_1=args.gamma_1, gamma_2=args.gamma_2, k_e=args.k_e,
                      i_max=args.i_max)
@@ -325,7 +331,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     _add_control_options(p)
     p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
                    "profile's, 1)")
-    p.add_argument("--period", default="1ms", help="cycle period (SYNC), e.g. 1ms (default)")
+    p.add_argument("--period", default="1ms",
+                   help="cycle period (SYNC) with its unit, 100us … 100ms in whole µs, e.g. "
+                        "1ms (default) or 250us")
     p.add_argument("--timing", type=Timing, choices=list(Timing), default=Timing.LOCKSTEP,
                    help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
                         "faster than real time against the emulator); realtime: SYNC on an "
@@ -684,7 +692,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "10 kHz, or voltage-fed (default: ideal for current-fed, voltage for "
                         "full-order); --drive is the old spelling")
     p.add_argument("--period", default="1ms",
-                   help="sampling period (1ms, 250us, ...) or 'continuous' (default 1ms)")
+                   help="sampling period with its unit, 100us … 100ms in whole µs (1ms, "
+                        "250us, ...), or 'continuous' (default 1ms)")
     p.add_argument("--setpoint-frame", type=SetpointFrame, choices=list(SetpointFrame),
                    default=SetpointFrame.DQ,
                    help="dq: the drive turns the frame itself (docs/paper.md §E9); ab: setpoints "
@@ -806,6 +815,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `hil-gateway sim | head`: the reader left; the files are written
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes stdout
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -228,6 +228,10 @@ def summary_table(summary: Mapping[str, Any]) -> str:
         "  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j]) for j, c in enumerate(r))
         for r in lines
     )
+    labelled = [w for w in win if w.get("label")]
+    if labelled:
+        text += "\nwindows: " + "; ".join(f"[{w['from']:g},{w['to']:g}) {w['label']}"
+                                          for w in labelled)
     text += (f"\npeak current {summary['peak_current']:.3g} A, "
              f"peak voltage {summary['peak_voltage']:.3g} V")
     if "truth" in summary:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 from gateway.errors import UserError
@@ -22,6 +23,9 @@ def parse_duration(text: str, what: str = "duration") -> float:
             "e.g. 1ms, 250us or 0.5s (a bare number is seconds)"
         )
     value = float(m.group(1)) * _SCALE[m.group(2)]
+    if not math.isfinite(value):
+        raise UserError(f"{what} {text!r} is too large to be a duration: write a finite "
+                        "number with a unit, e.g. 10s")
     if not value > 0.0:
         raise UserError(f"{what} {text!r} must be greater than zero")
     return value

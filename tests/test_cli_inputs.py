@@ -140,6 +140,19 @@ def test_summary_table_states_truth_and_resolution(tmp_path, capsys):
     assert "bus resolution (1 LSB): i 1 mA, u 20 mV" in out
 
 
+def test_a_closed_stdout_is_no_traceback(tmp_path):
+    """`hil-gateway simulate | head -1`: the reader leaves; the run's files are written."""
+    out = tmp_path / "piped"
+    proc = subprocess.Popen([sys.executable, "-m", "gateway", "simulate", "--duration", "20ms",
+                             "--out", str(out)], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    stderr = proc.stderr.read()
+    assert proc.wait(timeout=120) == 1
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr
+    assert (out / "summary.json").exists()
+
+
 # ------------------------------------------------------------------------ run directories
 
 
