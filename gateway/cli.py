@@ -192,8 +192,8 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimator", type=EstimatorKind, choices=list(EstimatorKind),
                    default=EstimatorKind.OPEN_LOOP,
                    help="flux estimator: the paper's open-loop integrator or the drift-free one")
-    p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
-                   "paper's 0.6 kW motor")
+    p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML, SI units; template: "
+                   "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
