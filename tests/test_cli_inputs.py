@@ -355,3 +355,41 @@ def test_compare_prints_errors_side_by_side_and_writes_a_figure(tmp_path, capsys
     fig = tmp_path / "cmp.pdf"
     assert main(["compare", str(a), str(b), "-o", str(fig)]) == 0
     assert fig.read_bytes()[:4] == b"%PDF"
+
+
+# ------------------------------------------------------------------------------- figures
+
+
+def test_figure_titles_name_the_whole_configuration(tmp_path):
+    from gateway.report import title_for
+
+    out = tmp_path / "t"
+    assert main(["simulate", "--duration", "20ms", "--period", "250us", "--setpoint-frame",
+                 "ab", "--estimator", "drift-free", "--out", str(out)]) == 0
+    conf = json.loads((out / "summary.json").read_text())["configuration"]
+    assert title_for(conf) == ("current-fed law, estimated flux (drift-free), ideal drive, "
+                               "T = 250 µs, delay 1, ab setpoints — simulate, INT16 bus signals")
+    bus = {"law": "full-order", "flux": "true", "drive_mode": "voltage", "period": 0.001,
+           "delay": 0, "setpoint_frame": "dq", "command": "sim", "bus": "inprocess:hil-sim",
+           "timing": "realtime"}
+    assert title_for(bus).endswith("delay 0, dq setpoints — over CANopen (inprocess, realtime)")
+    assert "continuous time — simulate" in title_for({"law": "current-fed", "flux": "true",
+                                                      "drive_mode": "ideal",
+                                                      "period": "continuous",
+                                                      "command": "simulate"})
+
+
+def test_fig3_zooms_on_start_up_a_load_step_and_steady_state():
+    from gateway.report import metrics, zoom_windows
+
+    t = np.arange(1, 2501) * 1e-3
+    ref = paper_profile().sample(t)
+    sig = {"t": t, "w_ref": ref["w_ref"], "psi_ref": ref["psi_ref"], "T_L": ref["T_L"],
+           "w_m": ref["w_ref"], "psi_r_mod": ref["psi_ref"], "w_hat": ref["w_ref"],
+           "i_sa": t, "i_sb": t, "u_sa": t, "u_sb": t}
+    windows = metrics(sig, profile_windows(paper_profile()))["speed_error"]["windows"]
+    zooms = zoom_windows(sig, windows)
+    assert [z[0] for z in zooms] == ["start-up", "load step at 0.5 s", "steady state (end)"]
+    assert zooms[0][1:] == (pytest.approx(1e-3), pytest.approx(0.5))
+    assert zooms[1][1] < 0.5 < zooms[1][2]
+    assert zooms[2][2] == pytest.approx(2.5)
