@@ -298,8 +298,10 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     t_stop: list[float] = []
 
     def stopped(t: float, x: np.ndarray) -> float:
-        """Terminal event: +1 until ``stop`` is seen, −1 from the time it was first seen."""
-        if not t_stop and stop is not None and stop.is_set():
+        """Terminal event: +1 until ``stop`` is seen, −1 from the time it was first seen
+        (never at the start, which would leave no sign change: a stop requested before the
+        integration begins ends it after the first step)."""
+        if not t_stop and stop is not None and stop.is_set() and t > 0.0:
             t_stop.append(t)
         return 1.0 if not t_stop or t < t_stop[0] else -1.0
 

@@ -244,6 +244,9 @@ def test_simulate_stops_within_half_a_second_of_the_request(period):
     latency = time.perf_counter() - t_set[0]
     assert latency < 0.5
     assert 0 < len(rec) < 3_600_000
+    # a stop requested before the run starts ends it at once, with what exists
+    rec = run(paper_profile(), MotorParams.paper(), cfg, None, stop)
+    assert 0 < len(rec) <= 2
 
 
 def test_sigint_keeps_the_files_and_figures_even_twice(tmp_path):
