@@ -18,7 +18,7 @@ import time
 
 from dbc.motor import MotorParams
 from gateway.control.controller import Controller, ControllerConfig, Sample
-from gateway.control.profiles import paper_profile
+from gateway.reference import paper_profile
 from gateway.simulate import SimConfig, run
 
 TARGET_US = 20.0

@@ -27,8 +27,8 @@ import can
 import numpy as np
 
 from dbc.motor import MotorParams
-from gateway.control.profiles import paper_profile
 from gateway.drive_profile import load_drive_profile
+from gateway.reference import paper_profile
 from gateway.report import read_csv
 from gateway.runner import RunConfig, run_gateway
 from gateway.transport import InProcessChannel

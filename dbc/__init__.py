@@ -30,6 +30,7 @@ from dbc.codec import (
     load_codec,
     load_database,
     message_codec,
+    parse_dbc,
     scaling,
     signal_specs,
 )
@@ -45,6 +46,7 @@ __all__ = [
     "load_codec",
     "load_database",
     "message_codec",
+    "parse_dbc",
     "scaling",
     "signal_specs",
 ]

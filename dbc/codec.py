@@ -32,6 +32,7 @@ __all__ = [
     "load_codec",
     "load_database",
     "message_codec",
+    "parse_dbc",
     "scaling",
     "signal_specs",
 ]
@@ -101,9 +102,16 @@ def load_database(path: Path = DBC_PATH):
 
 
 @functools.cache
-def _parse_dbc() -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
-    """Parse ``drive.dbc`` once with cantools (immutable result)."""
-    db = load_database()
+def parse_dbc(path: Path = DBC_PATH) -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
+    """Parse a DBC once with cantools (immutable result): messages and signals by name.
+
+    The fast codec needs byte-aligned little-endian 8/16/32-bit integer signals without
+    offset, filling their message; anything else raises :class:`ValueError` naming it.
+    """
+    try:
+        db = load_database(path)
+    except Exception as exc:  # cantools raises many kinds on a bad file
+        raise ValueError(f"{path}: not a readable DBC ({type(exc).__name__}: {exc})") from None
     messages: dict[str, _Message] = {}
     specs: dict[str, SignalSpec] = {}
     for m in db.messages:
@@ -112,22 +120,27 @@ def _parse_dbc() -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
         for s in sorted(m.signals, key=lambda s: s.start):
             if s.byte_order != "little_endian" or s.start != bit or s.length not in (8, 16, 32):
                 raise ValueError(
-                    f"{DBC_PATH}: signal {m.name}.{s.name} is not a byte-aligned little-endian "
+                    f"{path}: signal {m.name}.{s.name} is not a byte-aligned little-endian "
                     f"8/16/32-bit integer following the previous one; the fast codec needs that"
                 )
             if s.offset != 0 or s.is_float:
-                raise ValueError(f"{DBC_PATH}: signal {s.name} has an offset or is a float")
+                raise ValueError(f"{path}: signal {s.name} has an offset or is a float")
             bit += s.length
             spec = SignalSpec(s.name, float(s.scale), s.length, bool(s.is_signed))
             if specs.setdefault(s.name, spec) != spec:
-                raise ValueError(f"{DBC_PATH}: signal {s.name} is defined twice, differently")
+                raise ValueError(f"{path}: signal {s.name} is defined twice, differently")
             sigs.append(spec)
         if bit != 8 * m.length:
             raise ValueError(
-                f"{DBC_PATH}: message {m.name} is {m.length} bytes, signals {bit} bits"
+                f"{path}: message {m.name} is {m.length} bytes, signals {bit} bits"
             )
         messages[m.name] = _Message(m.name, m.frame_id, m.length, tuple(sigs))
     return messages, specs
+
+
+def _parse_dbc() -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
+    """The built-in ``drive.dbc``, parsed."""
+    return parse_dbc(DBC_PATH)
 
 
 class _DropDuplicateIdWarning(logging.Filter):

@@ -26,6 +26,10 @@ SETPOINTS: dict[SetpointFrame, tuple[str, ...]] = {
 }
 LOAD: tuple[str, ...] = ("T_L",)
 
+#: Every role: what the gateway means by a value (a signal name of ``drive.dbc``).
+ROLES: frozenset[str] = frozenset((*TX, *CONTROL, *FRAME, *SETPOINTS[SetpointFrame.DQ],
+                                   *SETPOINTS[SetpointFrame.AB], *LOAD))
+
 #: The default DBC message carrying the setpoints in each frame (they share a COB-ID).
 SETPOINT_MESSAGE: dict[SetpointFrame, str] = {
     SetpointFrame.DQ: "RPDO2",

@@ -18,6 +18,8 @@ import argparse
 import contextlib
 import csv
 import functools
+import io
+import logging
 import os
 import signal
 import struct
@@ -34,6 +36,8 @@ import can
 
 from dbc.bus import add_bus_options, bus_config, open_bus
 from gateway.errors import UserError
+
+log = logging.getLogger(__name__)
 
 #: Raw log formats (python-can writers/readers), by file suffix.
 LOG_SUFFIXES: dict[str, str] = {
@@ -95,19 +99,92 @@ def write_frame(writer: can.Listener, msg: can.Message) -> None:
         writer.on_message_received(msg)
 
 
-def read_log(path: str | Path) -> list[can.Message]:
-    """All frames of a log written by `hil-gateway log` (or any python-can-readable log)."""
+class Frames(list):
+    """The frames of a log; :attr:`damaged` counts what could not be read (lines of a text
+    log, or the unreadable tail of a binary one)."""
+
+    damaged: int = 0
+
+
+#: The text readers, for reading a damaged log line by line.
+_TEXT_READERS = {".asc": can.ASCReader, ".csv": can.CSVReader,
+                 ".log": can.CanutilsLogReader, ".trc": can.TRCReader}
+
+
+def _is_header(suffix: str, line: str, index: int) -> bool:
+    if suffix == ".csv":
+        return index == 0
+    if suffix == ".trc":
+        return line.startswith(";")
+    return False
+
+
+def _is_event(suffix: str, line: str) -> bool:
+    """A line of a text log that is neither header nor frame (ASC events, blank lines)."""
+    return not line.strip() or (suffix == ".asc" and ("Start of measurement" in line
+                                                      or line.startswith("End")))
+
+
+def _frame_lines(p: Path, suffix: str) -> tuple[str, list[str]]:
+    """The header of a text log and its lines that should each be a frame."""
+    lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+    if suffix == ".asc":  # the header ends with "Begin Triggerblock"
+        end = next((i + 1 for i, line in enumerate(lines)
+                    if line.lower().startswith("begin triggerblock")), 0)
+        header, rest = "".join(lines[:end]), lines[end:]
+        return header, [line for line in rest if not _is_event(suffix, line)]
+    header = "".join(line for i, line in enumerate(lines) if _is_header(suffix, line, i))
+    body = [line for i, line in enumerate(lines)
+            if not _is_header(suffix, line, i) and not _is_event(suffix, line)]
+    return header, body
+
+
+def _read_lines(header: str, body: list[str], suffix: str) -> Frames:
+    """A damaged text log, line by line: each frame line read with the file's header; a
+    line that gives no frame is damaged."""
+    reader = _TEXT_READERS[suffix]
+    out = Frames()
+    for line in body:
+        try:
+            got = list(reader(io.StringIO(header + line)))
+        except Exception:  # python-can's readers raise anything on a bad line
+            got = []
+        if got:
+            out.extend(got)
+        else:
+            out.damaged += 1
+    return out
+
+
+def read_log(path: str | Path) -> Frames:
+    """All frames of a log written by `hil-gateway log` or a run (any python-can-readable
+    log). Damaged lines are skipped and counted (:attr:`Frames.damaged`); a binary log is
+    read up to its damage (e.g. the tail of a log cut by kill -9)."""
     p = Path(path)
-    if p.suffix.lower() not in LOG_SUFFIXES:
+    suffix = p.suffix.lower()
+    if suffix not in LOG_SUFFIXES:
         raise UserError(f"{str(path)!r}: unknown log format {p.suffix!r}; python-can reads "
                         f"{', '.join(LOG_SUFFIXES)}")
+    if not p.is_file():
+        raise UserError(f"cannot read the log {str(p)!r}: no such file")
+    out = Frames()
     try:
         with can.LogReader(p) as reader:
-            return list(reader)
+            for msg in reader:
+                out.append(msg)
     except OSError as exc:
         raise UserError(f"cannot read the log {str(p)!r}: {exc.strerror or exc}") from exc
-    except (ValueError, struct.error) as exc:
-        raise UserError(f"{str(p)!r} is not a valid {p.suffix} log: {exc}") from exc
+    except Exception:  # a damaged record: the text readers retry line by line below
+        if suffix not in _TEXT_READERS:
+            out.damaged += 1  # the rest of a binary log
+            log.warning("%s: unreadable after %d frames", p, len(out))
+            return out
+        out.damaged = -1
+    if suffix in _TEXT_READERS:
+        header, body = _frame_lines(p, suffix)
+        if out.damaged or len(out) != len(body):  # some line was skipped or failed
+            return _read_lines(header, body, suffix)
+    return out
 
 
 # -------------------------------------------------------------------------- decoding

@@ -54,7 +54,8 @@ def _out_dir(arg: str | None, kind: str, force: bool = False,
     A default directory is never reused: two runs started in the same second get ``-2``,
     ``-3``… (created atomically). An existing non-empty ``--out`` is refused unless
     ``force``; then the files of the earlier run (:data:`RUN_FILES`, ``extra_files``) are
-    removed first so that nothing stale is mixed with the new run.
+    removed first so that nothing stale is mixed with the new run (symbolic links are kept
+    and written through: someone put them there on purpose).
     """
     try:
         if arg:
@@ -71,7 +72,9 @@ def _out_dir(arg: str | None, kind: str, force: bool = False,
                         "choose a new directory, or pass --force to reuse this one (the "
                         "earlier run's files are removed)")
                 for name in (*RUN_FILES, *extra_files):
-                    (path / name).unlink(missing_ok=True)
+                    old = path / name
+                    if not old.is_symlink():  # a link placed on purpose is written through
+                        old.unlink(missing_ok=True)
             path.mkdir(parents=True, exist_ok=True)
         else:
             base = Path("runs") / f"{datetime.now():%Y%m%d-%H%M%S}-{kind}"
@@ -121,7 +124,7 @@ def _check_duration(duration: float, step: float, what: str) -> int:
 
 
 def _load_profile(path: str | None):
-    from gateway.control.profiles import ProfileError, load_profile, paper_profile
+    from gateway.reference import ProfileError, load_profile, paper_profile
 
     try:
         return paper_profile() if path is None else load_profile(path)
@@ -331,6 +334,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     _add_control_options(p)
     p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
                    "profile's, 1)")
+    p.add_argument("--gateway-node", type=int, metavar="N",
+                   help="the gateway's own node id (its heartbeat, which the drive watches); "
+                        "default: the drive profile's [drive].gateway_node, 127 (0x7F)")
     p.add_argument("--period", default="1ms",
                    help="cycle period (SYNC) with its unit, 100us … 100ms in whole µs, e.g. "
                         "1ms (default) or 250us")
@@ -351,6 +357,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-missed", type=int,
                    help="consecutive missed cycles that stop the loop (default: real time 50 "
                         "ms worth, at least 5 (50 at 1 ms); lockstep 5, each after 1 s)")
+    p.add_argument("--max-miss-rate", type=float, default=0.2, metavar="FRACTION",
+                   help="the fraction of cycles that may be missed within any 100 ms before "
+                        "the run stops (default 0.2; 1 switches the rate limit off)")
     p.add_argument("--log", default="bus.blf", metavar="NAME",
                    help="raw bus log in the run directory; .blf (default), .asc, .csv, .log "
                         "(candump) or .trc by suffix")
@@ -383,6 +392,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
     from dbc.timing import Sampling
     from gateway.control.controller import FluxSource
     from gateway.loop import Timing
+    from gateway.process_data import process_data
     from gateway.runner import RunConfig
 
     law = args.law
@@ -407,13 +417,17 @@ def _run_config(args: argparse.Namespace, drive: Any):
         period = parse_period(args.period, "--period")
     if args.max_missed is not None and args.max_missed < 1:
         raise UserError(f"--max-missed {args.max_missed}: give a number of cycles >= 1")
+    if not 0.0 < args.max_miss_rate <= 1.0:
+        raise UserError(f"--max-miss-rate {args.max_miss_rate}: give a fraction in (0, 1]")
     return RunConfig(
         law=law, flux=args.flux, estimator=args.estimator, drive_mode=mode,
-        sampling=Sampling(period, args.delay, drive.setpoint_frame), timing=args.timing,
+        sampling=Sampling(period, args.delay, process_data(drive).setpoint_frame),
+        timing=args.timing,
         gains=_gains(args), bus_log=args.log,
         # real time: 50 ms worth of cycles; lockstep waits 1 s per cycle already: 5
         max_missed=args.max_missed or (max(5, round(0.05 / period))
                                        if args.timing is Timing.REALTIME else 5),
+        max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
     )
 
@@ -431,10 +445,19 @@ def _print_run(kind: str, summary: dict[str, Any], out: Path, profile: Any) -> N
 
 def _finish_run(summary: dict[str, Any]) -> int:
     """Exit status from the stop's cause (:class:`gateway.stop.StopReason`): 0 when the
-    profile ran to its end, 130 when interrupted, 1 otherwise (fault, drive lost, error)."""
+    profile ran to its end, 130 when interrupted, 1 otherwise (fault, drive lost, error),
+    and 1 whenever the drive was not confirmed safe or a result could not be written."""
     run = summary["run"]
-    if run["exit_status"] != 0:
-        print(f"{PROG}: the run stopped early: {run['stop_reason']}", file=sys.stderr)
+    for err in summary.get("write_errors", []):
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+    shutdown = summary.get("shutdown")
+    if shutdown is not None and not shutdown["safe"]:
+        steps = "; ".join(shutdown["steps"])
+        print(f"{PROG}: the drive's power stage was NOT confirmed off ({steps}). Check the "
+              "drive before touching the motor.", file=sys.stderr)
+    if run["stop"] != "END_OF_PROFILE":
+        print(f"{PROG}: the run stopped early ({run['stop'].lower().replace('_', ' ')}): "
+              f"{run['stop_reason']}", file=sys.stderr)
     return run["exit_status"]
 
 
@@ -455,9 +478,13 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     cfg = _run_config(args, drive)
-    node = drive.node if args.node is None else args.node
+    node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
+    gateway_node = args.gateway_node if args.gateway_node is not None else drive.gateway_node
+    if not 1 <= gateway_node <= 127 or gateway_node == node:
+        raise UserError(f"--gateway-node {gateway_node}: the gateway's node id is 1..127 and "
+                        f"not the drive's ({node})")
     total = cfg.duration or profile.duration
     what = (f"--duration {args.duration}" if args.duration
             else f"the profile's duration ({profile.duration:g} s)")
@@ -472,6 +499,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
             try:
                 progress = Progress(f"{kind} {label}", True if args.progress else None)
                 summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
+                                      gateway_node=args.gateway_node,
                                       own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
                                       progress=progress, signals=signals, bus_label=label)
                 progress.done(complete=summary["run"]["exit_status"] == 0)
@@ -493,6 +521,17 @@ def _report_run(out: Path, kind: str, summary: dict[str, Any], profile: Any, cfg
     full-resolution truth replaces TPDO3's INT16 values in signals.csv and the metrics
     (summary["truth"] says which); summary["quantisation"] gives each bus signal's LSB.
     """
+    try:
+        _refit_run(out, kind, summary, cfg, drive, windows, truth)
+    except OSError as exc:  # the runner's files stand; say what could not be redone
+        summary.setdefault("write_errors", []).append(
+            f"cannot rewrite the run's files in {out}: {exc.strerror or exc}")
+        summary["run"]["exit_status"] = 1
+        print(f"{PROG}: {summary['write_errors'][-1]}", file=sys.stderr)
+
+
+def _refit_run(out: Path, kind: str, summary: dict[str, Any], cfg: Any, drive: Any,
+               windows: Any, truth: Any) -> None:
     import numpy as np
 
     from gateway import report
@@ -501,7 +540,9 @@ def _report_run(out: Path, kind: str, summary: dict[str, Any], profile: Any, cfg
     summary["configuration"]["command"] = kind
     summary["quantisation"] = report.quantisation(True, drive.setpoints)
     csv_path = out / "signals.csv"
-    if csv_path.exists() and "speed_error" in summary:
+    if summary.get("write_errors"):
+        return  # what was written stands as the runner reported it
+    if csv_path.is_file() and "speed_error" in summary:
         sig = report.read_csv(csv_path)
         full = None
         if truth is not None and len(sig["t"]):
@@ -568,7 +609,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_profile_check(args: argparse.Namespace) -> int:
     """`hil-gateway profile check FILE`: validate and show the set points and demands."""
-    from gateway.control.profiles import demand
+    from gateway.reference import demand
 
     profile = _load_profile(args.file)
     motor = _load_motor(args.motor)
@@ -616,7 +657,7 @@ def cmd_profile_plot(args: argparse.Namespace) -> int:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise UserError("profile plot needs matplotlib: pip install 'can-drive-hil[plot]'") from exc
-    from gateway.control.profiles import sample_times
+    from gateway.reference import sample_times
 
     t = sample_times(profile, max_points=4000)
     s = profile.sample(t)

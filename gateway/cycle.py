@@ -1,11 +1,12 @@
-"""One control cycle at the PDO level: the single cycle body of `simulate` and the bus loop.
+"""One control cycle at the role level: the single cycle body of `simulate` and the bus loop.
 
-Data flows one way: decoded TPDO values → :class:`gateway.control.controller.Sample` →
-controller step → :class:`gateway.control.controller.Command` → RPDO values, plus one
-named record row. :class:`ControlCycle` is used by :func:`gateway.simulate.run_sampled`
-and by :class:`gateway.loop.CycleLoop` alike, with the same codec, so a lockstep run over
-the bus equals the simulation to the last bit. The signal names and scalings are the
-contract of ``dbc/drive.dbc`` (:mod:`dbc.signals`).
+Data flows one way: the role values the drive sent (decoded from its TPDOs by
+:class:`gateway.process_data.ProcessData`) → :class:`gateway.control.controller.Sample` →
+controller step → :class:`gateway.control.controller.Command` → the role values for the
+RPDOs, plus one named record row. :class:`ControlCycle` is used by
+:func:`gateway.simulate.run_sampled` and by :class:`gateway.loop.CycleLoop` alike, with the
+same quantisation, so a lockstep run over the bus equals the simulation to the last bit.
+Roles are the signal names of ``dbc/drive.dbc`` (:mod:`dbc.signals`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import NamedTuple, Protocol
 
 from dbc.cia402 import SW_INTERNAL_LIMIT, Controlword
 from dbc.modes import SetpointFrame
-from dbc.signals import SETPOINT_MESSAGE, SETPOINTS
+from dbc.signals import SETPOINTS
 from dbc.timing import Sampling
 from gateway.control.controller import Command, Controller, Sample
 from gateway.control.laws import Refs
@@ -80,63 +81,60 @@ class Truth:
 NO_TRUTH = Truth(math.nan, complex(math.nan, math.nan), math.nan)
 
 
-def truth_from_tpdo(tpdo3: Mapping[str, float] | None) -> Truth:
-    """The truth the emulator sends in TPDO3 (INT16 resolution), or :data:`NO_TRUTH`."""
-    if tpdo3 is None:
+def truth_from(measured: Mapping[str, float]) -> Truth:
+    """The truth the emulator sends (TPDO3, INT16 resolution), or :data:`NO_TRUTH`."""
+    if "w_m" not in measured:
         return NO_TRUTH
-    return Truth(tpdo3["w_m"], complex(tpdo3["psi_ra"], tpdo3["psi_rb"]), tpdo3["T_e"])
+    return Truth(measured["w_m"], complex(measured["psi_ra"], measured["psi_rb"]),
+                 measured["T_e"])
 
 
-def sample_from_tpdos(
-    tpdo1: Mapping[str, float], tpdo2: Mapping[str, float], tpdo3: Mapping[str, float] | None
-) -> Sample:
-    """The controller's input from decoded TPDO1 (currents), TPDO2 (voltages), TPDO3 (truth).
-
-    TPDO3 is the emulator's truth; only the comparison mode ``flux="true"`` reads its flux.
-    """
-    psi = None if tpdo3 is None else complex(tpdo3["psi_ra"], tpdo3["psi_rb"])
+def sample_from(measured: Mapping[str, float]) -> Sample:
+    """The controller's input from the drive's role values: currents, voltages, and the
+    emulator's true flux where it sends it (read only in the comparison mode
+    ``flux="true"``)."""
+    psi = (complex(measured["psi_ra"], measured["psi_rb"]) if "psi_ra" in measured
+           else None)
     return Sample(
-        i_s_ab=complex(tpdo1["i_sa"], tpdo1["i_sb"]),
-        u_s_ab=complex(tpdo2["u_sa"], tpdo2["u_sb"]),
+        i_s_ab=complex(measured["i_sa"], measured["i_sb"]),
+        u_s_ab=complex(measured["u_sa"], measured["u_sb"]),
         psi_r_ab=psi,
     )
 
 
-def rpdos_from_command(
+def setpoint_values(
     cmd: Command, T_L: float, frame: SetpointFrame,
     controlword: int = Controlword.ENABLE_OPERATION,
-) -> dict[str, dict[str, float]]:
-    """The RPDO signal values (SI) for one command, by default DBC message name.
+) -> dict[str, float]:
+    """The role values (SI) the gateway sends for one command.
 
-    RPDO1: controlword, frame angle ε0 at the start of the interval the setpoints act on,
-    frame speed ω0. RPDO2: current and voltage setpoints in the (d, q) frame, or, for
-    drives that hold (a, b) setpoints, in the fixed frame (RPDO2_AB). RPDO3: the load torque
-    for the emulated dynamometer, N·m.
+    controlword; the frame angle ε0 at the start of the interval the setpoints act on and
+    the frame speed ω0; the current and voltage setpoints in the (d, q) frame, or, for
+    drives that hold (a, b) setpoints, in the fixed frame; the load torque for the emulated
+    dynamometer, N·m.
     """
     if frame is SetpointFrame.DQ:
         i, u = cmd.i_s_dq_ref, cmd.u_s_dq_ref
     else:
         i, u = cmd.i_s_ab_ref, cmd.u_s_ab_ref
     n_i1, n_i2, n_u1, n_u2 = SETPOINTS[frame]
-    return {
-        "RPDO1": {"controlword": int(controlword), "eps_0": cmd.eps_0, "w_0": cmd.w_0},
-        SETPOINT_MESSAGE[frame]: {n_i1: i.real, n_i2: i.imag, n_u1: u.real, n_u2: u.imag},
-        "RPDO3": {"T_L": T_L},
-    }
+    return {"controlword": int(controlword), "eps_0": cmd.eps_0, "w_0": cmd.w_0,
+            n_i1: i.real, n_i2: i.imag, n_u1: u.real, n_u2: u.imag, "T_L": T_L}
 
 
 class CycleOutput(NamedTuple):
-    """What one cycle produces: the RPDO values by default message name, and the row."""
+    """What one cycle produces: the role values to send, and the record row."""
 
-    rpdos: dict[str, dict[str, float]]
+    setpoints: dict[str, float]
     row: CycleRow
 
 
 class ControlCycle:
-    """Cycle k: TPDO values at t_k = k·T → one controller step → RPDO values and a row.
+    """Cycle k: the drive's role values at t_k = k·T → one controller step → the role
+    values to send and a row.
 
-    The load torque sent (RPDO3, for the emulated dynamometer) is the profile's at the
-    start of the interval the setpoints act on, t_k + delay·T (docs/ARCHITECTURE.md).
+    The load torque sent (for the emulated dynamometer) is the profile's at the start of
+    the interval the setpoints act on, t_k + delay·T (docs/ARCHITECTURE.md).
     """
 
     def __init__(self, controller: Controller, profile: ReferenceProfile,
@@ -145,19 +143,20 @@ class ControlCycle:
         self.profile = profile
         self.sampling = sampling
 
-    def step(self, k: int, tpdo1: Mapping[str, float], tpdo2: Mapping[str, float],
-             tpdo3: Mapping[str, float] | None, truth: Truth | None = None) -> CycleOutput:
-        """Run cycle k. ``truth`` overrides TPDO3's (simulate records it unquantised)."""
+    def step(self, k: int, measured: Mapping[str, float], truth: Truth | None = None
+             ) -> CycleOutput:
+        """Run cycle k. ``truth`` overrides the one in ``measured`` (simulate records it
+        unquantised)."""
         s = self.sampling
         t = k * s.period
-        sample = sample_from_tpdos(tpdo1, tpdo2, tpdo3)
+        sample = sample_from(measured)
         refs = self.profile.at(t)
         cmd = self.controller.step(refs, sample)
         T_L_cmd = self.profile.at(s.t_apply(t)).T_L if s.delay else refs.T_L
-        rpdos = rpdos_from_command(cmd, T_L_cmd, s.setpoint_frame)
-        tr = truth if truth is not None else truth_from_tpdo(tpdo3)
+        values = setpoint_values(cmd, T_L_cmd, s.setpoint_frame)
+        tr = truth if truth is not None else truth_from(measured)
         psi = cmd.psi_r_dq
-        status = int(tpdo1.get("statusword", 0))
+        status = int(measured.get("statusword", 0))
         row = CycleRow(
             t, refs.w_ref, refs.psi_ref, refs.T_L, tr.w_m, abs(tr.psi_r_ab), cmd.w_hat,
             abs(psi), sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real,
@@ -165,4 +164,4 @@ class ControlCycle:
             cmd.u_s_dq_ref.imag, cmd.eps_0, cmd.w_0, psi.real, psi.imag, tr.T_e,
             float(cmd.i_limited), float(bool(status & SW_INTERNAL_LIMIT)),
         )
-        return CycleOutput(rpdos, row)
+        return CycleOutput(values, row)

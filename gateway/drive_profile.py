@@ -24,7 +24,11 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     truth = "TPDO3"                  # w_m, psi_ra, psi_rb, T_e (emulator only)
     remap = true                     # write the PDO mappings by SDO from the DBC layout
 
-    [timing]
+    [limits]                         # what the drive can report: beyond is a fault
+    current_peak_a = 25.0            # largest |i_s| (default: 1.5 × the controller's limit)
+    dc_link_v = [400.0, 700.0]       # DC-link range (default: only > 0)
+
+    [timing]                         # ms: 1..65535; s: finite, > 0
     heartbeat_ms = 50                # the drive's heartbeat (0x1017)
     heartbeat_timeout_ms = 300       # the gateway's heartbeat as seen by the drive (0x1016)
     drive_heartbeat_timeout_ms = 500 # the drive's heartbeat as watched by the gateway
@@ -36,7 +40,7 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -45,13 +49,32 @@ from gateway.errors import UserError
 
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
-              "emulator": bool},
+              "emulator": bool, "gateway_node": int, "dbc_node": int},
     "modes": {"current": int, "voltage": int},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
             "truth": str, "remap": bool},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
                "drive_heartbeat_timeout_ms": int,
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
+    "limits": {"current_peak_a": (int, float), "dc_link_v": list},
+    "signals": {},  # role = "MESSAGE.signal": any role of dbc/signals.py
+}
+#: Ranges of the timing keys: (low, high, unit, what it is).
+_TIMING_RANGES: dict[str, tuple[float, float, str, str]] = {
+    "heartbeat_ms": (1, 65535, "ms", "0x1017 is UNSIGNED16 ms; 0 would switch the drive's "
+                     "heartbeat off and with it the gateway's watch"),
+    "heartbeat_timeout_ms": (1, 65535, "ms", "0x1016 holds UNSIGNED16 ms; 0 would switch the "
+                             "drive's supervision of the gateway off"),
+    "drive_heartbeat_timeout_ms": (1, 65535, "ms", "the gateway's watch of the drive"),
+    "rpdo_timeout_ms": (1, 65535, "ms", "0x1400.5 is UNSIGNED16 ms; 0 would switch the RPDO "
+                        "deadline off"),
+    "boot_timeout_s": (0.01, 600.0, "s", "a finite wait for the boot-up"),
+    "sdo_timeout_s": (0.001, 60.0, "s", "a finite wait for an SDO answer"),
+}
+#: Objects a CiA 402 drive's EDS must have for the gateway to run it.
+REQUIRED_OBJECTS: dict[int, str] = {
+    0x1000: "device type", 0x1017: "producer heartbeat time", 0x6040: "controlword",
+    0x6041: "statusword", 0x6060: "modes of operation",
 }
 _REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "setpoints"),
              ("pdo", "currents"), ("pdo", "voltages"))
@@ -83,11 +106,12 @@ class DriveProfile:
     rpdo_timeout_ms: int = 300
     boot_timeout_s: float = 2.0
     sdo_timeout_s: float = 0.5
+    current_peak_a: float | None = None
+    dc_link_v: tuple[float, float] | None = None
+    signals: dict[str, tuple[str, str]] = field(default_factory=dict)
+    gateway_node: int = 0x7F
+    dbc_node: int | None = None
 
-    @property
-    def setpoint_frame(self) -> str:
-        """'ab' when the setpoint message is the (a, b) mapping, else 'dq'."""
-        return "ab" if self.setpoints.upper().endswith("_AB") else "dq"
 
 
 def _builtin(name: str) -> Path:
@@ -129,6 +153,9 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         if not isinstance(value, dict):
             raise UserError(f"{source}: [{section}] must be a table")
         for key, v in value.items():
+            if section == "signals":
+                _check_signal(source, key, v)
+                continue
             types = _SECTIONS[section].get(key)
             if types is None:
                 raise UserError(f"{source}: unknown key [{section}].{key}; the keys of "
@@ -139,10 +166,31 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         if key not in data.get(section, {}):
             raise UserError(f"{source}: [{section}].{key} is missing; add it (see "
                             "gateway/drives/emulator.toml for an example)")
-    d, m, p, t = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing"))
+    d, m, p, t, lim, sg = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing",
+                                                     "limits", "signals"))
+    for key, value in t.items():
+        lo, hi, unit, what = _TIMING_RANGES[key]
+        if not lo <= value <= hi:  # NaN and inf too
+            raise UserError(f"{source}: [timing].{key} = {value!r} is outside {lo:g}..{hi:g} "
+                            f"{unit} ({what}); give a value in that range")
+    peak = lim.get("current_peak_a")
+    if peak is not None and not 0.0 < peak < 1e4:
+        raise UserError(f"{source}: [limits].current_peak_a = {peak!r} must be a current in A, "
+                        "0 < I < 10000")
+    dc = lim.get("dc_link_v")
+    if dc is not None and (len(dc) != 2 or not all(isinstance(x, int | float)
+                                                    and not isinstance(x, bool) for x in dc)
+                           or not 0.0 <= dc[0] < dc[1] < 1e5):
+        raise UserError(f"{source}: [limits].dc_link_v = {dc!r} must be [low, high] in V with "
+                        "0 <= low < high")
     node = d.get("node", 1)
-    if not 1 <= node <= 127:
-        raise UserError(f"{source}: [drive].node = {node}: a CANopen node id is 1..127")
+    for key, value in (("node", node), ("gateway_node", d.get("gateway_node", 0x7F)),
+                       ("dbc_node", d.get("dbc_node", node))):
+        if not 1 <= value <= 127:
+            raise UserError(f"{source}: [drive].{key} = {value}: a CANopen node id is 1..127")
+    if d.get("gateway_node", 0x7F) == node:
+        raise UserError(f"{source}: [drive].gateway_node = {node} is the drive's node id: the "
+                        "gateway's heartbeat would look like the drive's; choose another")
     prof = DriveProfile(
         name=d.get("name", Path(source).stem), source=source,
         eds=_resolve(d["eds"], base), dbc=_resolve(d["dbc"], base), node=node,
@@ -157,9 +205,65 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         rpdo_timeout_ms=t.get("rpdo_timeout_ms", 300),
         boot_timeout_s=float(t.get("boot_timeout_s", 2.0)),
         sdo_timeout_s=float(t.get("sdo_timeout_s", 0.5)),
+        current_peak_a=None if peak is None else float(peak),
+        dc_link_v=None if dc is None else (float(dc[0]), float(dc[1])),
+        signals={role: _message_signal(v) for role, v in sg.items()},
+        gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
     )
     for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
         if not path.is_file():
             raise UserError(f"{source}: [drive].{what} = {str(path)!r} does not exist; give the "
                             f"path of the drive's {what.upper()} file, relative to the profile")
+    _check_eds(prof)
+    _check_dbc(prof, [n for n in (prof.control, prof.setpoints, prof.load, prof.currents,
+                                  prof.voltages, prof.truth) if n])
     return prof
+
+
+def _message_signal(value: str) -> tuple[str, str]:
+    message, signal = value.split(".", 1)
+    return message, signal
+
+
+def _check_signal(source: str, role: str, value: object) -> None:
+    from dbc.signals import ROLES
+
+    if role not in ROLES:
+        raise UserError(f"{source}: [signals].{role} is not a role of the gateway; the roles "
+                        f"are {', '.join(sorted(ROLES))}")
+    if not isinstance(value, str) or value.count(".") != 1 or value.startswith(".") or \
+            value.endswith("."):
+        raise UserError(f"{source}: [signals].{role} = {value!r}: write \"MESSAGE.signal\" of "
+                        "the profile's DBC, e.g. \"TPDO1.Ia\"")
+
+
+def _check_eds(prof: DriveProfile) -> None:
+    """The EDS loads and has the objects the gateway needs (:data:`REQUIRED_OBJECTS`)."""
+    import canopen
+
+    try:
+        od = canopen.import_od(str(prof.eds))
+    except Exception as exc:
+        raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} cannot be read "
+                        f"({type(exc).__name__}: {exc}); give the drive's CiA 306 EDS") from None
+    missing = [f"0x{i:04X} {what}" for i, what in REQUIRED_OBJECTS.items() if i not in od]
+    if missing:
+        raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} has no {', '.join(missing)}: "
+                        "the gateway needs them to run a CiA 402 drive (is it the drive's EDS?)")
+
+
+def _check_dbc(prof: DriveProfile, names: list[str]) -> None:
+    """The DBC loads and has the messages the profile names."""
+    from dbc import load_database
+
+    try:
+        db = load_database(prof.dbc)
+    except Exception as exc:
+        raise UserError(f"{prof.source}: the DBC {str(prof.dbc)!r} cannot be read "
+                        f"({type(exc).__name__}: {str(exc)[:200]}); give a DBC file") from None
+    known = {m.name for m in db.messages}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise UserError(f"{prof.source}: [pdo] names {', '.join(unknown)}, which the DBC "
+                        f"{str(prof.dbc)!r} does not define; its messages are "
+                        f"{', '.join(sorted(known))}")

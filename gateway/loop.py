@@ -16,6 +16,14 @@ python-canopen), driven by frames:
 
 Per cycle the loop records the signals and its timing: SYNC period, SYNC → last TPDO, and
 the gateway's reaction time from the last TPDO's arrival to the RPDOs sent.
+
+Faults stop the loop within the cycle they appear in, before any setpoint is sent for it
+(:class:`gateway.stop.StopReason` names each): a fault reported by the master (EMCY, lost
+heartbeat, boot-up, NMT change), a statusword that is not "Operation enabled", a TPDO of
+the wrong length, a SYNC the gateway did not send, an implausible measurement
+(:class:`gateway.guard.Plausibility`), a loop outside the profile's envelope
+(:class:`gateway.guard.Envelope`), too many missed cycles in a row or within any 100 ms.
+The last frames before the stop are kept for the summary (:attr:`CycleLoop.recent`).
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import math
 import sys
 import threading
 import time
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -34,10 +43,12 @@ from typing import Any, NamedTuple
 import can
 
 from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, sync_counter
-from dbc.signals import SETPOINT_MESSAGE
+from dbc.cia402 import SW_FAULT, State
 from dbc.timing import Sampling
 from gateway.control.controller import Controller
 from gateway.cycle import ControlCycle, CycleRow, ReferenceProfile
+from gateway.guard import Envelope, Plausibility
+from gateway.process_data import ProcessData
 from gateway.report import Record
 from gateway.stop import StopReason
 
@@ -51,6 +62,11 @@ class Timing(StrEnum):
     LOCKSTEP = "lockstep"
     REALTIME = "realtime"
 
+
+#: The missed-cycle rate limit looks at windows of this length, s.
+MISS_WINDOW = 0.1
+#: Frames kept for the summary of a stop.
+RECENT_FRAMES = 24
 
 #: Real-time SYNC thread: how long before a deadline it stops sleeping and spins, s. On the
 #: project's VM, time.sleep overshoots by 107 µs median, 217 µs p99 (2.9 ms p99.9).
@@ -100,15 +116,23 @@ assert LoopRow._fields[:len(CycleRow._fields)] == CycleRow._fields
 class LoopConfig:
     """sampling: period, delay (1 for synchronous RPDOs: the drive applies them at the next
     SYNC; 0 for "on receipt") and setpoint frame; n_cycles: cycles to run; max_missed:
-    consecutive missed cycles that stop the loop; tpdo_timeout: in lockstep, how long to
-    wait for a cycle's TPDOs, s; sync_counter: SYNC carries the counter (0x1019)."""
+    consecutive missed cycles that stop the loop; max_miss_rate: the fraction of cycles
+    that may be missed within any :data:`MISS_WINDOW` (at least 5 cycles); tpdo_timeout: in
+    lockstep, how long to wait for a cycle's TPDOs, s; sync_counter: SYNC carries the
+    counter (0x1019); plausibility, envelope: the guards (None: not checked); the
+    envelope stops the loop when crossed in ``envelope_cycles`` cycles in a row (one
+    coasting cycle's current step is not a loss of control)."""
 
     n_cycles: int
     sampling: Sampling = field(default_factory=Sampling)
     timing: Timing = Timing.LOCKSTEP
     max_missed: int = 5
+    max_miss_rate: float = 0.2
     tpdo_timeout: float = 1.0
     sync_counter: bool = True
+    plausibility: Plausibility | None = None
+    envelope: Envelope | None = None
+    envelope_cycles: int = 3
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "timing", Timing(self.timing))
@@ -123,16 +147,11 @@ class LoopStats:
     late_rpdo: int = 0
     stop: StopReason | None = None
     stop_reason: str = ""
+    stop_cycle: int = 0  #: the cycle open when the loop stopped (0: before the first)
+    #: TPDOs not used, with why: '<PDO> late', 'early', 'stale', 'wrong length'
+    tpdo_events: Counter[str] = field(default_factory=Counter)
+    last_good_cycle: int = 0  #: the last cycle completed and sent
     wall_time: float = 0.0
-
-
-class PdoNames:
-    """The DBC message names the loop uses (from the drive profile)."""
-
-    def __init__(self, currents: str, voltages: str, truth: str | None, control: str,
-                 setpoints: str, load: str | None) -> None:
-        self.currents, self.voltages, self.truth = currents, voltages, truth
-        self.control, self.setpoints, self.load = control, setpoints, load
 
 
 class CycleLoop:
@@ -142,34 +161,39 @@ class CycleLoop:
         self,
         bus: can.BusABC,
         subscribe: Callable[[int, Callable[[int, bytearray, float], None]], None],
-        codec: Any,
-        names: PdoNames,
+        pd: ProcessData,
         controller: Controller,
         profile: ReferenceProfile,
         cfg: LoopConfig,
         own_echo: bool = True,
         fault: threading.Event | None = None,
+        fault_cause: Callable[[], tuple[StopReason, str] | None] | None = None,
     ) -> None:
         self.bus = bus
-        self.codec = codec
-        self.names = names
+        self.pd = pd
         self.ctl = controller
         self.cycle = ControlCycle(controller, profile, cfg.sampling)
         self.cfg = cfg
         self.own_echo = own_echo
         self.fault = fault or threading.Event()
+        self._fault_cause = fault_cause
         self.record = Record(LoopRow)
+        #: the last frames seen and sent: (time.time(), 'rx'/'tx', COB-ID, data hex)
+        self.recent: deque[tuple[float, str, int, str]] = deque(maxlen=RECENT_FRAMES)
+        self._misses: deque[int] = deque()  # cycles missed within the last window
+        self._miss_window = max(5, round(MISS_WINDOW / cfg.sampling.period))
+        self._syncs_sent = 0
+        self._outside = 0  # consecutive cycles outside the envelope
         self.stats = LoopStats()
         self._lock = threading.Lock()
         self._done = threading.Event()
         self._stop = threading.Event()
         self._error: BaseException | None = None
         self._T = cfg.sampling.period
-        # the frames the controller needs, in the order the drive sends them
-        self._expected = [names.currents, names.voltages] + ([names.truth] if names.truth else [])
-        self._ids = {codec.frame_id(n): n for n in self._expected}
-        self._first_name = self._expected[0]
-        self._last_name = self._expected[-1]
+        # the drive's TPDOs: all of them make a cycle's measurement, in any order
+        self._expected = {p.name: p for p in pd.tpdos}
+        self._ids = {p.cob_id: p for p in pd.tpdos}
+        self._echo = pd.pdo("sync_counter") if "sync_counter" in pd.roles else None
         self._stale = False
         self._frames: dict[str, bytes] = {}
         self._tpdo_time = 0.0
@@ -179,23 +203,14 @@ class CycleLoop:
         self._sync_time = math.nan
         self._sync_prev = math.nan
         self._progress_at = time.monotonic()
-        rpdo2_expected = SETPOINT_MESSAGE[cfg.sampling.setpoint_frame]
-        # (COB-ID, DBC message, key of rpdos_from_command's result)
-        self._rpdo: list[tuple[int, str, str]] = [
-            (codec.frame_id(names.control), names.control, "RPDO1"),
-            (codec.frame_id(names.setpoints), names.setpoints, rpdo2_expected),
-        ]
-        if names.load:
-            self._rpdo.append((codec.frame_id(names.load), names.load, "RPDO3"))
-        if names.setpoints != rpdo2_expected:
-            raise ValueError(f"setpoint message {names.setpoints} does not carry the "
-                             f"{cfg.sampling.setpoint_frame} frame ({rpdo2_expected})")
+        if pd.setpoint_frame is not cfg.sampling.setpoint_frame:
+            raise ValueError(f"the drive's setpoints are in the {pd.setpoint_frame} frame, "
+                             f"not {cfg.sampling.setpoint_frame}")
         self._sync_task: Any = None
         self._sync_thread: threading.Thread | None = None
         for cob_id in self._ids:
             subscribe(cob_id, self._on_tpdo)
-        if own_echo:
-            subscribe(SYNC_ID, self._on_own_sync)
+        subscribe(SYNC_ID, self._on_own_sync if own_echo else self._on_foreign_sync)
 
     # ------------------------------------------------------------------- frames in
 
@@ -204,14 +219,42 @@ class CycleLoop:
         return can.Message(arbitration_id=SYNC_ID, data=data, is_extended_id=False)
 
     def _on_own_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self._open_cycle(timestamp)
+        """A SYNC on the bus: ours (the echo of what we sent), or another producer's."""
+        with self._lock:
+            self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
+            if self._done.is_set():
+                return
+            k = self._k + 1
+            if self.cfg.sync_counter:
+                ours = len(data) == 1 and data[0] == sync_counter(k)
+            elif self.cfg.timing is Timing.LOCKSTEP:
+                ours = self._syncs_sent >= k
+            else:  # no counter, SYNC on a schedule: ours cannot come within half a period
+                ours = not len(data) and not timestamp - self._sync_time < 0.5 * self._T
+            if not ours:
+                self._finish(StopReason.FOREIGN_SYNC,
+                             f"a SYNC the gateway did not send (data {bytes(data).hex() or '-'}"
+                             f", expected the SYNC of cycle {k}): another SYNC producer on the "
+                             "bus; there must be one")
+                return
+            self._open_locked(timestamp)
+
+    def _on_foreign_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """Without own echo the gateway never receives its SYNC: any SYNC is another's."""
+        with self._lock:
+            self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
+            self._finish(StopReason.FOREIGN_SYNC, "a SYNC the gateway did not send: another "
+                         "SYNC producer on the bus; there must be one")
 
     def _open_cycle(self, timestamp: float) -> None:
         with self._lock:
             self._open_locked(timestamp)
 
     def _open_locked(self, timestamp: float) -> None:
-        """A SYNC went out: cycle k begins; the previous one, if incomplete, is missed."""
+        """A SYNC went out: cycle k begins; the previous one, if incomplete, is missed
+        (unless the master saw a fault, which is then the cause)."""
+        if self._drive_faulted():
+            return
         if self._k > self._k_done and self._k_done < self.cfg.n_cycles:
             self._miss()
         self._k += 1
@@ -221,63 +264,111 @@ class CycleLoop:
 
     def _miss(self) -> None:
         """Cycle self._k had no complete TPDO set: coast and count (lock held)."""
+        k = self._k
         self.stats.missed += 1
         self._consecutive_missed += 1
-        self._k_done = self._k
+        self._k_done = k
         self.ctl.coast()
+        misses, window = self._misses, self._miss_window
+        misses.append(k)
+        while misses[0] <= k - window:
+            misses.popleft()
+        missing = sorted(set(self._expected) - set(self._frames)) or ["none (late)"]
         if self._consecutive_missed >= self.cfg.max_missed:
             self._finish(StopReason.DRIVE_LOST,
                          f"{self._consecutive_missed} consecutive cycles without the drive's "
-                         "TPDOs (drive lost or bus overloaded)")
+                         f"TPDOs (missing in cycle {k}: {', '.join(missing)}; drive lost or "
+                         "bus overloaded)")
+        elif len(misses) > self.cfg.max_miss_rate * window and self.cfg.max_miss_rate < 1:
+            self._finish(StopReason.DRIVE_LOST,
+                         f"{len(misses)} of the last {window} cycles missed (more than "
+                         f"{self.cfg.max_miss_rate:.0%} within {window * self._T * 1e3:g} ms; "
+                         f"last missing: {', '.join(missing)}): the loop cannot keep its rate")
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """A TPDO of the drive: it belongs to the cycle open since the last SYNC; the cycle
+        is complete when every TPDO is in, in any order."""
         t_arrival = time.perf_counter()
-        name = self._ids.get(can_id)
-        if name is None or self._done.is_set():
+        pdo = self._ids.get(can_id)
+        if pdo is None or self._done.is_set():
             return
         with self._lock:
+            self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
+            if len(data) != pdo.length:
+                self.stats.tpdo_events[f"{pdo.name} wrong length"] += 1
+                self._finish(StopReason.BAD_FRAME,
+                             f"{pdo.name} (COB-ID 0x{can_id:03X}) of {len(data)} bytes, "
+                             f"expected {pdo.length}: not decoded (a wrong PDO mapping on the "
+                             "drive, or another node on this COB-ID)")
+                return
             if self._k <= self._k_done:
-                return  # a TPDO outside an open cycle (late, or before the first SYNC)
-            if name == self._first_name and self.cfg.sync_counter:
-                counter = self.codec.decode(name, data).get("sync_counter")
-                self._stale = counter is not None and counter != sync_counter(self._k)
+                # after its cycle (late) or before the first SYNC (early)
+                self.stats.tpdo_events[f"{pdo.name} {'late' if self._k else 'early'}"] += 1
+                return
+            if pdo is self._echo and self.cfg.sync_counter:
+                counter = pdo.codec.decode(data)["sync_counter"]
+                self._stale = counter != sync_counter(self._k)
             if self._stale:
-                return  # the answer to an earlier SYNC, arriving in this cycle: not ours
-            self._frames[name] = bytes(data)
-            if name != self._last_name or len(self._frames) < len(self._expected):
+                # the answer to an earlier SYNC, arriving in this cycle: not ours
+                self.stats.tpdo_events[f"{pdo.name} stale"] += 1
+                return
+            self._frames[pdo.name] = bytes(data)
+            if len(self._frames) < len(self._expected):
                 return
             self._tpdo_time = timestamp
             try:
                 self._cycle(t_arrival)
             except Exception as exc:  # the receive thread must not die silently
                 self._error = exc
+                log.exception("error in control cycle %d", self._k)
                 self._finish(StopReason.CONTROL_ERROR, f"error in the control cycle: {exc!r}")
 
     # ------------------------------------------------------------------ the cycle
 
     def _cycle(self, t_arrival: float) -> None:
-        """Decode, step, encode, send (lock held)."""
+        """Check, decode, step, guard, encode, send (lock held)."""
         k = self._k
         cfg = self.cfg
-        codec = self.codec
-        names = self.names
         fr = self._frames
-        tp1 = codec.decode(names.currents, fr[names.currents])
-        tp2 = codec.decode(names.voltages, fr[names.voltages])
-        tp3 = codec.decode(names.truth, fr[names.truth]) if names.truth else None
-        rpdos, row = self.cycle.step(k, tp1, tp2, tp3)
+        if self._drive_faulted():
+            return
+        measured: dict[str, float] = {}
+        for name, pdo in self._expected.items():
+            measured.update(pdo.codec.decode(fr[name]))
+        sw = int(measured["statusword"])
+        state = State.from_statusword(sw)
+        if state is not State.OPERATION_ENABLED:
+            stop = StopReason.DRIVE_FAULT if sw & SW_FAULT else StopReason.DRIVE_STATE
+            shown = state.name if state is not None else "no CiA 402 state"
+            self._finish(stop, f"statusword 0x{sw:04X} ({shown}) in cycle {k}: the drive left "
+                               "Operation enabled")
+            return
+        if cfg.plausibility is not None:
+            why = cfg.plausibility.check(measured)
+            if why:
+                self._finish(StopReason.IMPLAUSIBLE, f"cycle {k}: {why}")
+                return
+        setpoints, row = self.cycle.step(k, measured)
+        if cfg.envelope is not None:
+            why = cfg.envelope.check(row)
+            self._outside = self._outside + 1 if why else 0
+            if why and self._outside >= cfg.envelope_cycles:
+                self._finish(StopReason.DIVERGED, f"cycle {k} (t = {row.t:.4f} s): {why}, "
+                                                  f"{self._outside} cycles in a row")
+                return
         send = self.bus.send
-        for cob_id, name, key in self._rpdo:
-            send(can.Message(arbitration_id=cob_id, data=codec.encode(name, rpdos[key]),
-                             is_extended_id=False))
+        for cob_id, _name, data in self.pd.encode(setpoints):
+            send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+            self.recent.append((time.time(), "tx", cob_id, data.hex()))
         t_sent = time.perf_counter()
         self._k_done = k
+        self.stats.last_good_cycle = k
         self._consecutive_missed = 0
         self.stats.cycles += 1
         if cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T:
             self.stats.late_rpdo += 1  # the next SYNC was due before the RPDOs went out
         self.record.append(LoopRow(
-            *row, float(tp1["statusword"]), float(tp1.get("sync_counter", 0)),
+            *row, float(sw), float(measured.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
             t_sent - t_arrival, float(self.stats.missed),
         ))
@@ -287,16 +378,33 @@ class CycleLoop:
         elif cfg.timing is Timing.LOCKSTEP and not self._stop.is_set():
             self._send_sync(k + 1)
 
+    def _drive_faulted(self) -> bool:
+        """The master saw a fault (EMCY, heartbeat, NMT): stop with its cause (lock held)."""
+        if not self.fault.is_set():
+            return False
+        cause = self._fault_cause() if self._fault_cause is not None else None
+        stop, message = cause or (StopReason.DRIVE_FAULT, "drive fault")
+        self._finish(stop, message)
+        return True
+
     def _send_sync(self, k: int) -> None:
         """Lockstep: send SYNC k (lock held)."""
+        if self._drive_faulted():
+            return
         msg = self._sync_message(k)
+        self._syncs_sent = k
         if not self.own_echo:
             self._open_locked(time.time())
         self.bus.send(msg)
+        self.recent.append((time.time(), "tx", SYNC_ID, bytes(msg.data).hex()))
 
     def _finish(self, stop: StopReason, message: str) -> None:
         if self.stats.stop is None:
             self.stats.stop, self.stats.stop_reason = stop, message
+            self.stats.stop_cycle = self._k
+            if stop is not StopReason.END_OF_PROFILE:
+                log.warning("loop stopped in cycle %d: %s", self._k, message)
+        self._stop.set()
         self._done.set()
 
     # ------------------------------------------------------------------- running
@@ -326,8 +434,9 @@ class CycleLoop:
             else:
                 self._start_sync_producer()
             while not self._done.wait(0.05):
-                if self.fault.is_set():
-                    self.request_stop("drive fault", StopReason.DRIVE_FAULT)
+                if self.fault.is_set():  # no cycle running to notice it (e.g. no TPDOs)
+                    with self._lock:
+                        self._drive_faulted()
                     break
                 if progress is not None:
                     progress(self._k_done / self.cfg.n_cycles)
@@ -343,8 +452,6 @@ class CycleLoop:
                 gc.enable()
         if progress is not None:
             progress(self._k_done / self.cfg.n_cycles)
-        if self._error is not None:
-            raise self._error
         return self.stats
 
     def _lockstep_watchdog(self) -> None:
@@ -380,7 +487,9 @@ class CycleLoop:
         self._sync_thread.start()
 
     def _sync_thread_main(self) -> None:
-        """SYNC on an absolute schedule: sleep until SPIN_MARGIN before, then spin.
+        """SYNC on an absolute schedule: sleep until SPIN_MARGIN before, then spin. A thread
+        held up for more than a period (the host stalled) shifts its schedule: the SYNCs it
+        could not send are not sent later in a burst, which the drive could not follow.
 
         The spin yields the interpreter lock every turn (``sleep(0)``): a plain busy loop
         would hold it for the whole switch interval and starve the receive threads.
@@ -391,6 +500,10 @@ class CycleLoop:
         while not self._stop.is_set():
             k += 1
             target = t0 + (k - 1) * T
+            late = time.perf_counter() - target
+            if late > T:  # the thread was held up: shift the schedule, never send a burst
+                t0 += late
+                target += late
             remaining = target - time.perf_counter()
             if remaining > SPIN_MARGIN:
                 time.sleep(remaining - SPIN_MARGIN)

@@ -11,11 +11,19 @@ Sequence (:meth:`DriveMaster.connect` … :meth:`DriveMaster.shutdown`):
    cycle period 0x1006, synchronous window 0x1007, producer heartbeat 0x1017, consumer
    heartbeat 0x1016 (the gateway's own heartbeat), PDO mappings and transmission types
    (every SYNC), RPDO deadline 0x140x.5, mode of operation 0x6060, emulator objects;
-3. NMT OPERATIONAL; the gateway's heartbeat producer starts;
+3. NMT OPERATIONAL; the gateway's heartbeat producer starts; the watch is armed;
 4. CiA 402 enable sequence on 0x6040/0x6041 (shutdown → switch on → enable operation);
-5. shutdown: controlword "disable voltage", NMT PRE-OPERATIONAL, heartbeat stopped.
+5. shutdown (:meth:`DriveMaster.shutdown`), on every exit path: the power stage off
+   through the CiA 402 state machine, confirmed by an SDO read of the statusword; if the
+   drive does not answer SDO (NMT STOPPED), NMT PRE-OPERATIONAL and again; if still not
+   confirmed, NMT *reset node* and its boot-up. The drive's supervision of the gateway
+   (0x1016) is switched off only once the power stage is confirmed off; otherwise the
+   gateway's heartbeat stops with the supervision on, so the drive trips by itself, and
+   the run is reported unsafe.
 
-A lost drive heartbeat or an EMCY sets :attr:`DriveMaster.fault`, which stops the loop.
+While the watch is armed, an EMCY, a lost drive heartbeat, a boot-up or an NMT state
+other than OPERATIONAL sets :attr:`DriveMaster.fault` (with a :class:`FaultEvent` naming
+it), which the loop checks every cycle.
 """
 
 from __future__ import annotations
@@ -28,15 +36,13 @@ from dataclasses import dataclass, field
 
 import can
 import canopen
+from canopen.pdo.base import PdoMap
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dbc.cia301 import (
     EMCY_BASE,
     HEARTBEAT_BASE,
-    RPDO_COMM,
-    RPDO_MAP,
-    TPDO_COMM,
-    TPDO_MAP,
+    NMT_ID,
     Emcy,
     NmtCommand,
     NmtState,
@@ -53,21 +59,26 @@ from dbc.cia402 import (
 )
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
+from gateway.process_data import Pdo, ProcessData
+from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
 
-#: The gateway's own node id for its heartbeat (0x700 + id); 0x7F is conventional for masters.
-GATEWAY_NODE_ID = 0x7F
 
 
 @dataclass
 class FaultEvent:
-    """Something that stops the loop: an EMCY or a lost heartbeat."""
+    """Something that stops the loop: an EMCY, a lost heartbeat, a boot-up or NMT change.
+
+    time: ``time.monotonic()``; kind: 'EMCY', 'heartbeat', 'boot-up', 'NMT'; code: the EMCY
+    code; reason: the stop reason it gives the run.
+    """
 
     time: float
     kind: str
     code: int | None = None
     text: str = ""
+    reason: StopReason = StopReason.DRIVE_FAULT
 
     def describe(self) -> str:
         code = "" if self.code is None else f" 0x{self.code:04X}"
@@ -83,13 +94,40 @@ class MasterState:
     nmt_state: NmtState | None = None
 
 
+@dataclass
+class ShutdownReport:
+    """What the shutdown did and whether the drive's power stage was confirmed off.
+
+    safe: confirmed off (by statusword, or by the boot-up after a reset node). state: the
+    last CiA 402 state read (name), or None. steps: what was done, in order.
+    supervision_off: 0x1016 was switched off (only when safe).
+    """
+
+    safe: bool = False
+    state: str | None = None
+    steps: list[str] = field(default_factory=list)
+    supervision_off: bool = False
+
+#: CiA 402 states in which the power stage applies no voltage to the motor.
+POWER_OFF_STATES = (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
+                    State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.FAULT)
+
+
 class DriveMaster:
     """NMT, SDO configuration, CiA 402 enable/disable and monitoring of one drive."""
 
-    def __init__(self, bus: can.BusABC, profile: DriveProfile, node_id: int | None = None) -> None:
+    def __init__(self, bus: can.BusABC, profile: DriveProfile, node_id: int | None = None,
+                 gateway_node: int | None = None) -> None:
         self.bus = bus
         self.profile = profile
         self.node_id = node_id or profile.node
+        self.gateway_node = gateway_node or profile.gateway_node
+        if self.gateway_node == self.node_id:
+            raise UserError(f"the gateway's node id {self.gateway_node} (its heartbeat) is the "
+                            f"drive's: choose another with --gateway-node or [drive].gateway_node "
+                            f"in {profile.source}")
+        #: what the configuration left out (objects the drive has not), for the account
+        self.notes: list[str] = []
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1
         try:
@@ -106,6 +144,8 @@ class DriveMaster:
         self._watchdog: threading.Thread | None = None
         self._stop_watchdog = threading.Event()
         self._connected = False
+        self._armed = False  # the NMT watch: set by start(), cleared by shutdown()
+        self.shutdown_report: ShutdownReport | None = None
 
     # ------------------------------------------------------------------ connection
 
@@ -120,7 +160,7 @@ class DriveMaster:
         self.network.subscribe(EMCY_BASE + self.node_id, self._on_emcy)
         self._booted.clear()
         # reset communication (callbacks already registered)
-        self.node.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
+        self.nmt_command(NmtCommand.RESET_COMMUNICATION)
         if not self._booted.wait(self.profile.boot_timeout_s):
             raise UserError(
                 f"no drive at node {self.node_id} on the bus: no boot-up within "
@@ -130,6 +170,11 @@ class DriveMaster:
                 "(`hil-gateway scan` lists the nodes present).")
         self.check_device_type()
 
+    def nmt_command(self, command: NmtCommand) -> None:
+        """Send an NMT command to the drive (python-canopen's NMT object is not used: its
+        bookkeeping fails on a heartbeat byte it does not know)."""
+        self.network.send_message(NMT_ID, bytes([command, self.node_id]))
+
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
             return
@@ -138,6 +183,17 @@ class DriveMaster:
         self.state.nmt_state = state
         if state is NmtState.INITIALISING:  # the boot-up message
             self._booted.set()
+        if not self._armed or state is NmtState.OPERATIONAL:
+            return
+        if state is NmtState.INITIALISING:
+            self._raise(FaultEvent(time.monotonic(), "boot-up", None,
+                                   f"drive node {self.node_id} rebooted during the run",
+                                   StopReason.DRIVE_STATE))
+        else:
+            shown = state or f"0x{data[0]:02X}"
+            self._raise(FaultEvent(time.monotonic(), "NMT", None,
+                                   f"drive node {self.node_id} left OPERATIONAL: {shown}",
+                                   StopReason.DRIVE_STATE))
 
     def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 2:
@@ -151,6 +207,11 @@ class DriveMaster:
         self.state.faults.append(event)
         log.warning("drive fault: %s", event.describe())
         self.fault.set()
+
+    @property
+    def first_fault(self) -> FaultEvent | None:
+        """The first fault seen while armed (the cause; later ones are consequences)."""
+        return self.state.faults[0] if self.state.faults else None
 
     def check_device_type(self) -> None:
         """SDO read of 0x1000 against the profile's device type."""
@@ -220,67 +281,150 @@ class DriveMaster:
 
     # ------------------------------------------------------------------ configuration
 
-    def configure(self, period: float, pdo_map: dict[str, list[tuple[int, int, int]]],
-                  cob_ids: dict[str, int], mode: int, emulator_objects: dict[str, int | float],
-                  sync_overflow: int = 0) -> None:
-        """PRE-OPERATIONAL configuration by SDO (see the module docstring).
+    def has(self, index: int) -> bool:
+        """The drive's EDS has object ``index``."""
+        return index in self.node.object_dictionary
 
-        pdo_map: for each PDO ('RPDO1', 'TPDO2', ...), the mapped (index, sub, bits).
-        cob_ids: the COB-ID of each PDO. mode: 0x6060 value. emulator_objects: EDS name →
-        value for the emulator's own objects (ignored on drives without them).
+    def _optional(self, index: int, sub: int, value: int, what: str) -> bool:
+        """Write an optional communication object only where the EDS has it; else noted."""
+        if not self.has(index):
+            self.notes.append(f"0x{index:04X} ({what}) not written: the drive's EDS has none")
+            return False
+        self.sdo_write(index, sub, value, what)
+        return True
+
+    def configure(self, period: float, pd: ProcessData, remap: bool, mode: int,
+                  emulator_objects: dict[str, int | float], sync_overflow: int = 0) -> bool:
+        """PRE-OPERATIONAL configuration by SDO (see the module docstring); returns whether
+        SYNC carries a counter (0x1019 written).
+
+        pd: the drive's process data; remap: write each PDO's mapping (else read it back
+        and check it against the DBC). mode: 0x6060 value. emulator_objects: EDS name →
+        value for the emulator's own objects (ignored on drives without them). Optional
+        objects (0x1006, 0x1007, 0x1016, 0x1017, 0x1019) are written only where the EDS has
+        them; what was left out is in :attr:`notes`.
         """
-        self.node.nmt.state = NmtState.PRE_OPERATIONAL
+        self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
         p = self.profile
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
             self.write_by_name(name, value)
-        if sync_overflow and 0x1019 in self.node.object_dictionary:
+        counter = False
+        if sync_overflow and self.has(0x1019):
             try:
                 self._entry(0x1019, 0).raw = sync_overflow
             except SdoAbortedError:  # CiA 301: 0x1019 may only change while 0x1006 = 0
                 self.sdo_write(0x1006, 0, 0, "cycle period 0 while 0x1019 changes")
                 self.sdo_write(0x1019, 0, sync_overflow, "SYNC counter overflow value")
-        self.sdo_write(0x1006, 0, round(period * 1e6), "communication cycle period, µs")
-        self.sdo_write(0x1007, 0, 0, "synchronous window length, µs (0 = off)")
-        self.sdo_write(0x1017, 0, p.heartbeat_ms, "producer heartbeat time, ms")
-        self.sdo_write(0x1016, 1, (GATEWAY_NODE_ID << 16) | p.heartbeat_timeout_ms,
+            counter = True
+        elif sync_overflow:
+            self.notes.append("0x1019 (SYNC counter overflow) not written: the drive's EDS has "
+                              "none; SYNC carries no counter")
+        self._optional(0x1006, 0, round(period * 1e6), "communication cycle period, µs")
+        self._optional(0x1007, 0, 0, "synchronous window length, µs (0 = off)")
+        self._optional(0x1017, 0, p.heartbeat_ms, "producer heartbeat time, ms")
+        self._optional(0x1016, 1, (self.gateway_node << 16) | p.heartbeat_timeout_ms,
                        "consumer heartbeat of the gateway")
-        for name, entries in pdo_map.items():
-            self._map_pdo(name, entries, cob_ids[name])
+        for pdo in pd.pdos:
+            if remap:
+                self._map_pdo(pdo)
+            else:
+                self._check_mapping(pdo)
         self.sdo_write(MODES_OF_OPERATION, 0, mode, "modes of operation")
+        return counter
 
-    def _map_pdo(self, name: str, entries: list[tuple[int, int, int]], cob_id: int) -> None:
-        """Write one PDO's communication and mapping parameters (CiA 301 procedure)."""
+    def _pdo_map(self, pdo: Pdo) -> PdoMap:
+        """python-canopen's map object of that PDO (number from the COB-ID)."""
+        rx, n = pdo_of(pdo.cob_id)
+        maps = self.node.rpdo if rx else self.node.tpdo
         try:
-            rx, n = pdo_of(cob_id)
-        except ValueError as exc:
-            raise UserError(f"{name}: {exc}; check the drive profile ({self.profile.source})"
-                            ) from None
-        comm = (RPDO_COMM if rx else TPDO_COMM) + n - 1
-        mapping = (RPDO_MAP if rx else TPDO_MAP) + n - 1
-        self.sdo_write(comm, 1, cob_id | 0x80000000, f"{name} COB-ID, disabled for mapping")
-        self.sdo_write(mapping, 0, 0, f"{name} mapping count 0")
-        for k, (index, sub, bits) in enumerate(entries, start=1):
-            self.sdo_write(mapping, k, (index << 16) | (sub << 8) | bits, f"{name} entry {k}")
-        self.sdo_write(mapping, 0, len(entries), f"{name} mapping count")
-        self.sdo_write(comm, 2, 1, f"{name} transmission type: synchronous, every SYNC")
-        if rx:
-            self.sdo_write(comm, 5, self.profile.rpdo_timeout_ms, f"{name} deadline, ms")
-        self.sdo_write(comm, 1, cob_id, f"{name} COB-ID, enabled")
+            return maps[n]
+        except KeyError:
+            raise UserError(f"{pdo.name}: the drive's EDS has no {'R' if rx else 'T'}PDO {n} "
+                            f"(COB-ID 0x{pdo.cob_id:03X}); check the drive profile "
+                            f"({self.profile.source})") from None
+
+    def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
+        """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and
+        statusword by index)."""
+        entries = []
+        for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
+            if role in ("controlword", "statusword"):
+                var = self.node.object_dictionary[CONTROLWORD if role == "controlword"
+                                                   else STATUSWORD]
+            else:
+                var = self.find_object(signal)
+            if var is None:
+                raise UserError(
+                    f"the drive's EDS ({self.profile.eds}) has no object named {signal!r} for "
+                    f"{pdo.name}.{signal}: name the object like the DBC signal, or set remap = "
+                    "false in the drive profile and configure the mapping on the drive")
+            entries.append((var.index, var.subindex, spec.bits))
+        return entries
+
+    def _map_pdo(self, pdo: Pdo) -> None:
+        """Write one PDO's mapping with python-canopen's map object (CiA 301 procedure:
+        disable, map, enable), synchronous every SYNC, RPDO deadline from the profile."""
+        m = self._pdo_map(pdo)
+        try:
+            m.read(from_od=True)
+            m.clear()
+            for index, sub, bits in self._objects_of(pdo):
+                m.add_variable(index, sub, bits)
+            m.cob_id = pdo.cob_id
+            m.trans_type = 1
+            m.rtr_allowed = True  # leave bit 30 clear, as the EDS defaults have it
+            if not pdo.tx:
+                m.event_timer = self.profile.rpdo_timeout_ms
+            m.enabled = True
+            m.save()
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise UserError(f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
+                            f"0x{pdo.cob_id:03X}) was refused: {exc}. Check the drive profile "
+                            f"({self.profile.source}) against the drive's EDS.") from exc
+        finally:  # the loop decodes PDOs itself: no python-canopen PDO callbacks
+            self.network.unsubscribe(pdo.cob_id, m.on_message)
+
+    def _check_mapping(self, pdo: Pdo) -> None:
+        """remap = false: read the drive's mapping of that PDO and check it carries the DBC
+        message's layout (sizes in order) on its COB-ID."""
+        m = self._pdo_map(pdo)
+        try:
+            m.read(from_od=False)
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id} "
+                            f"failed: {exc}") from exc
+        finally:
+            self.network.unsubscribe(pdo.cob_id, m.on_message)
+        bits = [v.length for v in m.map]
+        want = [s.bits for s in pdo.codec.signals]
+        problems = []
+        if (m.cob_id or 0) & 0x7FF != pdo.cob_id:
+            problems.append(f"COB-ID 0x{(m.cob_id or 0) & 0x7FF:03X}, the DBC says "
+                            f"0x{pdo.cob_id:03X}")
+        if not m.enabled:
+            problems.append("not enabled")
+        if bits != want:
+            problems.append(f"mapped sizes {bits} bits, the DBC's signals {want}")
+        if problems:
+            raise UserError(f"{pdo.name} on node {self.node_id} does not match the drive "
+                            f"profile's DBC ({'; '.join(problems)}): map it on the drive as "
+                            f"the DBC says, or set remap = true ({self.profile.source})")
 
     # ------------------------------------------------------------------ operation
 
     def start(self) -> None:
         """NMT OPERATIONAL and the gateway's heartbeat producer; the watchdog starts."""
         hb_period = max(0.01, self.profile.heartbeat_timeout_ms / 3000.0)
-        msg = can.Message(arbitration_id=HEARTBEAT_BASE + GATEWAY_NODE_ID,
+        msg = can.Message(arbitration_id=HEARTBEAT_BASE + self.gateway_node,
                           data=[NmtState.OPERATIONAL.heartbeat], is_extended_id=False)
         self._heartbeat_task = self.bus.send_periodic(msg, hb_period)
-        self.node.nmt.state = NmtState.OPERATIONAL
+        self.nmt_command(NmtCommand.START)
         self.state.last_heartbeat = time.monotonic()
         self._stop_watchdog.clear()
         self._watchdog = threading.Thread(target=self._watch, name="drive-watchdog",
                                           daemon=True)
         self._watchdog.start()
+        self._armed = True
 
     def _watch(self) -> None:
         """Drive heartbeat consumer: no heartbeat within the profile's
@@ -319,6 +463,76 @@ class DriveMaster:
                     f"0x{sw:04X} after controlword 0x{cw:04X}. The drive may be in fault or "
                     "refuse to enable (check its EMCY messages and DC link).")
 
+    def _power_off_confirmed(self, report: ShutdownReport) -> bool:
+        """Controlword 'disable voltage' by SDO, then the statusword until the power stage is
+        off (at most 1 s); False when the drive does not answer or stays on."""
+        try:
+            self._entry(CONTROLWORD, 0).raw = Controlword.DISABLE_VOLTAGE
+            report.steps.append("controlword disable voltage (SDO)")
+            t_end = time.monotonic() + 1.0
+            while True:
+                state = State.from_statusword(int(self._entry(STATUSWORD, 0).raw))
+                report.state = state.name if state is not None else None
+                if state in POWER_OFF_STATES:
+                    report.steps.append(f"statusword confirms {state.name}")
+                    return True
+                if time.monotonic() > t_end:
+                    report.steps.append(f"statusword still {report.state} after 1 s")
+                    return False
+                time.sleep(0.005)
+        except Exception as exc:
+            report.steps.append(f"no SDO answer ({type(exc).__name__}: {exc})")
+            log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
+            return False
+
+    def _reset_node_confirmed(self, report: ShutdownReport) -> bool:
+        """NMT reset node: the drive restarts with its power stage off; confirmed by its
+        boot-up message."""
+        self._booted.clear()
+        try:
+            self.nmt_command(NmtCommand.RESET_NODE)
+        except Exception as exc:
+            report.steps.append(f"NMT reset node not sent: {exc}")
+            return False
+        report.steps.append("NMT reset node")
+        if self._booted.wait(max(1.0, self.profile.boot_timeout_s)):
+            report.steps.append("boot-up confirms the reset")
+            report.state = None
+            return True
+        report.steps.append("no boot-up after the reset")
+        return False
+
+    def bring_down(self) -> ShutdownReport:
+        """Power stage off, confirmed (see the module docstring, step 5)."""
+        report = ShutdownReport()
+        reset = False
+        safe = self._power_off_confirmed(report)
+        if not safe:
+            try:
+                self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
+                report.steps.append("NMT pre-operational")
+            except Exception as exc:
+                report.steps.append(f"NMT pre-operational not sent: {exc}")
+            safe = self._power_off_confirmed(report)
+        if not safe:
+            safe = reset = self._reset_node_confirmed(report)
+        report.safe = safe
+        if safe and not reset:
+            try:
+                self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
+                report.steps.append("NMT pre-operational")
+                # confirmed off: the drive need no longer watch the gateway's heartbeat
+                self._entry(0x1016, 1).raw = 0
+                report.supervision_off = True
+                report.steps.append("0x1016:1 = 0")
+            except Exception as exc:
+                report.steps.append(f"NMT pre-operational / 0x1016 off failed: "
+                                    f"{type(exc).__name__}: {exc}")
+        elif not safe:
+            report.steps.append("power stage NOT confirmed off: the gateway's heartbeat stops "
+                                "with the drive's supervision on, so the drive trips itself")
+        return report
+
     def disable(self) -> None:
         """Controlword 'disable voltage' (power stage off); best effort, never raises."""
         try:
@@ -326,20 +540,16 @@ class DriveMaster:
         except Exception as exc:
             log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
 
-    def shutdown(self) -> None:
-        """Disable voltage, NMT PRE-OPERATIONAL, stop the heartbeat and the notifier.
+    def shutdown(self) -> ShutdownReport | None:
+        """Bring the drive down safely (:meth:`bring_down`), stop the heartbeat and the
+        notifier; returns the report (None if the bus was never connected).
 
         Safe to call twice and after partial start-up; does not shut the bus down.
         """
         self._stop_watchdog.set()
-        if self._connected:
-            self.disable()
-            try:
-                self.node.nmt.state = NmtState.PRE_OPERATIONAL
-                # the gateway's heartbeat is about to stop: the drive no longer watches it
-                self._entry(0x1016, 1).raw = 0
-            except Exception as exc:
-                log.warning("NMT pre-operational / heartbeat consumer off failed: %s", exc)
+        self._armed = False
+        if self._connected and self.shutdown_report is None:
+            self.shutdown_report = self.bring_down()
         if self._heartbeat_task is not None:
             try:
                 self._heartbeat_task.stop()
@@ -350,3 +560,4 @@ class DriveMaster:
             self.network.notifier.stop(1.0)
             self.network.notifier = None
         self._connected = False
+        return self.shutdown_report

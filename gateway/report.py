@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -299,7 +300,7 @@ TRUTH_TPDO3 = "TPDO3, INT16 (ω to 0.03125 rad/s, ψr to 0.1 mWb)"
 
 
 def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
-    """summary.json, pretty-printed, NaN/inf written as null."""
+    """summary.json, pretty-printed, NaN/inf written as null, replaced atomically."""
 
     def clean(x: Any) -> Any:
         if isinstance(x, float) and not math.isfinite(x):
@@ -310,7 +311,14 @@ def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
             return [clean(v) for v in x]
         return x
 
-    path.write_text(json.dumps(clean(summary), indent=2, sort_keys=False) + "\n")
+    text = json.dumps(clean(summary), indent=2, sort_keys=False) + "\n"
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)  # readers see the old summary or the new one, never half
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def title_for(config: Mapping[str, Any]) -> str:

@@ -16,17 +16,17 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import can
 import numpy as np
 
-from dbc import load_codec
 from dbc.cia301 import SYNC_OVERFLOW
-from dbc.modes import DriveMode
+from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
+from dbc.signals import SETPOINTS
 from dbc.timing import Sampling, internal_rate
 from gateway import report
 from gateway.buslog import LOG_SUFFIXES, write_frame
@@ -39,14 +39,21 @@ from gateway.control.controller import (
     as_enum,
 )
 from gateway.control.laws import Gains
-from gateway.control.profiles import Profile
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
-from gateway.loop import CycleLoop, LoopConfig, PdoNames, Timing
+from gateway.guard import Envelope, Plausibility
+from gateway.loop import CycleLoop, LoopConfig, Timing
 from gateway.master import DriveMaster
+from gateway.process_data import ProcessData, process_data
+from gateway.reference import Profile, demand
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
+
+#: The bus log's queue holds at most this many frames (beyond, frames are dropped, counted).
+MAX_QUEUED = 200_000
+#: The bus log is flushed to the file this often, s.
+FLUSH_PERIOD = 1.0
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -69,6 +76,7 @@ class RunConfig:
     gains: Gains = field(default_factory=Gains)
     bus_log: str = "bus.blf"
     max_missed: int = 5
+    max_miss_rate: float = 0.2
     duration: float | None = None
 
     def __post_init__(self) -> None:
@@ -97,8 +105,12 @@ class RunConfig:
 class BusRecorder(can.Listener):
     """The raw bus log: frames queued in the receive thread, written by a writer thread.
 
-    Queuing costs the control cycle a deque append; :meth:`stop` drains everything and
-    closes the file, so nothing received is lost on any exit path.
+    Queuing costs the control cycle a deque append. The queue is bounded
+    (:data:`MAX_QUEUED` frames): beyond it frames are dropped and counted. The writer thread
+    flushes the file every :data:`FLUSH_PERIOD` s, so after a crash (kill -9) the log is
+    readable up to the last flush. A write error (a full disk) stops the writing and is
+    kept in :attr:`error`; the run goes on and reports it. :meth:`stop` drains what is
+    queued and closes the file on every exit path.
     """
 
     def __init__(self, path: Path) -> None:
@@ -108,24 +120,59 @@ class BusRecorder(can.Listener):
             raise UserError(f"cannot write the bus log {str(path)!r}: {exc}") from exc
         self.path = path
         self.count = 0
+        self.dropped = 0
+        self.error = ""
         self._queue: collections.deque[can.Message] = collections.deque()
         self._stop = threading.Event()
+        self._lock = threading.Lock()  # one writer at a time (thread, or stop())
         self._thread = threading.Thread(target=self._drain_loop, name="bus-log", daemon=True)
         self._thread.start()
 
     def on_message_received(self, msg: can.Message) -> None:
-        self._queue.append(msg)
+        if len(self._queue) < MAX_QUEUED and not self.error:
+            self._queue.append(msg)
+        else:
+            self.dropped += 1
 
     def _drain(self) -> None:
         q = self._queue
         writer = self._writer
         while q:
-            write_frame(writer, q.popleft())
-            self.count += 1
+            msg = q.popleft()
+            if self.error:
+                self.dropped += 1
+                continue
+            try:
+                write_frame(writer, msg)
+                self.count += 1
+            except (OSError, ValueError) as exc:
+                self.error = f"writing {self.path} failed after {self.count} frames: {exc}"
+                self.dropped += 1
+                log.error("bus log: %s", self.error)
+
+    def _flush(self) -> None:
+        """Make what was written readable after a crash (BLF: close the open container)."""
+        if self.error:
+            return
+        try:
+            flush_container = getattr(self._writer, "_flush", None)  # BLFWriter's container
+            if flush_container is not None:
+                flush_container()
+            file = getattr(self._writer, "file", None)
+            if file is not None:
+                file.flush()
+        except (OSError, ValueError) as exc:
+            self.error = f"writing {self.path} failed after {self.count} frames: {exc}"
+            log.error("bus log: %s", self.error)
 
     def _drain_loop(self) -> None:
+        next_flush = time.monotonic() + FLUSH_PERIOD
         while not self._stop.wait(0.05):
-            self._drain()
+            with self._lock:
+                self._drain()
+                if time.monotonic() >= next_flush:
+                    next_flush += FLUSH_PERIOD
+                    self._flush()
 
     def stop(self) -> None:
         """Write what is queued, flush and close (idempotent)."""
@@ -133,8 +180,18 @@ class BusRecorder(can.Listener):
             return
         self._stop.set()
         self._thread.join(2.0)
-        self._drain()
-        self._writer.stop()
+        with self._lock:
+            self._drain()
+            try:
+                self._writer.stop()
+            except (OSError, ValueError) as exc:
+                if not self.error:
+                    self.error = f"closing {self.path} failed after {self.count} frames: {exc}"
+
+    def account(self) -> dict[str, Any]:
+        """For the summary: frames written, dropped, the error if any."""
+        return {"bus_log": self.path.name, "bus_frames_logged": self.count,
+                "bus_frames_dropped": self.dropped, "bus_log_error": self.error or None}
 
 
 class StopSignals:
@@ -186,34 +243,33 @@ def _eds_default(master: DriveMaster, name: str) -> float:
     return float(var.default)
 
 
-def pdo_layout(
-    master: DriveMaster, codec: Any, names: list[str]
-) -> dict[str, list[tuple[int, int, int]]]:
-    """Each PDO's mapping entries from its DBC signals and the EDS objects of the same name."""
-    from dbc import signal_specs
+def required_roles(cfg: RunConfig, pd: ProcessData) -> tuple[str, ...]:
+    """The roles a run needs of the drive: CiA 402 words, the measured currents and applied
+    voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, and the
+    true flux only for ``--flux true``."""
+    frame = pd.setpoint_frame
+    i1, i2, u1, u2 = SETPOINTS[frame]
+    roles = ["controlword", "statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
+    if frame is SetpointFrame.DQ:
+        roles += ["eps_0", "w_0"]
+    roles += [u1, u2] if cfg.drive_mode is DriveMode.VOLTAGE else [i1, i2]
+    if cfg.flux is FluxSource.TRUE:
+        roles += ["psi_ra", "psi_rb"]
+    return tuple(roles)
 
-    specs = signal_specs()
-    od = master.node.object_dictionary
-    layout: dict[str, list[tuple[int, int, int]]] = {}
-    for name in names:
-        entries = []
-        for sig in codec.messages[name].names:
-            if sig == "controlword":
-                obj = od[0x6040]
-            elif sig == "statusword":
-                obj = od[0x6041]
-            else:
-                try:
-                    obj = od[sig]
-                except KeyError as exc:
-                    raise UserError(
-                        f"the drive's EDS ({master.profile.eds}) has no object named {sig!r} "
-                        f"for signal {sig} of {name}: name the object like the DBC signal, or "
-                        "set remap = false in the drive profile and configure the mapping on "
-                        "the drive") from exc
-            entries.append((obj.index, obj.subindex, specs[sig].bits))
-        layout[name] = entries
-    return layout
+
+def guards(drive: DriveProfile, profile: Profile, motor: MotorParams, cfg: RunConfig
+           ) -> tuple[Plausibility, Envelope]:
+    """The plausibility limits of the drive (its profile's [limits]; without them 1.5 × the
+    controller's current limit) and the divergence envelope of the reference profile."""
+    plaus = Plausibility(
+        i_peak=drive.current_peak_a or 1.5 * cfg.gains.i_max,
+        u_dc_min=drive.dc_link_v[0] if drive.dc_link_v else None,
+        u_dc_max=drive.dc_link_v[1] if drive.dc_link_v else None)
+    d = demand(profile, motor)
+    psi = profile.sample(np.linspace(0.0, profile.duration, 2001))["psi_ref"]
+    return plaus, Envelope.from_demand(d.w_peak, d.i_s_peak, float(np.max(psi)), d.u_s_peak,
+                                       cfg.gains.i_max)
 
 
 def run_gateway(
@@ -228,30 +284,38 @@ def run_gateway(
     progress: Callable[[float], None] | None = None,
     signals: StopSignals | None = None,
     bus_label: str = "",
+    gateway_node: int | None = None,
 ) -> dict[str, Any]:
-    """Run the loop against the drive on ``bus``; returns the summary (also written to out/)."""
+    """Run the loop against the drive on ``bus``; returns the summary (also written to out/).
+
+    summary.json is written before the loop starts (``run.status = "running"``) and
+    replaced atomically at the end, so a crash leaves the configuration and the status; the
+    bus log is flushed every second.
+    """
     node_id = node or drive.node
-    codec = load_codec(node_id)
-    if cfg.sampling.setpoint_frame != drive.setpoint_frame:
+    pd = process_data(drive, node_id)
+    if cfg.sampling.setpoint_frame != pd.setpoint_frame:
         raise UserError(f"the run's setpoint frame {cfg.sampling.setpoint_frame} is not the "
-                        f"drive profile's ({drive.setpoint_frame}, {drive.source})")
-    names = PdoNames(currents=drive.currents, voltages=drive.voltages, truth=drive.truth,
-                     control=drive.control, setpoints=drive.setpoints, load=drive.load)
+                        f"drive profile's ({pd.setpoint_frame}, {drive.source})")
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / cfg.period)
+    plausibility, envelope = guards(drive, profile, motor, cfg)
     loop_cfg = LoopConfig(n_cycles=n_cycles, sampling=cfg.sampling, timing=cfg.timing,
-                          max_missed=cfg.max_missed)
+                          max_missed=cfg.max_missed, max_miss_rate=cfg.max_miss_rate,
+                          plausibility=plausibility,
+                          envelope=envelope)
     signals = signals or StopSignals()
+    configuration = _configuration(cfg, drive, profile, node_id, bus_label)
     recorder = BusRecorder(out / cfg.bus_log)
-    master = DriveMaster(bus, drive, node_id)
+    master = DriveMaster(bus, drive, node_id, gateway_node)
     loop: CycleLoop | None = None
     stats = None
     error: BaseException | None = None
     t_start = time.time()
     try:
         master.connect(listeners=[recorder])
-        pdos = [names.control, names.setpoints, names.currents, names.voltages]
-        pdos += [n for n in (names.load, names.truth) if n]
+        pd.require(required_roles(cfg, pd), f"the {cfg.law} law with a {cfg.drive_mode} drive",
+                   master.node.object_dictionary.indices)
         mode = (drive.mode_voltage if cfg.drive_mode is DriveMode.VOLTAGE
                 else drive.mode_current)
         emulator: dict[str, int | float] = {}
@@ -262,18 +326,29 @@ def run_gateway(
         elif cfg.sampling.delay != 1:
             raise UserError("--delay 0 (RPDOs applied on receipt) is an emulator option; a "
                             "CiA 402 drive applies synchronous RPDOs at the next SYNC (--delay 1)")
-        layout = pdo_layout(master, codec, pdos) if drive.remap else {}
-        master.configure(cfg.period, layout, {n: codec.frame_id(n) for n in pdos}, mode,
-                         emulator, sync_overflow=SYNC_OVERFLOW)
+        counter = master.configure(cfg.period, pd, drive.remap, mode, emulator,
+                                   sync_overflow=SYNC_OVERFLOW)
+        loop_cfg = replace(loop_cfg, sync_counter=counter)
         master.start()
         master.enable()
         ctl = Controller(motor, cfg.controller_config())
-        loop = CycleLoop(bus, master.network.subscribe, codec, names, ctl, profile, loop_cfg,
-                         own_echo=own_echo, fault=master.fault)
+
+        def fault_cause() -> tuple[StopReason, str] | None:
+            f = master.first_fault
+            return None if f is None else (f.reason, f.describe())
+
+        loop = CycleLoop(bus, master.network.subscribe, pd, ctl, profile, loop_cfg,
+                         own_echo=own_echo, fault=master.fault, fault_cause=fault_cause)
+        _write_summary_noting(out, {"run": {"status": "running", "started": t_start},
+                                    "configuration": configuration}, [])
         signals.on_stop = loop.request_stop
         if signals.requested.is_set():
             loop.request_stop(signals.reason)
         stats = loop.run(progress)
+        if stats.stop is StopReason.DRIVE_LOST:
+            # TPDOs stop before the heartbeat tells why (a reset, NMT pre-operational): give
+            # the drive one heartbeat to name the cause
+            master.fault.wait(1.5 * drive.heartbeat_ms / 1e3)
     except KeyboardInterrupt:
         error = None
         signals.reason = signals.reason or "interrupted during start-up"
@@ -286,44 +361,108 @@ def run_gateway(
         recorder.stop()
     if error is not None:
         raise error
-    return _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id,
-                      bus_label, signals.reason, t_start)
+    return _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
+                      signals.reason, t_start)
 
 
-def _summarise(loop, stats, master, recorder, cfg, drive, profile, out, node_id, bus_label,
-               interrupt_reason, t_start) -> dict[str, Any]:
-    summary: dict[str, Any] = {}
-    if loop is not None and len(loop.record):
-        sig = loop.record.arrays()
-        loop.record.write_csv(out / "signals.csv")
-        if drive.truth:  # tracking errors need the emulator's truth (TPDO3)
-            summary.update(report.metrics(sig))
-            report.plot_figures(sig, out, f"(over CAN, {cfg.timing})")
-        summary["timing"] = timing_stats(sig, cfg.period, cfg.timing is Timing.REALTIME)
-    stop = stats.stop if stats and stats.stop else StopReason.INTERRUPTED
-    stop_reason = (stats.stop_reason if stats else "") or interrupt_reason or "start-up stopped"
-    summary["run"] = {
-        "stop": stop.name,
-        "exit_status": stop.exit_status,
-        "cycles": stats.cycles if stats else 0,
-        "missed_cycles": stats.missed if stats else 0,
-        "late_rpdo": stats.late_rpdo if stats else 0,
-        "stop_reason": stop_reason,
-        "wall_time_s": stats.wall_time if stats else time.time() - t_start,
-        "bus_frames_logged": recorder.count,
-        "bus_log": recorder.path.name,
-    }
-    summary["faults"] = [{"time": f.time, "kind": f.kind, "code": f.code, "text": f.text}
-                         for f in master.state.faults]
-    summary["configuration"] = {
+def _configuration(cfg: RunConfig, drive: DriveProfile, profile: Profile, node_id: int,
+                   bus_label: str) -> dict[str, Any]:
+    return {
         "command": "run", "bus": bus_label, "node": node_id, "drive_profile": drive.source,
         "profile": profile.source,
         **{k: v for k, v in asdict(cfg).items() if k not in ("gains", "sampling")},
         "period": cfg.period, "delay": cfg.sampling.delay,
-        "gains": asdict(cfg.gains), "setpoint_frame": drive.setpoint_frame,
+        "gains": asdict(cfg.gains), "setpoint_frame": cfg.sampling.setpoint_frame,
     }
-    report.write_summary(out / "summary.json", summary)
+
+
+def _final_stop(stats: Any, master: DriveMaster, interrupt_reason: str
+                ) -> tuple[StopReason, str]:
+    """The run's cause of stopping: the loop's; a drive fault seen after the last cycle
+    (an EMCY near the end) turns an ended profile into a failure."""
+    if stats is not None and stats.stop is not None:
+        stop, message = stats.stop, stats.stop_reason
+    else:
+        stop, message = StopReason.INTERRUPTED, interrupt_reason or "start-up stopped"
+    fault = master.first_fault
+    if stop is StopReason.END_OF_PROFILE and fault is not None:
+        stop, message = fault.reason, f"{fault.describe()} (after the last cycle)"
+    elif stop is StopReason.DRIVE_LOST and fault is not None:
+        stop, message = fault.reason, f"{fault.describe()} ({message})"
+    return stop, message
+
+
+def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
+               interrupt_reason, t_start) -> dict[str, Any]:
+    """Write signals.csv, the figures and summary.json; what cannot be written is named in
+    ``summary["write_errors"]`` (and the exit status is then 1)."""
+    summary: dict[str, Any] = {}
+    write_errors: list[str] = []
+    if loop is not None and len(loop.record):
+        sig = loop.record.arrays()
+        _try_write(write_errors, out / "signals.csv", lambda p: loop.record.write_csv(p),
+                   "the per-cycle signals")
+        if drive.truth:  # tracking errors need the emulator's truth (TPDO3)
+            summary.update(report.metrics(sig))
+            _try_write(write_errors, out, lambda p: report.plot_figures(
+                sig, p, f"(over CAN, {cfg.timing})"), "the figures")
+        summary["timing"] = timing_stats(sig, cfg.period, cfg.timing is Timing.REALTIME)
+    stop, message = _final_stop(stats, master, interrupt_reason)
+    shutdown = master.shutdown_report
+    exit_status = stop.exit_status
+    if shutdown is not None and not shutdown.safe:
+        exit_status = 1
+        if stop in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
+            stop, message = StopReason.UNSAFE, f"{message}; then {StopReason.UNSAFE.value}"
+    summary["run"] = {
+        "status": "finished",
+        "stop": stop.name,
+        "stop_reason": message,
+        "exit_status": exit_status,
+        "cycles": stats.cycles if stats else 0,
+        "missed_cycles": stats.missed if stats else 0,
+        "late_rpdo": stats.late_rpdo if stats else 0,
+        "last_good_cycle": stats.last_good_cycle if stats else 0,
+        "stop_cycle": stats.stop_cycle if stats else 0,
+        "wall_time_s": stats.wall_time if stats else time.time() - t_start,
+        **recorder.account(),
+    }
+    if loop is not None and stop not in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
+        summary["run"]["frames_before_stop"] = [
+            {"time": t, "dir": d, "cob_id": f"0x{c:03X}", "data": data}
+            for t, d, c, data in loop.recent]
+    summary["shutdown"] = None if shutdown is None else asdict(shutdown)
+    summary["configuration_notes"] = list(master.notes)
+    summary["faults"] = [{"time": f.time, "kind": f.kind, "code": f.code, "text": f.text,
+                          "reason": f.reason.name} for f in master.state.faults]
+    summary["configuration"] = configuration
+    if recorder.error:
+        write_errors.append(recorder.error + f" ({recorder.dropped} frames not logged)")
+    _write_summary_noting(out, summary, write_errors)
     return summary
+
+
+def _try_write(errors: list[str], path: Path, write: Callable[[Path], object], what: str
+               ) -> None:
+    try:
+        write(path)
+    except OSError as exc:
+        errors.append(f"cannot write {what} to {path}: {exc.strerror or exc}")
+
+
+def _write_summary_noting(out: Path, summary: dict[str, Any], errors: list[str]) -> None:
+    """summary.json, atomically; write errors (earlier ones in ``errors`` too) go into it,
+    and if it cannot be written itself, into the exit status and onto stderr."""
+    if errors:
+        summary["write_errors"] = list(errors)
+        summary.setdefault("run", {})["exit_status"] = 1
+    try:
+        report.write_summary(out / "summary.json", summary)
+    except OSError as exc:
+        errors.append(f"cannot write the summary to {out / 'summary.json'}: "
+                      f"{exc.strerror or exc}")
+        summary["write_errors"] = list(errors)
+        summary.setdefault("run", {})["exit_status"] = 1
 
 
 def timing_stats(sig: dict[str, np.ndarray], period: float, realtime: bool) -> dict[str, Any]:

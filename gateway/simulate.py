@@ -23,9 +23,8 @@ import numpy as np
 
 from dbc.cia301 import sync_counter
 from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, State
-from dbc.modes import DriveMode
+from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
-from dbc.signals import SETPOINT_MESSAGE
 from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
     Controller,
@@ -36,9 +35,11 @@ from gateway.control.controller import (
     as_enum,
 )
 from gateway.control.laws import Gains, current_fed, full_order
-from gateway.control.profiles import Profile
 from gateway.cycle import ControlCycle, CycleRow, Truth
+from gateway.drive_profile import load_drive_profile
 from gateway.errors import UserError
+from gateway.process_data import process_data
+from gateway.reference import Profile
 from gateway.report import Record
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
@@ -146,33 +147,29 @@ def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
 
 
 class PdoLink:
-    """What the PDOs do to the signals: the INT16 codec, or nothing (quantize=False)."""
+    """What the PDOs do to the signals: the emulator's process data (INT16 quantisation of
+    ``dbc/drive.dbc``), or nothing (quantize=False)."""
 
-    def __init__(self, quantize: bool) -> None:
-        if quantize:
-            from dbc import load_codec
+    def __init__(self, quantize: bool, frame: SetpointFrame) -> None:
+        self.pd = (process_data(load_drive_profile(None), frame=frame) if quantize
+                   else None)
 
-            self.quantize = load_codec().quantize
-        else:
-            self.quantize = _identity
-
-    def tpdos(self, meas: Measurement, sync_counter: int = 0) -> tuple[dict, dict, dict]:
-        """TPDO1..3 signal values (decoded) for one measurement."""
-        q = self.quantize
+    def tpdos(self, meas: Measurement, sync_counter: int = 0) -> dict[str, float]:
+        """The drive's role values as the gateway decodes them, for one measurement."""
         status = int(State.OPERATION_ENABLED) | SW_REMOTE | (
             SW_INTERNAL_LIMIT if meas.limit_active else 0)
         values = tpdo_signals(meas, status, sync_counter)
-        return q("TPDO1", values), q("TPDO2", values), q("TPDO3", values)
+        return self.pd.quantize(values, tx=True) if self.pd else values
+
+    def rpdos(self, values: dict[str, float]) -> dict[str, float]:
+        """The gateway's role values as the drive decodes them."""
+        return self.pd.quantize(values, tx=False) if self.pd else dict(values)
 
 
 def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> DriveParams:
     """The drive's parameters in ``mode`` with its internal rate raised, if needed, to a
     whole number of steps per period (:func:`dbc.timing.internal_rate`)."""
     return replace(params, mode=mode, f_pwm=internal_rate(params.f_pwm, T))
-
-
-def _identity(name: str, values: dict) -> dict:
-    return dict(values)
 
 
 def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
@@ -191,19 +188,17 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     drive.enable(True)
     ctl = Controller(motor, cfg.controller_config(), eps_0=cfg.eps_0, w_hat=cfg.w_hat_0)
     cycle = ControlCycle(ctl, profile, sampling)
-    link = PdoLink(cfg.quantize)
+    link = PdoLink(cfg.quantize, sampling.setpoint_frame)
     rec = Record(CycleRow)
     apply = sampling.apply
-    setpoint_message = SETPOINT_MESSAGE[sampling.setpoint_frame]
-    pending: dict[str, dict] = {}
+    pending: dict[str, float] = {}
     T_L_active = [0.0]
     step_progress = max(1, n_cycles // 100)
 
     def latch() -> None:
         if pending:
-            drive.set_setpoints(setpoints_from_rpdos(pending["RPDO1"],
-                                                     pending[setpoint_message]))
-            T_L_active[0] = pending["RPDO3"]["T_L"]
+            drive.set_setpoints(setpoints_from_rpdos(pending, pending))
+            T_L_active[0] = pending["T_L"]
             pending.clear()
 
     def advance() -> Measurement:
@@ -211,11 +206,9 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
 
     for k in range(1, n_cycles + 1):
         meas = sync_cycle(advance, latch, apply)
-        tpdo1, tpdo2, tpdo3 = link.tpdos(meas, sync_counter(k))
-        out = cycle.step(k, tpdo1, tpdo2, tpdo3,
-                         truth=Truth(meas.w_m, meas.psi_r_ab, meas.T_e))
-        pending.update({name: link.quantize(name, values)
-                        for name, values in out.rpdos.items()})
+        measured = link.tpdos(meas, sync_counter(k))
+        out = cycle.step(k, measured, truth=Truth(meas.w_m, meas.psi_r_ab, meas.T_e))
+        pending.update(link.rpdos(out.setpoints))
         rec.append(out.row)
         if progress is not None and k % step_progress == 0:
             progress(k / n_cycles)

@@ -1,16 +1,22 @@
 """The drive emulator as a CANopen CiA 402 device on any python-can bus (issue 3).
 
-:class:`DriveDevice` wraps a pure :class:`plant.drive.Drive` in a CiA 301 slave:
+:class:`DriveDevice` wraps a pure :class:`plant.drive.Drive` in a CiA 301 slave composed
+like a python-canopen node of parts, each in its module:
 
-* NMT slave: boot-up (0x700+n, 0x00), PRE-OPERATIONAL / OPERATIONAL / STOPPED, reset node
-  (dictionary back to its defaults, emulated motor at rest, boot-up) and reset
-  communication (0x1000..0x1FFF back to defaults, boot-up). PDOs only in OPERATIONAL, SDO
-  not in STOPPED. Heartbeat producer (0x1017, ms).
-* SDO server: python-canopen's ``LocalNode``/``SdoServer`` with the dictionary of
-  ``dbc/drive.eds`` and the access rules of :mod:`plant.od` (standard abort codes).
-* CiA 402 power state machine (:mod:`plant.cia402`), controlword 0x6040 by SDO (at once) or
-  by RPDO (applied with the other RPDO data), statusword 0x6041. The power stage
+* ``nmt`` (:mod:`plant.nmt`): NMT slave state, boot-up, reset node (dictionary back to its
+  defaults, emulated motor at rest, boot-up) and reset communication (0x1000..0x1FFF back
+  to defaults, boot-up), heartbeat producer 0x1017 and consumer 0x1016. PDOs only in
+  OPERATIONAL, SDO not in STOPPED.
+* ``sdo`` (:mod:`plant.sdo`): python-canopen's ``LocalNode``/``SdoServer`` with the
+  dictionary of ``dbc/drive.eds`` and the access rules of :mod:`plant.od`.
+* ``pdo`` (:mod:`plant.pdo`): the RPDOs and TPDOs built on entering OPERATIONAL.
+* ``emcy`` (:mod:`plant.emcy`): error register 0x1001, 0x1003, 0x603F, the EMCY frame.
+* the CiA 402 power state machine (:mod:`plant.cia402`): controlword 0x6040 by SDO (at
+  once) or by RPDO (applied with the other RPDO data), statusword 0x6041. The power stage
   (``Drive.enable``) is on only in "Operation enabled".
+
+This module composes them and runs the cycle.
+
 * Sampled timing (docs/ARCHITECTURE.md): on each SYNC in OPERATIONAL the drive (1) with
   RPDO apply = on receipt (0x2203 = 1) makes the data received since the last SYNC active,
   (2) advances the simulation by exactly the cycle period 0x1006, (3) samples and sends
@@ -27,88 +33,40 @@
 
 Two threads: the receiver (``bus.recv``; every frame handled under one lock, malformed
 frames ignored, any handler exception counted, never fatal) and the timer (heartbeat
-producer and consumer). :meth:`DriveDevice.stop` joins both; the caller owns the bus.
+producer and consumer, under the same lock). :meth:`DriveDevice.stop` joins both; the
+caller owns the bus.
 """
 
 from __future__ import annotations
 
 import logging
-import struct
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import can
-from canopen import LocalNode
 
-from dbc import MessageCodec, message_codec, scaling
-from dbc.cia301 import HEARTBEAT_BASE, NMT_ID, SDO_RX_BASE, Emcy, NmtCommand, NmtState
-from dbc.modes import DriveMode, RpdoApply
+from dbc import scaling
+from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState
+from dbc.modes import DriveMode
 from dbc.motor import MotorParams
-from dbc.signals import FRAME, LOAD, SETPOINTS, TX, setpoint_frame_of
 from plant import od as odm
 from plant.cia402 import PowerStateMachine, State
 from plant.drive import Drive, Measurement, Setpoints
+from plant.emcy import EmcyProducer
+from plant.nmt import NmtSlave
 from plant.params import DriveParams
-from plant.rpdo import setpoints_from_rpdos, tpdo_signals
+from plant.pdo import PdoRuntime, Rpdo
+from plant.rpdo import setpoints_from_rpdos
+from plant.sdo import SdoHooks, SdoServer, Sender
 from plant.timing import sync_cycle
 
 log = logging.getLogger(__name__)
 
 FAULT_LOG = 100  #: faults kept in the account
-#: NMT states in which the heartbeat producer runs.
-HEARTBEAT_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL, NmtState.STOPPED)
-SETPOINT_SIGNALS = frozenset({*FRAME, *(n for names in SETPOINTS.values() for n in names)})
-
-
-class _SdoNode(LocalNode):
-    """python-canopen's LocalNode with the device's dictionary rules for SDO access."""
-
-    def __init__(self, device: DriveDevice, store: odm.ObjectStore) -> None:
-        super().__init__(store.node_id, store.od)
-        self._device = device
-        self.sdo._index = 0  # an abort before any request must still encode
-        self.sdo._subindex = 0
-
-    def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
-        return self._device._sdo_read(index, subindex)
-
-    def set_data(self, index: int, subindex: int, data: bytes,
-                 check_writable: bool = False) -> None:
-        self._device._sdo_write(index, subindex, bytes(data))
-
-
-class _Sender:
-    """What python-canopen's SDO server needs of a network: ``send_message``."""
-
-    def __init__(self, bus: can.BusABC) -> None:
-        self._bus = bus
-
-    def send_message(self, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
-        self._bus.send(can.Message(arbitration_id=can_id, data=bytes(data),
-                                   is_extended_id=False))
-
-
-@dataclass
-class _Rpdo:
-    """A valid RPDO while OPERATIONAL."""
-
-    config: odm.PdoConfig
-    codec: MessageCodec
-    timeout: float  #: s, deadline (0 = off)
-    last: int | None = None  #: cycles completed when last received
-    controlword: bool = False
-    setpoints: bool = False
-    load: bool = False
-
-
-@dataclass
-class _Tpdo:
-    config: odm.PdoConfig
-    codec: MessageCodec
 
 
 class DriveDevice:
@@ -121,6 +79,9 @@ class DriveDevice:
     ``on_sample(cycle, measurement)``, optional: called in the receive thread after each
     cycle's model step with the cycle number and the full-resolution :class:`Measurement`
     (for diagnostics in the same process, e.g. `hil-gateway sim`'s truth record).
+
+    The parts ``nmt``, ``sdo``, ``pdo`` and ``emcy`` are for diagnostics: every frame and
+    timer goes through the device, which holds its lock while a part runs.
     """
 
     def __init__(self, bus: can.BusABC, node_id: int = 1, motor: MotorParams | None = None,
@@ -135,17 +96,27 @@ class DriveDevice:
         self._params0 = drive_params if drive_params is not None else DriveParams()
         self._store = odm.ObjectStore(node_id, self._overrides())
         self._values = self._store.values
-        self._node = _SdoNode(self, self._store)
-        self._send = _Sender(bus)
-        self._node.sdo.network = self._send  # type: ignore[assignment]
+        self._send = Sender(bus)
         self._lock = threading.RLock()
         self._stop_event = threading.Event()
         self._wake = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._nmt = NmtState.INITIALISING
+        self.nmt = NmtSlave(node_id, self._values, self._send.send_message, self._wake,
+                            start=self._enter_operational, pdos_off=self._pdos_off,
+                            reset_node=self._reset_node,
+                            reset_communication=self._reset_communication_state,
+                            heartbeat_lost=lambda: self._fault(Emcy.HEARTBEAT))
+        self.emcy = EmcyProducer(self._values, self._send.send_message, lambda: self.nmt.state)
+        self.pdo = PdoRuntime(self._store, bus)
+        self.sdo = SdoServer(self._store, self._send, SdoHooks(
+            nmt_state=lambda: self.nmt.state,
+            statusword=lambda: self._sm.statusword(self._limit),
+            counters=lambda: (self._cycles_total, self._sync_gaps, self._fault_count),
+            parameters=self._parameters_written, controlword=self._controlword,
+            heartbeats=self.nmt.configure_heartbeats, sync_cob_id=self.pdo.set_sync_id,
+            clear_error_history=self.emcy.clear_history, clear_account=self._clear_account,
+            signal=self._signal_written))
         self._sm = PowerStateMachine()
-        self._tx_codec = message_codec("TX", 0, TX)
-        self._tx_keys = tuple(self._store.by_name[n] for n in TX)
         self._factor = {n: scaling(n)[0] for n in self._store.by_name}
         self._k = {n: self._store.by_name[n] for n in self._store.by_name}
         # account (cumulative since construction)
@@ -165,7 +136,7 @@ class DriveDevice:
                 raise RuntimeError("DriveDevice already started")
             self._stop_event.clear()
             self._sm.boot()
-            self._boot()
+            self.nmt.boot()
         for target, name in ((self._rx_loop, "rx"), (self._timer_loop, "timer")):
             t = threading.Thread(target=target, name=f"hil-plant-{name}-{self.node_id}",
                                  daemon=True)
@@ -181,8 +152,8 @@ class DriveDevice:
         self._threads.clear()
         with self._lock:
             self._drive.enable(False)
-            self._nmt = NmtState.STOPPED
-            self._runtime_clear()
+            self.nmt.state = NmtState.STOPPED
+            self.pdo.clear()
 
     def __enter__(self) -> DriveDevice:
         self.start()
@@ -201,14 +172,14 @@ class DriveDevice:
                 "faults": list(self._faults),
                 "fault_count": self._fault_count,
                 "state": self._sm.state.name,
-                "nmt": self._nmt,
+                "nmt": self.nmt.state,
                 "internal_errors": self._internal_errors,
             }
 
     @property
     def nmt_state(self) -> str:
         """NMT state name as python-canopen spells it."""
-        return self._nmt
+        return self.nmt.state
 
     @property
     def cia402_state(self) -> State:
@@ -265,93 +236,29 @@ class DriveDevice:
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
         self._limit = False
-        self._error_register = 0
+        self.emcy.reset()
         self._sm = PowerStateMachine()
 
     def _reset_communication_state(self) -> None:
         self._store.reset(communication_only=True)
-        self._values[(0x1001, 0)] = self._error_register
-        self._runtime_clear()
-        self._hb_period = 0.0
-        self._hb_next = 0.0
-        self._hb_consumer: tuple[int, float] | None = None
-        self._hb_deadline: float | None = None
-        self._configure_heartbeats()
+        self.emcy.restore()
+        self.pdo.clear()
+        self.nmt.configure_heartbeats()
 
-    def _runtime_clear(self) -> None:
-        self._sync_id = self._values[(0x1005, 0)] & 0x7FF
-        self._rpdos: dict[int, _Rpdo] = {}
-        self._tpdos: list[_Tpdo] = []
-        self._last_counter: int | None = None
-
-    def _boot(self) -> None:
-        """Boot-up message, then PRE-OPERATIONAL (CiA 301)."""
-        self._send.send_message(HEARTBEAT_BASE + self.node_id,
-                                bytes([NmtState.INITIALISING.heartbeat]))
-        self._nmt = NmtState.PRE_OPERATIONAL
-        self._hb_next = time.monotonic() + self._hb_period
-        self._wake.set()
-
-    def _configure_heartbeats(self) -> None:
-        self._hb_period = self._values[(0x1017, 0)] / 1000.0
-        self._hb_next = time.monotonic() + self._hb_period
-        entry = self._values[(0x1016, 1)]
-        node, ms = (entry >> 16) & 0xFF, entry & 0xFFFF
-        self._hb_consumer = (HEARTBEAT_BASE + node, ms / 1000.0) if node and ms else None
-        self._hb_deadline = None  # armed by the next heartbeat received
-        self._wake.set()
+    def _reset_node(self) -> None:
+        self._reset_application()
+        self._reset_communication_state()
+        self._sm.boot()
 
     # ---- NMT --------------------------------------------------------------------------------
-    def _on_nmt(self, data: bytes) -> None:
-        if len(data) != 2 or data[1] not in (0, self.node_id):
-            return
-        cmd = data[0]
-        if cmd == NmtCommand.START:
-            if self._nmt is not NmtState.OPERATIONAL:
-                self._enter_operational()
-        elif cmd == NmtCommand.STOP:
-            self._nmt = NmtState.STOPPED
-            self._runtime_clear()
-        elif cmd == NmtCommand.ENTER_PRE_OPERATIONAL:
-            self._nmt = NmtState.PRE_OPERATIONAL
-            self._runtime_clear()
-        elif cmd == NmtCommand.RESET_NODE:
-            log.info("node %d: reset node", self.node_id)
-            self._reset_application()
-            self._reset_communication_state()
-            self._sm.boot()
-            self._boot()
-        elif cmd == NmtCommand.RESET_COMMUNICATION:
-            log.info("node %d: reset communication", self.node_id)
-            self._reset_communication_state()
-            self._boot()
-
     def _enter_operational(self) -> None:
-        """Build the PDO runtime from the present dictionary (mappings, COB-IDs, codecs)."""
+        """Rebuild the model if parameters changed, then the PDO runtime."""
         if self._params_dirty:
             self._rebuild_drive()
-        self._runtime_clear()
-        T = self._values[(0x1006, 0)] / 1e6
-        self._T = T
-        self._apply = RpdoApply(self._values[(odm.RPDO_APPLY, 0)])
-        mapped: set[str] = set()
-        for comm in odm.RPDO_COMM:
-            cfg = self._store.pdo(comm)
-            if not cfg.valid:
-                continue
-            names = set(cfg.names)
-            mapped |= names
-            self._rpdos[cfg.cob_id] = _Rpdo(
-                cfg, message_codec(f"RPDO{cfg.number}", cfg.cob_id, cfg.names),
-                timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
-                setpoints=bool(names & SETPOINT_SIGNALS), load=bool(names & set(LOAD)))
-        self._frame_names = SETPOINTS[setpoint_frame_of(mapped)]
-        for comm in odm.TPDO_COMM:
-            cfg = self._store.pdo(comm)
-            if cfg.valid and cfg.entries:
-                self._tpdos.append(_Tpdo(cfg, message_codec(f"TPDO{cfg.number}", cfg.cob_id,
-                                                            cfg.names)))
-        self._nmt = NmtState.OPERATIONAL
+        self.pdo.build()
+
+    def _pdos_off(self) -> None:
+        self.pdo.clear()
 
     def _rebuild_drive(self) -> None:
         try:
@@ -366,51 +273,27 @@ class DriveDevice:
         self._drive = new
         self._params_dirty = False
 
-    # ---- SDO --------------------------------------------------------------------------------
-    def _sdo_read(self, index: int, subindex: int) -> bytes:
-        v = self._values
-        if index == 0x6041:
-            v[(0x6041, 0)] = self._sm.statusword(self._limit)
-        elif index == odm.ACCOUNT:
-            v[(odm.ACCOUNT, 1)] = self._cycles_total & 0xFFFFFFFF
-            v[(odm.ACCOUNT, 2)] = self._sync_gaps & 0xFFFFFFFF
-            v[(odm.ACCOUNT, 3)] = self._fault_count & 0xFFFFFFFF
-        return self._store.read(index, subindex)
+    # ---- SDO write effects ------------------------------------------------------------------
+    def _parameters_written(self) -> None:
+        self._params_dirty = True
 
-    def _sdo_write(self, index: int, subindex: int, data: bytes) -> None:
-        value = self._store.check_write(index, subindex, data, self._nmt)
-        key = (index, subindex)
-        self._values[key] = value
-        if index in odm.PARAMETER_OBJECTS:
-            self._params_dirty = True
-            if index == 0x6060:
-                self._values[(0x6061, 0)] = value
-            elif index == odm.DRIVE and subindex == 1:
-                self._values[(0x6079, 0)] = round(value * 1000)
-        if index == 0x6040:
-            self._controlword(value)
-        elif index in (0x1016, 0x1017):
-            self._configure_heartbeats()
-        elif index == 0x1005:
-            self._sync_id = value & 0x7FF
-        elif index == 0x1003:
-            for k in range(1, 9):
-                self._values[(0x1003, k)] = 0
-        elif index == odm.ACCOUNT_CLEAR:
-            self._cycles_total = self._sync_gaps = self._fault_count = 0
-            self._faults.clear()
-        elif 0x2000 <= index < 0x2100:  # RPDO signal objects written by SDO
-            if index == self._k["T_L"][0]:
-                self._tl_fresh = True
-            else:
-                self._sp_fresh = True
+    def _clear_account(self) -> None:
+        self._cycles_total = self._sync_gaps = self._fault_count = 0
+        self._faults.clear()
+
+    def _signal_written(self, index: int) -> None:
+        """An RPDO signal object written by SDO: active at the next latch."""
+        if index == self._k["T_L"][0]:
+            self._tl_fresh = True
+        else:
+            self._sp_fresh = True
 
     # ---- CiA 402 ----------------------------------------------------------------------------
     def _controlword(self, cw: int) -> None:
         before = self._sm.state
         after = self._sm.command(cw)
         if before is State.FAULT and after is not State.FAULT:
-            self._clear_errors()
+            self.emcy.clear()
         if after is not before:
             log.debug("node %d: %s -> %s", self.node_id, before.name, after.name)
             self._drive.enable(self._sm.power)
@@ -423,38 +306,13 @@ class DriveDevice:
         self._sm.fault()
         self._drive.enable(False)
         self._drive.set_setpoints(Setpoints())  # re-enabling needs fresh setpoints
-        self._error_register |= code.error_register
-        v = self._values
-        v[(0x1001, 0)] = self._error_register
-        v[(0x603F, 0)] = code
-        for k in range(8, 1, -1):
-            v[(0x1003, k)] = v[(0x1003, k - 1)]
-        v[(0x1003, 1)] = code
-        v[(0x1003, 0)] = min(v[(0x1003, 0)] + 1, 8)
-        self._emcy(code)
-
-    def _clear_errors(self) -> None:
-        self._error_register = 0
-        self._values[(0x1001, 0)] = 0
-        self._values[(0x603F, 0)] = 0
-        self._emcy(Emcy.NO_ERROR)
-
-    def _emcy(self, code: Emcy) -> None:
-        cob = self._values[(0x1014, 0)]
-        talking = self._nmt in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)
-        if talking and not cob & odm.COB_INVALID:
-            self._send.send_message(cob & 0x7FF, struct.pack("<HB5x", code,
-                                                             self._error_register))
+        self.emcy.error(code)
 
     # ---- PDOs and the cycle -----------------------------------------------------------------
-    def _on_rpdo(self, r: _Rpdo, data: bytes) -> None:
-        if len(data) != r.codec.length:
+    def _on_rpdo(self, r: Rpdo, data: bytes) -> None:
+        if not self.pdo.receive(r, data, self._cycles):
             self._fault(Emcy.PDO_LENGTH)
             return
-        v = self._values
-        for key, raw in zip(r.config.entries, r.codec.decode_raw(data), strict=True):
-            v[key] = raw
-        r.last = self._cycles
         self._cw_fresh |= r.controlword
         self._sp_fresh |= r.setpoints
         self._tl_fresh |= r.load
@@ -471,7 +329,7 @@ class DriveDevice:
         if self._sp_fresh:
             self._sp_fresh = False
             rpdo1 = {"eps_0": v[k["eps_0"]] * f["eps_0"], "w_0": v[k["w_0"]] * f["w_0"]}
-            rpdo2 = {n: v[k[n]] * f[n] for n in self._frame_names}
+            rpdo2 = {n: v[k[n]] * f[n] for n in self.pdo.frame_names}
             sp = setpoints_from_rpdos(rpdo1, rpdo2)
             self._drive.set_setpoints(sp)
             if (self._sm.power and self._drive.params.mode is not DriveMode.VOLTAGE
@@ -484,7 +342,8 @@ class DriveDevice:
             return  # not a SYNC (CiA 301: 0 or 1 data bytes)
         counter = data[0] if n else 0
         if n:
-            last = self._last_counter
+            pdo = self.pdo
+            last = pdo.last_counter
             if last is not None:
                 ov = self._values[(0x1019, 0)]
                 if ov >= 2:
@@ -493,7 +352,7 @@ class DriveDevice:
                     gap = counter not in ((last + 1) & 0xFF, 1)
                 if gap:
                     self._sync_gaps += 1
-            self._last_counter = counter
+            pdo.last_counter = counter
         self._cycle(counter)
 
     @property
@@ -502,55 +361,42 @@ class DriveDevice:
 
     def _cycle(self, counter: int) -> None:
         """One SYNC: (latch) → advance T → sample → TPDOs → (latch)."""
-        T = self._T
         m = self._cycles_total + 1
-        for r in self._rpdos.values():
-            if r.timeout and r.last is not None and (m - r.last) * T > r.timeout + 1e-12:
-                r.last = None  # re-armed by the next reception
-                self._fault(Emcy.RPDO_TIMEOUT)
-        sync_cycle(lambda: self._advance_and_transmit(m, counter), self._latch, self._apply)
+        for _ in self.pdo.expired(m):
+            self._fault(Emcy.RPDO_TIMEOUT)
+        sync_cycle(lambda: self._advance_and_transmit(m, counter), self._latch, self.pdo.apply)
 
     def _advance_and_transmit(self, m: int, counter: int) -> Measurement:
         """Advance the model by T, sample, send the TPDOs of cycle ``m``."""
         drive = self._drive
         was_on = drive.enabled
-        meas = drive.advance(self._T, self._T_L)
+        meas = drive.advance(self.pdo.period, self._T_L)
         self._cycles_total = m
         if self.on_sample is not None:
             self.on_sample(m, meas)
         if was_on and drive.tripped:
             self._fault(Emcy.OVERCURRENT)
         self._limit = meas.limit_active
-        sw = self._sm.statusword(meas.limit_active)
-        raws = self._tx_codec.raw(tpdo_signals(meas, sw, counter))
-        v = self._values
-        for key, raw in zip(self._tx_keys, raws, strict=True):
-            v[key] = raw
-        send = self.bus.send
-        for t in self._tpdos:
-            tt = t.config.trans_type
-            if tt == 1 or m % tt == 0:
-                data = t.codec.pack(*[v[e] for e in t.config.entries])
-                send(can.Message(arbitration_id=t.config.cob_id, data=data,
-                                 is_extended_id=False))
+        self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
+        self.pdo.transmit(m)
         return meas
 
     # ---- threads ----------------------------------------------------------------------------
     def _dispatch(self, can_id: int, data: bytes) -> None:
-        nmt = self._nmt
+        nmt = self.nmt
+        state = nmt.state
         if can_id == NMT_ID:
-            self._on_nmt(data)
-        elif nmt is NmtState.OPERATIONAL and can_id == self._sync_id:
+            nmt.on_command(data)
+        elif state is NmtState.OPERATIONAL and can_id == self.pdo.sync_id:
             self._on_sync(data)
-        elif nmt is NmtState.OPERATIONAL and can_id in self._rpdos:
-            self._on_rpdo(self._rpdos[can_id], data)
+        elif state is NmtState.OPERATIONAL and can_id in self.pdo.rpdos:
+            self._on_rpdo(self.pdo.rpdos[can_id], data)
         elif can_id == SDO_RX_BASE + self.node_id:
-            if nmt is not NmtState.STOPPED and len(data) == 8:
-                self._node.sdo.on_request(can_id, data, 0.0)
-        elif (self._hb_consumer is not None and can_id == self._hb_consumer[0]
+            if state is not NmtState.STOPPED and len(data) == 8:
+                self.sdo.on_request(can_id, data)
+        elif (nmt.hb_consumer is not None and can_id == nmt.hb_consumer[0]
               and len(data) >= 1):
-            self._hb_deadline = time.monotonic() + self._hb_consumer[1]
-            self._wake.set()
+            nmt.on_heartbeat()
 
     def _rx_loop(self) -> None:
         recv, stop = self.bus.recv, self._stop_event
@@ -593,20 +439,4 @@ class DriveDevice:
 
     def _timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""
-        wait = 0.5
-        if self._hb_period > 0 and self._nmt in HEARTBEAT_STATES:
-            if now >= self._hb_next:
-                self._send.send_message(HEARTBEAT_BASE + self.node_id,
-                                        bytes([self._nmt.heartbeat]))
-                self._hb_next += self._hb_period
-                if self._hb_next <= now:
-                    self._hb_next = now + self._hb_period
-            wait = min(wait, self._hb_next - now)
-        if self._hb_deadline is not None:
-            if now >= self._hb_deadline:
-                self._hb_deadline = None
-                self._fault(Emcy.HEARTBEAT)
-            else:
-                wait = min(wait, self._hb_deadline - now)
-        return wait
-
+        return self.nmt.timers(now)

@@ -69,3 +69,12 @@ def vcan_channel() -> str:
 def candump_channel() -> str:
     """Like ``vcan_channel``, and ``candump`` (can-utils) must be installed too."""
     return require_vcan("vcan0", need_candump=True)
+
+
+@pytest.fixture
+def emulator():
+    """``emulator(mode="ideal", node=1)`` → a started emulated drive on a fresh virtual
+    channel (tests/gw_support.py); all are stopped after the test."""
+    from gw_support import emulator_factory
+
+    yield from emulator_factory()

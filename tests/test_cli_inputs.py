@@ -20,8 +20,8 @@ import pytest
 
 from gateway import cli
 from gateway.cli import Progress, main
-from gateway.control.profiles import demand, load_profile, paper_profile, sample_times
 from gateway.errors import UserError
+from gateway.reference import demand, load_profile, paper_profile, sample_times
 from gateway.report import profile_windows, read_csv
 
 ROOT = Path(__file__).resolve().parents[1]

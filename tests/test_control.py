@@ -123,7 +123,7 @@ def test_full_order_law_zeroes_current_error_dynamics():
 
 @pytest.fixture(scope="module")
 def paper_continuous():
-    from gateway.control.profiles import paper_profile
+    from gateway.reference import paper_profile
 
     rec = run(paper_profile(), MOTOR, SimConfig(flux="true", sampling=None, drive_mode="ideal"))
     return rec.arrays()
@@ -169,7 +169,7 @@ def test_converges_from_other_initial_conditions():
 
 
 def test_full_order_continuous_with_estimated_flux_converges():
-    from gateway.control.profiles import paper_profile
+    from gateway.reference import paper_profile
 
     cfg = SimConfig(law="full-order", flux="estimated", drive_mode="voltage", sampling=None)
     s = run(paper_profile(), MOTOR, cfg).arrays()
@@ -197,7 +197,7 @@ def test_sampled_approaches_continuous_as_period_shrinks():
 
 
 def test_sampled_paper_run_shows_delay_and_frame_effects():
-    from gateway.control.profiles import paper_profile
+    from gateway.reference import paper_profile
 
     base = dict(flux="estimated", drive_mode="ideal")
     rms = {}
@@ -270,7 +270,7 @@ def test_controller_config_rejects_bad_values():
 
 def test_full_order_sampled_needs_larger_gamma_2():
     """§E10: γ2 = γ1 works in continuous time but not sampled at 1 ms with a delay."""
-    from gateway.control.profiles import paper_profile
+    from gateway.reference import paper_profile
 
     base = dict(law="full-order", drive_mode="voltage", sampling=Sampling(1e-3, delay=1))
     bad = run(paper_profile(), MOTOR, SimConfig(**base, gains=Gains(gamma_2=0.0008))).arrays()

@@ -3,79 +3,33 @@
 
 from __future__ import annotations
 
-import itertools
 import json
-import threading
 import time
 from pathlib import Path
 
 import can
 import numpy as np
 import pytest
+from gw_support import (
+    MOTOR,
+    assert_disabled,
+    gateway_run,
+    run_in_thread,
+    wait_cycles,
+)
 
 from dbc import load_codec
-from dbc.cia402 import State
-from dbc.motor import MotorParams
 from dbc.timing import Sampling
 from gateway.cli import main
-from gateway.control.profiles import paper_profile
-from gateway.drive_profile import load_drive_profile
 from gateway.errors import UserError
+from gateway.reference import paper_profile
 from gateway.report import read_csv
-from gateway.runner import RunConfig, StopSignals, run_gateway
+from gateway.runner import RunConfig, StopSignals
 from gateway.simulate import SimConfig, run
-from plant.device import DriveDevice
-from plant.params import DriveParams
-
-MOTOR = MotorParams.paper()
-_channels = itertools.count()
 
 #: Columns that cross the bus or come from the controller: equal to the last bit.
 EXACT = ("t", "i_sa", "i_sb", "u_sa", "u_sb", "i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref",
          "eps_0", "w_0", "w_hat", "psi_rd_hat", "psi_rq_hat", "psi_ref", "w_ref", "T_L")
-
-
-class Emulator:
-    """The emulated drive on its own Bus object of a fresh virtual channel."""
-
-    def __init__(self, mode: str = "ideal", node: int = 1) -> None:
-        self.channel = f"test-gw-{next(_channels)}-{time.monotonic_ns()}"
-        self.bus = can.Bus(interface="virtual", channel=self.channel)
-        self.device = DriveDevice(self.bus, node_id=node, motor=MOTOR,
-                                  drive_params=DriveParams(mode=mode))
-        self.device.start()
-
-    def close(self) -> None:
-        self.device.stop()
-        self.bus.shutdown()
-
-
-@pytest.fixture
-def emulator():
-    emus: list[Emulator] = []
-
-    def make(mode: str = "ideal", node: int = 1) -> Emulator:
-        emus.append(Emulator(mode, node))
-        return emus[-1]
-
-    yield make
-    for e in emus:
-        e.close()
-
-
-def gateway_run(emu: Emulator, out: Path, *args: str) -> int:
-    return main(["run", "-i", "virtual", "-c", emu.channel, "--out", str(out), *args])
-
-
-def assert_disabled(emu: Emulator) -> None:
-    """The shutdown left the drive's power stage off and the drive not enabled."""
-    dev = emu.device
-    deadline = time.monotonic() + 1.0
-    while dev.cia402_state == State.OPERATION_ENABLED and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert dev.cia402_state != State.OPERATION_ENABLED
-    assert not dev.drive.enabled
-    assert dev.nmt_state != "OPERATIONAL"
 
 
 # ------------------------------------------------------------------ bit for bit
@@ -151,7 +105,7 @@ def test_bus_log_replays_and_decodes_like_the_csv(emulator, tmp_path):
 def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path):
     emu = emulator()
     rc = gateway_run(emu, tmp_path, "--timing", "realtime", "--duration", "3s",
-                     "--max-missed", "500")
+                     "--max-missed", "500", "--max-miss-rate", "0.5")
     s = json.loads((tmp_path / "summary.json").read_text())
     assert rc == 0, s["run"]
     run_ = s["run"]
@@ -167,38 +121,13 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path):
 # ----------------------------------------------------------------- stop paths
 
 
-def _run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals):
-    result: dict = {}
-    bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
-
-    def target() -> None:
-        try:
-            result["summary"] = run_gateway(bus, load_drive_profile(None), paper_profile(),
-                                            MOTOR, cfg, out, signals=signals)
-        except BaseException as exc:
-            result["error"] = exc
-        finally:
-            bus.shutdown()
-
-    th = threading.Thread(target=target)
-    th.start()
-    return th, result
-
-
-def _wait_cycles(out_device: DriveDevice, n: int, timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while out_device.account()["cycles"] < n:
-        assert time.monotonic() < deadline, "the loop did not start"
-        time.sleep(0.005)
-
-
 def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     """What Ctrl-C and SIGTERM do: a stop request ends the loop and the drive is disabled."""
     emu = emulator()
     signals = StopSignals()
-    th, result = _run_in_thread(emu, tmp_path, RunConfig(timing="realtime", max_missed=1000),
+    th, result = run_in_thread(emu, tmp_path, RunConfig(timing="realtime", max_missed=1000),
                                 signals)
-    _wait_cycles(emu.device, 200)
+    wait_cycles(emu.device, 200)
     signals.requested.set()
     signals.reason = "SIGTERM received"
     assert signals.on_stop is not None
@@ -218,15 +147,15 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     """An EMCY (here: a PDO of wrong length, 0x8210) stops the run and is reported."""
     emu = emulator()
     signals = StopSignals()
-    th, result = _run_in_thread(emu, tmp_path, RunConfig(timing="realtime", max_missed=1000),
+    th, result = run_in_thread(emu, tmp_path, RunConfig(timing="realtime", max_missed=1000),
                                 signals)
-    _wait_cycles(emu.device, 100)
+    wait_cycles(emu.device, 100)
     with can.Bus(interface="virtual", channel=emu.channel) as intruder:
         intruder.send(can.Message(arbitration_id=0x301, data=b"\x00\x01", is_extended_id=False))
     th.join(10)
     assert not th.is_alive()
     s = result["summary"]
-    assert s["run"]["stop_reason"] == "drive fault"
+    assert s["run"]["stop"] == "DRIVE_FAULT" and "0x8210" in s["run"]["stop_reason"]
     assert any(f["code"] == 0x8210 for f in s["faults"])
     assert_disabled(emu)
 
@@ -234,16 +163,19 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
 def test_lost_drive_stops_the_loop(emulator, tmp_path):
     emu = emulator()
     signals = StopSignals()
-    th, result = _run_in_thread(emu, tmp_path, RunConfig(timing="lockstep", duration=30.0),
+    th, result = run_in_thread(emu, tmp_path, RunConfig(timing="lockstep", duration=30.0),
                                 signals)
-    _wait_cycles(emu.device, 100)
+    wait_cycles(emu.device, 100)
     emu.device.stop()  # the drive goes silent: no TPDOs, no heartbeat
     th.join(15)
     assert not th.is_alive()
     s = result["summary"]
     reason = s["run"]["stop_reason"]
-    assert reason == "drive fault" or "without the drive's TPDOs" in reason
+    assert ((s["run"]["stop"] == "DRIVE_FAULT" and "heartbeat" in reason)
+            or (s["run"]["stop"] == "DRIVE_LOST" and "without the drive's TPDOs" in reason))
     assert s["run"]["cycles"] < 30000
+    # a silent drive cannot confirm its power stage off: said, and never exit 0
+    assert s["shutdown"]["safe"] is False and s["run"]["exit_status"] == 1
 
 
 # ----------------------------------------------------------------- bad input
@@ -328,7 +260,7 @@ def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
     out = tmp_path / "sigint"
     proc = subprocess.Popen(
         [sys.executable, "-m", "gateway", "sim", "--timing", "realtime", "--duration", "60s",
-         "--max-missed", "100000", "--out", str(out)],
+         "--max-missed", "100000", "--max-miss-rate", "1", "--out", str(out)],
         cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
     try:

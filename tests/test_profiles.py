@@ -1,4 +1,4 @@
-"""Reference profiles (gateway/control/profiles.py): smoothness, the paper's scenario, TOML
+"""Reference profiles (gateway/reference/): smoothness, the paper's scenario, TOML
 loading and its error messages, and the demand estimate."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dbc.motor import MotorParams
-from gateway.control.profiles import (
+from gateway.reference import (
     Profile,
     ProfileError,
     References,

@@ -225,13 +225,15 @@ class Controller:
 
         The drive holds the last setpoints and keeps turning their frame at ω0, so the
         controller's frame angle advances with the same ω0 and ω̂ is extrapolated with the last
-        dω̂/dt; the flux estimator cannot integrate the missing voltage and is left as it is.
-        With a delay, the command in flight is repeated (the drive holds it).
+        dω̂/dt; the flux estimator cannot integrate the missing voltage and turns its stator
+        flux with the frame instead (:meth:`OpenLoopFluxEstimator.coast`). With a delay, the
+        command in flight is repeated (the drive holds it).
         """
         w_0, dw_hat = self._last
         T = self._T
         self.w_hat += T * dw_hat
         self.eps_0 = wrap_angle(self.eps_0 + T * w_0)
+        self.estimator.coast(w_0, T)
         if self._delay and self._in_flight:
             self._in_flight.append(self._in_flight[-1])
             self._in_flight.popleft()

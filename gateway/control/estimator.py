@@ -80,6 +80,16 @@ class OpenLoopFluxEstimator:
         self.psi_s_ab += self._rate(i_s_ab, u_s_ab, T)
         return self.rotor_flux(i_s_ab)
 
+    def coast(self, w_0: float, T: float) -> None:
+        """A period without a sample (a missed cycle): the voltage integral cannot be formed,
+        so the stator flux and the last current are turned by ω0·T, which is what they do in
+        the steady state (dψ_s/dt = jω0·ψ_s in the fixed frame); holding them instead would
+        leave the open-loop integrator with a lasting error of about |ψ_s|·ω0·T per miss."""
+        rot = cmath.exp(1j * w_0 * T)
+        self.psi_s_ab *= rot
+        if self._i_prev is not None:
+            self._i_prev *= rot
+
     def rotor_flux(self, i_s_ab: complex) -> complex:
         """ψ_r = (L_r/M)·(ψ_s − σ·i_s) (§E1), Wb."""
         return self._k_r * (self.psi_s_ab - self._sigma * i_s_ab)

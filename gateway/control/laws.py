@@ -19,7 +19,7 @@ from typing import Protocol
 
 
 class Refs(Protocol):
-    """The references of one instant (see ``gateway.control.profiles.References``)."""
+    """The references of one instant (see ``gateway.reference.References``)."""
 
     w_ref: float
     dw_ref: float

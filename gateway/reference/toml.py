@@ -1,0 +1,271 @@
+"""The reference profile file format: TOML, parsed and validated into a
+:class:`gateway.reference.signals.Profile`.
+
+Reference profiles are TOML files (Python's :mod:`tomllib`)::
+
+    [units]                    # required; values below are converted to SI
+    time = "s"                 # "s" | "ms"
+    speed = "rad/s"            # "rad/s" | "rpm"
+    flux = "Wb"                # "Wb" | "mWb"
+    torque = "N*m"             # "N*m" | "N·m" | "Nm"
+
+    [profile]
+    name = "paper"
+    description = "..."        # optional
+    duration = 2.5             # in the time unit, > 0
+
+    [speed]                    # ω*, required
+    initial = 0.0
+    steps = [{ t = 0.32, value = 100.0, ramp = 0.18 }]
+
+    [flux]                     # ψ* > 0, required
+    initial = 0.001
+    steps = [{ t = 0.0, value = 1.16, ramp = 0.3 }]
+
+    [load]                     # T_L, optional (zero when omitted); initial defaults to 0
+    steps = [{ t = 0.5, value = 5.8, ramp = 0.01 }]
+
+Rules: ``ramp`` > 0; step ``t`` ≥ 0 and not before the previous ramp has ended (t_i ≥
+t_{i−1} + ramp_{i−1}, so start times are strictly increasing); every ramp ends by
+``duration``. Before t = 0 a signal holds its initial value, after ``duration`` its last one.
+Any mistake raises :class:`ProfileError` (a :class:`ValueError`) naming the file, the key
+path, what is wrong and how to fix it.
+
+The bundled reference profiles are package data in ``gateway/profiles/``
+(:func:`paper_profile` reads ``paper.toml``). Values are converted to SI units.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from gateway.reference.signals import Profile, ProfileError, Signal, Step
+
+__all__ = ["load_profile", "paper_profile", "parse_profile"]
+
+
+_TIME_UNITS = MappingProxyType({"s": 1.0, "ms": 1e-3})
+_SPEED_UNITS = MappingProxyType({"rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0})
+_FLUX_UNITS = MappingProxyType({"Wb": 1.0, "mWb": 1e-3})
+_TORQUE_UNITS = MappingProxyType({"N*m": 1.0, "N·m": 1.0, "Nm": 1.0})
+_UNIT_TABLES = MappingProxyType({
+    "time": _TIME_UNITS, "speed": _SPEED_UNITS, "flux": _FLUX_UNITS, "torque": _TORQUE_UNITS,
+})
+_TABLES = ("units", "profile", "speed", "flux", "load")
+_SIGNAL_UNIT = MappingProxyType({"speed": "speed", "flux": "flux", "load": "torque"})
+_SI_NAME = MappingProxyType({"speed": "rad/s", "flux": "Wb", "load": "N·m"})
+
+
+def _fail(src: str, where: str, msg: str) -> ProfileError:
+    return ProfileError(f"{src}: {where}{': ' if where else ''}{msg}")
+
+
+def _keys(src: str, where: str, data: Mapping[str, Any], valid: tuple[str, ...]) -> None:
+    for key in data:
+        if key not in valid:
+            raise _fail(
+                src, f"{where}.{key}" if where else f"[{key}]",
+                f"unknown {'key' if where else 'table'}; valid "
+                f"{'keys' if where else 'tables'} here are {', '.join(valid)} "
+                f"(fix the spelling or remove it)",
+            )
+
+
+def _table(src: str, data: Mapping[str, Any], name: str, required: bool) -> dict | None:
+    value = data.get(name)
+    if value is None:
+        if required:
+            raise _fail(src, f"[{name}]", f"missing section; add a [{name}] table")
+        return None
+    if not isinstance(value, dict):
+        raise _fail(src, f"{name} = {value!r}", f"must be a table: write it as a [{name}] section")
+    return value
+
+
+def _number(src: str, where: str, value: Any, unit: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise _fail(src, f"{where} = {value!r}",
+                    f"must be a number (in {unit}), e.g. {where.split('.')[-1]} = 1.0")
+    x = float(value)
+    if not math.isfinite(x):
+        raise _fail(src, f"{where} = {value!r}", f"must be a finite number (in {unit})")
+    return x
+
+
+def _units(src: str, data: Mapping[str, Any], need_torque: bool) -> dict[str, float]:
+    units = _table(src, data, "units", required=True)
+    assert units is not None
+    _keys(src, "[units]", units, tuple(_UNIT_TABLES))
+    out: dict[str, float] = {}
+    for key, table in _UNIT_TABLES.items():
+        if key not in units:
+            if key == "torque" and not need_torque:
+                continue
+            raise _fail(
+                src, f"[units].{key}",
+                f"missing; add {key} = {next(iter(table))!r} (one of {', '.join(table)})",
+            )
+        name = units[key]
+        if not isinstance(name, str) or name not in table:
+            raise _fail(
+                src, f"[units].{key} = {name!r}",
+                f"unknown unit; use one of {', '.join(repr(u) for u in table)}",
+            )
+        out[key] = table[name]
+    return out
+
+
+def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any],
+            raw_units: Mapping[str, Any], duration: float, positive: bool) -> Signal:
+    where = f"[{name}]"
+    _keys(src, where, tab, ("initial", "steps"))
+    vunit_name = str(raw_units.get(_SIGNAL_UNIT[name], _SI_NAME[name]))
+    tunit_name = str(raw_units["time"])
+    vscale = units.get(_SIGNAL_UNIT[name], 1.0)
+    tscale = units["time"]
+
+    def value(w: str, raw: Any) -> float:
+        x = _number(src, w, raw, vunit_name) * vscale
+        if positive and not x > 0.0:
+            raise _fail(
+                src, f"{w} = {raw!r}",
+                f"the flux reference must stay > 0 (ψ* > 0 is required by (15)); "
+                f"use a positive value in {vunit_name}",
+            )
+        return x
+
+    if "initial" in tab:
+        initial = value(f"{where}.initial", tab["initial"])
+    elif name == "load":
+        initial = 0.0
+    else:
+        raise _fail(src, f"{where}.initial", f"missing; add initial = <value in {vunit_name}>")
+    raw_steps = tab.get("steps", [])
+    if not isinstance(raw_steps, list):
+        raise _fail(
+            src, f"{where}.steps = {raw_steps!r}",
+            "must be an array of tables, e.g. steps = [{ t = 0.5, value = 1.0, ramp = 0.1 }]",
+        )
+    steps: list[Step] = []
+    prev_end = 0.0
+    prev_where = ""
+    for i, raw in enumerate(raw_steps):
+        w = f"{where}.steps[{i}]"
+        if not isinstance(raw, dict):
+            raise _fail(
+                src, f"{w} = {raw!r}",
+                "must be a table { t = ..., value = ..., ramp = ... }",
+            )
+        _keys(src, w, raw, ("t", "value", "ramp"))
+        for key in ("t", "value", "ramp"):
+            if key not in raw:
+                raise _fail(src, f"{w}.{key}", "missing; every step needs t, value and ramp")
+        t_raw, ramp_raw = raw["t"], raw["ramp"]
+        t = _number(src, f"{w}.t", t_raw, tunit_name) * tscale
+        v = value(f"{w}.value", raw["value"])
+        ramp = _number(src, f"{w}.ramp", ramp_raw, tunit_name) * tscale
+        if t < 0.0:
+            raise _fail(src, f"{w}.t = {t_raw!r}", "must be ≥ 0; transitions start at or after 0")
+        if not ramp > 0.0:
+            raise _fail(
+                src, f"{w}.ramp = {ramp_raw!r}",
+                f"must be > 0: a jump has no derivative and the laws need C² references "
+                f"(docs/paper.md §E7); use a short ramp, e.g. ramp = {0.01 / tscale:g} "
+                f"({tunit_name})",
+            )
+        if t < prev_end * (1.0 - 1e-12):
+            raise _fail(
+                src, f"{w}.t = {t_raw!r}",
+                f"starts before the previous transition ({prev_where}) ends at "
+                f"{prev_end / tscale:g} {tunit_name}; step times must increase and a "
+                f"transition may start only when the previous ramp has ended — move t to "
+                f"≥ {prev_end / tscale:g} or shorten the previous ramp",
+            )
+        t = max(t, prev_end)
+        if t + ramp > duration * (1.0 + 1e-12):
+            raise _fail(
+                src, f"{w}",
+                f"the transition ends at {(t + ramp) / tscale:g} {tunit_name}, after the "
+                f"profile's end ([profile].duration = {duration / tscale:g} {tunit_name}); "
+                f"raise the duration or move/shorten the step",
+            )
+        steps.append(Step(t, v, ramp))
+        prev_end, prev_where = t + ramp, w
+    return Signal(initial, tuple(steps))
+
+
+def parse_profile(text: str, source: str = "<string>") -> Profile:
+    """A reference :class:`Profile` from TOML text (see the module docstring for the format).
+
+    ``source`` names the text in error messages and becomes :attr:`Profile.source`.
+    """
+    src = source
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ProfileError(f"{src}: not valid TOML: {exc}; fix the syntax") from None
+    _keys(src, "", data, _TABLES)
+    load_tab = _table(src, data, "load", required=False)
+    units = _units(src, data, need_torque=load_tab is not None)
+    raw_units = data["units"]
+    prof = _table(src, data, "profile", required=True)
+    assert prof is not None
+    _keys(src, "[profile]", prof, ("name", "description", "duration"))
+    name = prof.get("name", Path(source).stem if source[:1] != "<" else "profile")
+    if not isinstance(name, str) or not name:
+        raise _fail(src, f"[profile].name = {name!r}",
+                    'must be a non-empty string, e.g. name = "paper"')
+    description = prof.get("description", "")
+    if not isinstance(description, str):
+        raise _fail(src, f"[profile].description = {description!r}", "must be a string")
+    tunit = str(raw_units["time"])
+    if "duration" not in prof:
+        raise _fail(src, "[profile].duration",
+                    f"missing; add duration = <length of the run in {tunit}>")
+    duration_raw = prof["duration"]
+    duration = _number(src, "[profile].duration", duration_raw, tunit) * units["time"]
+    if not duration > 0.0:
+        raise _fail(src, f"[profile].duration = {duration_raw!r}",
+                    f"must be > 0; give the length of the run in {tunit}")
+    signals: dict[str, Signal] = {}
+    for sig in ("speed", "flux", "load"):
+        tab = load_tab if sig == "load" else _table(src, data, sig, required=True)
+        if tab is None:
+            signals[sig] = Signal(0.0)
+            continue
+        signals[sig] = _signal(src, sig, tab, units, raw_units, duration, positive=sig == "flux")
+    return Profile(name, duration, signals["speed"], signals["flux"], signals["load"],
+                   source=source, description=description)
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Read a reference profile TOML file; :class:`ProfileError` (naming the file) on any
+    problem."""
+    src = str(path)
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ProfileError(
+            f"{src}: no such file; give the path of a profile TOML file "
+            f"(shipped ones are in profiles/, e.g. profiles/paper.toml)"
+        ) from None
+    except OSError as exc:
+        raise ProfileError(f"{src}: cannot read the file ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ProfileError(f"{src}: not UTF-8 text ({exc.reason}); save it as UTF-8") from None
+    return parse_profile(text, src)
+
+
+def paper_profile() -> Profile:
+    """The paper's section-6 reference profile (package data ``gateway/profiles/paper.toml``).
+
+    Its :attr:`Profile.source` is "<embedded>"; it equals ``load_profile("profiles/paper.toml")``.
+    """
+    text = resources.files("gateway").joinpath("profiles", "paper.toml").read_text("utf-8")
+    return parse_profile(text, "<embedded>")

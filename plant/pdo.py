@@ -1,0 +1,146 @@
+"""The PDO runtime of the emulated drive: RPDOs received, TPDOs sent, SYNC consumer state.
+
+CiA 301: PDOs are exchanged only in OPERATIONAL; each is described by its communication
+parameters (0x14xx/0x18xx: COB-ID with bit 31 = not valid, transmission type, event timer)
+and its mapping (0x16xx/0x1Axx). A synchronous TPDO of transmission type n (1..240) is sent
+on every n-th SYNC; an RPDO's event timer (sub 5, ms) is the deadline for its next
+reception. The SYNC consumer listens on 0x1005.
+
+This emulator: on entering OPERATIONAL the runtime is built once from the present
+dictionary (valid RPDOs, valid non-empty TPDOs, their codecs from ``dbc/drive.dbc``'s
+signal names, the cycle period 0x1006 and RPDO apply 0x2203) and dropped on leaving it. A
+received RPDO of the wrong length is rejected (the device then faults); otherwise its raw
+values go into the dictionary and the cycle count of its reception is kept for the
+deadline, which counts SYNC periods of simulated time. Sampling writes every TPDO signal
+object; a TPDO carries the present values of the objects it maps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from dbc import MessageCodec, message_codec
+from dbc.modes import RpdoApply, SetpointFrame
+from dbc.signals import FRAME, LOAD, SETPOINTS, TX, setpoint_frame_of
+from plant import od as odm
+from plant.drive import Measurement
+from plant.rpdo import tpdo_signals
+
+SETPOINT_SIGNALS = frozenset({*FRAME, *(n for names in SETPOINTS.values() for n in names)})
+
+
+@dataclass
+class Rpdo:
+    """A valid RPDO while OPERATIONAL."""
+
+    config: odm.PdoConfig
+    codec: MessageCodec
+    timeout: float  #: s, deadline (0 = off)
+    last: int | None = None  #: cycles completed when last received
+    controlword: bool = False  #: maps the controlword
+    setpoints: bool = False  #: maps eps_0, w_0 or a current/voltage reference
+    load: bool = False  #: maps T_L
+
+
+@dataclass
+class Tpdo:
+    """A valid TPDO with a mapping while OPERATIONAL."""
+
+    config: odm.PdoConfig
+    codec: MessageCodec
+
+
+class PdoRuntime:
+    """RPDOs and TPDOs of the present OPERATIONAL period (see the module docstring).
+
+    ``sync_id``, ``rpdos`` (by COB-ID), ``tpdos`` and ``last_counter`` (the last SYNC
+    counter received) are cleared by :meth:`clear`; ``period`` (s), ``apply`` (0x2203)
+    and ``frame_names`` (the setpoint signals of the mapped frame) are set by :meth:`build`.
+    """
+
+    def __init__(self, store: odm.ObjectStore, bus: can.BusABC) -> None:
+        self._store = store
+        self._values: dict[odm.Key, Any] = store.values
+        self._bus = bus
+        self._tx_codec = message_codec("TX", 0, TX)
+        self._tx_keys = tuple(store.by_name[n] for n in TX)
+        self.period = 0.0
+        self.apply = RpdoApply.AT_NEXT_SYNC
+        self.frame_names = SETPOINTS[SetpointFrame.DQ]
+        self.clear()
+
+    def clear(self) -> None:
+        """No PDOs (not OPERATIONAL); the SYNC COB-ID from 0x1005."""
+        self.sync_id: int = self._values[(0x1005, 0)] & 0x7FF
+        self.rpdos: dict[int, Rpdo] = {}
+        self.tpdos: list[Tpdo] = []
+        self.last_counter: int | None = None
+
+    def set_sync_id(self, cob_id: int) -> None:
+        """0x1005 written."""
+        self.sync_id = cob_id & 0x7FF
+
+    def build(self) -> None:
+        """Entering OPERATIONAL: the runtime from the present dictionary."""
+        self.clear()
+        v = self._values
+        self.period = v[(0x1006, 0)] / 1e6
+        self.apply = RpdoApply(v[(odm.RPDO_APPLY, 0)])
+        mapped: set[str] = set()
+        for comm in odm.RPDO_COMM:
+            cfg = self._store.pdo(comm)
+            if not cfg.valid:
+                continue
+            names = set(cfg.names)
+            mapped |= names
+            self.rpdos[cfg.cob_id] = Rpdo(
+                cfg, message_codec(f"RPDO{cfg.number}", cfg.cob_id, cfg.names),
+                timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
+                setpoints=bool(names & SETPOINT_SIGNALS), load=bool(names & set(LOAD)))
+        self.frame_names = SETPOINTS[setpoint_frame_of(mapped)]
+        for comm in odm.TPDO_COMM:
+            cfg = self._store.pdo(comm)
+            if cfg.valid and cfg.entries:
+                self.tpdos.append(Tpdo(cfg, message_codec(f"TPDO{cfg.number}", cfg.cob_id,
+                                                          cfg.names)))
+
+    def receive(self, r: Rpdo, data: bytes, cycles: int) -> bool:
+        """An RPDO frame after ``cycles`` completed cycles; False if its length is wrong."""
+        if len(data) != r.codec.length:
+            return False
+        v = self._values
+        for key, raw in zip(r.config.entries, r.codec.decode_raw(data), strict=True):
+            v[key] = raw
+        r.last = cycles
+        return True
+
+    def expired(self, m: int) -> Iterator[Rpdo]:
+        """The RPDOs whose deadline has passed at the end of cycle ``m`` (each once: its
+        deadline is re-armed by the next reception)."""
+        T = self.period
+        for r in self.rpdos.values():
+            if r.timeout and r.last is not None and (m - r.last) * T > r.timeout + 1e-12:
+                r.last = None
+                yield r
+
+    def sample(self, meas: Measurement, statusword: int, counter: int) -> None:
+        """Write every TPDO signal object for one sample."""
+        raws = self._tx_codec.raw(tpdo_signals(meas, statusword, counter))
+        v = self._values
+        for key, raw in zip(self._tx_keys, raws, strict=True):
+            v[key] = raw
+
+    def transmit(self, m: int) -> None:
+        """The TPDOs due on the ``m``-th SYNC, in order."""
+        v = self._values
+        send = self._bus.send
+        for t in self.tpdos:
+            tt = t.config.trans_type
+            if tt == 1 or m % tt == 0:
+                data = t.codec.pack(*[v[e] for e in t.config.entries])
+                send(can.Message(arbitration_id=t.config.cob_id, data=data,
+                                 is_extended_id=False))

@@ -1,0 +1,93 @@
+"""Helpers of the gateway tests: the emulated drive on a fresh virtual channel, a gateway
+run against it (CLI or in a thread), waiting for cycles, checking the drive ended safe."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from pathlib import Path
+
+import can
+
+from dbc.cia402 import State
+from dbc.motor import MotorParams
+from gateway.cli import main
+from gateway.drive_profile import load_drive_profile
+from gateway.reference import paper_profile
+from gateway.runner import RunConfig, StopSignals, run_gateway
+from plant.device import DriveDevice
+from plant.params import DriveParams
+
+MOTOR = MotorParams.paper()
+_channels = itertools.count()
+
+
+class Emulator:
+    """The emulated drive on its own Bus object of a fresh virtual channel."""
+
+    def __init__(self, mode: str = "ideal", node: int = 1) -> None:
+        self.channel = f"test-gw-{next(_channels)}-{time.monotonic_ns()}"
+        self.bus = can.Bus(interface="virtual", channel=self.channel)
+        self.device = DriveDevice(self.bus, node_id=node, motor=MOTOR,
+                                  drive_params=DriveParams(mode=mode))
+        self.device.start()
+
+    def close(self) -> None:
+        self.device.stop()
+        self.bus.shutdown()
+
+
+def emulator_factory():
+    """Generator behind the ``emulator`` fixture (tests/conftest.py)."""
+    emus: list[Emulator] = []
+
+    def make(mode: str = "ideal", node: int = 1) -> Emulator:
+        emus.append(Emulator(mode, node))
+        return emus[-1]
+
+    yield make
+    for e in emus:
+        e.close()
+
+
+def gateway_run(emu: Emulator, out: Path, *args: str) -> int:
+    return main(["run", "-i", "virtual", "-c", emu.channel, "--out", str(out), *args])
+
+
+def assert_disabled(emu: Emulator) -> None:
+    """The shutdown left the drive's power stage off and the drive not enabled."""
+    dev = emu.device
+    deadline = time.monotonic() + 1.0
+    while dev.cia402_state == State.OPERATION_ENABLED and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert dev.cia402_state != State.OPERATION_ENABLED
+    assert not dev.drive.enabled
+    assert dev.nmt_state != "OPERATIONAL", dev.account()
+
+
+def run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals):
+    result: dict = {}
+    bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
+
+    def target() -> None:
+        try:
+            result["summary"] = run_gateway(bus, load_drive_profile(None), paper_profile(),
+                                            MOTOR, cfg, out, signals=signals)
+        except BaseException as exc:
+            result["error"] = exc
+        finally:
+            bus.shutdown()
+
+    th = threading.Thread(target=target)
+    th.start()
+    return th, result
+
+
+def wait_cycles(out_device: DriveDevice, n: int, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while out_device.account()["cycles"] < n:
+        assert time.monotonic() < deadline, "the loop did not start"
+        time.sleep(0.005)
+
+
