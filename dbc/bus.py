@@ -109,7 +109,8 @@ def open_bus(cfg: BusConfig, receive_own_messages: bool = True) -> can.BusABC:
     except (can.CanInitializationError, can.CanOperationError, OSError, ValueError) as exc:
         hint = ""
         if cfg.interface == "socketcan":
-            hint = (f" Is {cfg.channel} up? For a virtual bus: sudo modprobe vcan; sudo ip link "
-                    f"add dev {cfg.channel} type vcan; sudo ip link set up {cfg.channel} "
+            hint = (f" Is {cfg.channel} up? For a virtual CAN interface: sudo modprobe vcan; "
+                    f"sudo ip link add dev {cfg.channel} type vcan; sudo ip link set up "
+                    f"{cfg.channel} "
                     "(or run inside scripts/vcan-run).")
         raise UserError(f"cannot open CAN channel {cfg.label()}: {exc}.{hint}") from exc

@@ -115,7 +115,7 @@ class MotorParams:
     # ---- reparametrisation of section 2 -------------------------------------------------
     @property
     def sigma(self) -> float:
-        """σ = L_s(1 − M²/(L_s·L_r)) = L_s − M²/L_r (ERRATA 1), H: stator transient inductance."""
+        """σ = L_s(1 − M²/(L_s·L_r)) = L_s − M²/L_r (§E1), H: stator transient inductance."""
         return self.L_s - self.M * self.M / self.L_r
 
     @property

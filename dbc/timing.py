@@ -41,8 +41,69 @@ class Sampling:
         return t + self.delay * self.period
 
 
+#: Bounds of the cycle period T, s: 0x1006 allows 100 µs to 1 s; above 100 ms the frame
+#: turns by more than ω0·T = 20 rad a period at 200 rad/s and the sampled laws mean nothing.
+PERIOD_MIN = 100e-6
+PERIOD_MAX = 100e-3
+#: The emulated drive's internal rate (0x2201 sub 8, UINT32 Hz): EDS range.
+INTERNAL_RATE_MAX = 100e3
+
+
+def _whole_us(period: float) -> int | None:
+    """The period in whole microseconds, or None when it is not one."""
+    us = round(period * 1e6)
+    return us if abs(period * 1e6 - us) < 1e-6 else None
+
+
 def internal_rate(f_pwm: float, period: float) -> float:
     """The emulated drive's internal rate, raised if needed to a whole number of steps per
-    period (250 µs at 10 kHz: 3 steps, 12 kHz), Hz."""
+    period (250 µs at 10 kHz: 3 steps, 12 kHz), Hz. For a period of whole microseconds the
+    rate is also a whole number of Hz (0x2201 sub 8 is UINT32): 150 µs at 10 kHz gives
+    3 steps, 20 kHz (2 steps would be 13333.3 Hz)."""
     n = max(1, math.ceil(period * f_pwm - 1e-9))
-    return f_pwm if abs(n - period * f_pwm) < 1e-9 else n / period
+    if abs(n - period * f_pwm) < 1e-9:
+        return f_pwm
+    us = _whole_us(period)
+    if us is not None:
+        k = us // math.gcd(us, 1_000_000)  # n·10⁶/us is whole when k divides n
+        n = -(-n // k) * k
+        return float(n * 1_000_000 // us)
+    return n / period
+
+
+def check_period(period: float, what: str = "period", f_pwm: float | None = None) -> None:
+    """Refuse a cycle period that the bus or the drive cannot run, with the one message
+    `simulate`, `sim` and `run` give (:class:`dbc.errors.UserError`).
+
+    T must lie in [:data:`PERIOD_MIN`, :data:`PERIOD_MAX`] and be whole microseconds (0x1006
+    is in µs). ``f_pwm``: the emulated drive's nominal internal rate, Hz; given, the rate
+    :func:`internal_rate` picks must not exceed :data:`INTERNAL_RATE_MAX`.
+    """
+    from dbc.errors import UserError
+
+    def us(x: float) -> str:
+        return f"{x * 1e6:g}us" if x < 1e-3 else f"{x * 1e3:g}ms"
+
+    if not (PERIOD_MIN - 1e-12 <= period <= PERIOD_MAX + 1e-12):
+        raise UserError(
+            f"{what} {us(period)} is outside {us(PERIOD_MIN)} … {us(PERIOD_MAX)}: the drive "
+            f"takes at least {us(PERIOD_MIN)} (0x1006), and above {us(PERIOD_MAX)} the frame "
+            "turns too far within a period for the sampled laws; choose e.g. 1ms or 250us")
+    whole = _whole_us(period)
+    if whole is None:
+        lo, hi = math.floor(period * 1e6), math.ceil(period * 1e6)
+        raise UserError(f"{what} {period * 1e6:.6g}us is not a whole number of microseconds, "
+                        f"the unit of the cycle period on the bus (0x1006): use {lo}us or "
+                        f"{hi}us")
+    if f_pwm is not None:
+        rate = internal_rate(f_pwm, period)
+        if rate > INTERNAL_RATE_MAX:
+            ok = [p for p in range(whole - 50, whole + 51)
+                  if p >= PERIOD_MIN * 1e6 and internal_rate(f_pwm, p * 1e-6)
+                  <= INTERNAL_RATE_MAX]
+            near = min(ok, key=lambda p: abs(p - whole)) if ok else 100
+            raise UserError(
+                f"{what} {whole}us: the emulated drive runs its current loop a whole number "
+                f"of times per period at a whole number of Hz, which for {whole}us means "
+                f"{rate / 1e3:g} kHz, above its {INTERNAL_RATE_MAX / 1e3:g} kHz limit "
+                f"(0x2201 sub 8); choose a rounder period, e.g. {near}us")

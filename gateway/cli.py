@@ -7,18 +7,22 @@ Every subcommand returns an exit status; bad input ends in one paragraph on stde
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
+import math
+import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, suppress
 from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from gateway.errors import UserError
-from gateway.units import format_duration, parse_duration
+from gateway.units import format_duration, parse_duration, parse_period
 
 PROG = "hil-gateway"
 
@@ -30,6 +34,7 @@ examples:
                                                     the paper's section 6, continuous time
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
+  hil-gateway compare runs/A runs/B                  did my change help? errors side by side
   hil-gateway reference check profiles/paper.toml
 """
 
@@ -37,20 +42,86 @@ examples:
 # ----------------------------------------------------------------------------- helpers
 
 
-def _out_dir(arg: str | None, kind: str) -> Path:
-    """The run directory: the given one, or runs/<timestamp>-<kind>; created, writable."""
-    path = Path(arg) if arg else Path("runs") / f"{datetime.now():%Y%m%d-%H%M%S}-{kind}"
+#: The files a run writes into its directory (besides the bus log named by --log):
+#: what --force removes before it reuses a directory.
+RUN_FILES = ("summary.json", "signals.csv", "fig1_references.png", "fig2_errors.png",
+             "fig3_currents_voltages.png")
+
+
+def _out_dir(arg: str | None, kind: str, force: bool = False,
+             extra_files: Sequence[str] = ()) -> Path:
+    """The run directory, created: ``--out`` DIR, or a new ``runs/<time>-<kind>[-n]``.
+
+    A default directory is never reused: two runs started in the same second get ``-2``,
+    ``-3``… (created atomically). An existing non-empty ``--out`` is refused unless
+    ``force``; then the files of the earlier run (:data:`RUN_FILES`, ``extra_files``) are
+    removed first so that nothing stale is mixed with the new run (symbolic links are kept
+    and written through: someone put them there on purpose).
+    """
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        if arg:
+            path = Path(arg)
+            if path.exists() and not path.is_dir():
+                raise UserError(f"--out {arg!r} is a file, not a directory: choose a new "
+                                "directory name")
+            if path.is_dir() and any(path.iterdir()):
+                if not force:
+                    names = sorted(p.name for p in path.iterdir())
+                    raise UserError(
+                        f"--out {arg!r} exists and is not empty ({', '.join(names[:4])}"
+                        f"{', …' if len(names) > 4 else ''}): a run never overwrites another; "
+                        "choose a new directory, or pass --force to reuse this one (the "
+                        "earlier run's files are removed)")
+                for name in (*RUN_FILES, *extra_files):
+                    old = path / name
+                    if not old.is_symlink():  # a link placed on purpose is written through
+                        old.unlink(missing_ok=True)
+            path.mkdir(parents=True, exist_ok=True)
+        else:
+            base = Path("runs") / f"{datetime.now():%Y%m%d-%H%M%S}-{kind}"
+            for n in itertools.count(1):
+                path = base if n == 1 else base.with_name(f"{base.name}-{n}")
+                try:
+                    path.mkdir(parents=True, exist_ok=False)
+                    break
+                except FileExistsError:
+                    continue
         probe = path / ".write-test"
         probe.write_text("")
         probe.unlink()
     except OSError as exc:
         raise UserError(
-            f"cannot write the run directory {str(path)!r}: {exc.strerror or exc}. "
-            "Choose a writable place with --out DIR."
+            f"cannot write the run directory {str(arg or 'runs/')!r}: "
+            f"{exc.strerror or exc}. Choose a writable place with --out DIR."
         ) from exc
     return path
+
+
+@contextmanager
+def _run_dir(arg: str | None, kind: str, force: bool = False,
+             extra_files: Sequence[str] = ()) -> Iterator[Path]:
+    """:func:`_out_dir`, removed again if the run fails and leaves it empty."""
+    existed = bool(arg) and Path(arg).exists()
+    parent_existed = Path(arg).parent.exists() if arg else Path("runs").exists()
+    path = _out_dir(arg, kind, force, extra_files)
+    try:
+        yield path
+    except BaseException:
+        if not existed:
+            with suppress(OSError):
+                path.rmdir()  # only when empty
+                if not parent_existed:
+                    path.parent.rmdir()
+        raise
+
+
+def _check_duration(duration: float, step: float, what: str) -> int:
+    """The number of periods (record steps) in ``duration``; refuses less than one."""
+    if duration < step * (1 - 1e-9):
+        raise UserError(f"{what} is shorter than one period ({format_duration(step)}): "
+                        f"nothing would run; give at least {format_duration(step)}, or a "
+                        "shorter --period")
+    return max(1, round(duration / step))
 
 
 def _load_profile(path: str | None):
@@ -107,9 +178,13 @@ class Progress:
                          f"{100 * fraction:5.1f}%  {elapsed:5.1f}s")
         sys.stderr.flush()
 
-    def done(self) -> None:
+    def done(self, complete: bool = True) -> None:
+        """End the line: at 100 % when the run is complete, else where it stopped."""
         if self.enabled:
-            self(1.0)
+            if complete:
+                self(1.0)
+            else:
+                sys.stderr.write(f"  stopped at {100 * max(self._last, 0.0):.1f}%")
             sys.stderr.write("\n")
             sys.stderr.flush()
 
@@ -144,11 +219,11 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "--estimator rs-adaptive or an observed load (the exact design has "
                         "neither yet); the full-order law has an exact design for voltage-fed "
                         "(d, q) drives only")
-    p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML); default: the "
-                   "paper's 0.6 kW motor")
+    p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML, SI units; template: "
+                   "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     p.add_argument("--load", choices=("known", "observed"),
                    help="the load torque for the laws: known (the profile's T_L, the paper, "
-                        "ERRATA 6) or observed (estimated by the load observer, issue 14; "
+                        "docs/paper.md §E6) or observed (estimated by the load observer, issue 14; "
                         "current-fed law; exact plants only so far, see BENCHMARKS.md); "
                         "default: the plant scenario's [load].known, else known")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
@@ -186,6 +261,10 @@ def _load_mode(args: argparse.Namespace, plant: Any) -> str:
 def _gains(args: argparse.Namespace):
     from gateway.control.laws import Gains
 
+    for name in ("k_w", "gamma_1", "gamma_2", "k_e"):
+        if not math.isfinite(getattr(args, name)):
+            raise UserError(f"--{name.replace('_', '-')} {getattr(args, name)}: give a finite "
+                            "positive number")
     try:
         return Gains(k_w=args.k_w, gamma_1=args.gamma_1, gamma_2=args.gamma_2, k_e=args.k_e,
                      i_max=args.i_max)
@@ -200,54 +279,93 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     """`hil-gateway simulate`: the closed loop without CAN."""
     from dbc.timing import Sampling
     from gateway import report
-    from gateway.simulate import SimConfig, run
+    from gateway.cycle import CycleRow
+    from gateway.runner import StopSignals
+    from gateway.simulate import SimConfig, emulator_rate, run
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     plant = _load_scenario(args.plant)
-    period = None if args.period == "continuous" else parse_duration(args.period, "--period")
+    period = (None if args.period == "continuous"
+              else parse_period(args.period, "--period", emulator_rate()))
     drive = args.drive_mode or args.law.drive_modes[0]
+    duration = parse_duration(args.duration, "--duration") if args.duration else None
     cfg = SimConfig(
         law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=drive,
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
-        quantize=not args.no_quantize, gains=_gains(args),
-        duration=args.duration and parse_duration(args.duration, "--duration"),
+        quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, args.estimator, _load_mode(args, plant)),
         plant=plant, load=_load_mode(args, plant),
     )
-    out = _out_dir(args.out, f"simulate-{args.law}")
     label = "continuous" if period is None else format_duration(period)
+    total = duration or profile.duration
+    what = (f"--duration {args.duration}" if args.duration
+            else f"the profile's duration ({profile.duration:g} s)")
+    n_rows = _check_duration(total, period or cfg.record_step, what)
+    report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
+                             f"simulating {total:g} s at {label}")
+    windows = report.profile_windows(profile, args.windows)
+    with _run_dir(args.out, f"simulate-{args.law}", args.force) as out:
+        return _simulate_into(out, args, profile, motor, cfg, label, windows, StopSignals,
+                              run)
+
+
+def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any, cfg: Any,
+                   label: str, windows: Any, stop_signals: Any, run: Any) -> int:
+    """The simulation proper, its files and the printout (the run directory exists)."""
+    from dbc.modes import DriveMode
+    from dbc.signals import SETPOINT_MESSAGE
+    from gateway import report
+
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     t0 = time.perf_counter()
-    from gateway.runner import StopSignals
-
-    signals = StopSignals()
+    signals = stop_signals()
     stop = threading.Event()
     signals.on_stop = lambda reason: stop.set()
+    # The handlers stay installed until every file is written: a second Ctrl-C (or one
+    # that comes while the figures are drawn) must not lose the run's files.
     with signals.installed():
         try:
             rec = run(profile, motor, cfg, progress, stop)
         except ValueError as exc:  # also a plant scenario's error (ScenarioError)
             raise UserError(f"the simulation could not run: {exc}") from exc
-    progress.done()
-    wall = time.perf_counter() - t0
-    if not len(rec):
-        raise UserError(f"the simulation stopped before its first period ({signals.reason})",
-                        exit_code=130)
-    sig = rec.arrays()
-    summary: dict[str, Any] = report.metrics(sig)
-    if stop.is_set():
-        summary["stopped_early"] = f"{signals.reason} at t = {sig['t'][-1]:.3f} s"
-    summary["configuration"] = {"command": "simulate", "profile": profile.source,
-                                **cfg.describe()}
-    summary["wall_time_s"] = wall
-    report.write_summary(out / "summary.json", summary)
-    rec.write_csv(out / "signals.csv")
-    figures = report.plot_figures(sig, out, f"({args.law}, {label})")
-    print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive {drive}, "
-          f"plant {plant.name}, load {cfg.load}, period {label}" + ("" if period is None else
-                              f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
-                              f"{args.setpoint_frame[1]}), {cfg.discretisation} design"))
+        finally:
+            progress.done(complete=not stop.is_set())
+        signals.shutting_down = True
+        signals.on_stop = lambda reason: print(
+            f"\n{reason}: writing the run's files first, please wait", file=sys.stderr,
+            flush=True)
+        wall = time.perf_counter() - t0
+        if not len(rec):
+            raise UserError(f"the simulation stopped before its first period "
+                            f"({signals.reason})", exit_code=130)
+        sig = rec.arrays()
+        summary: dict[str, Any] = report.metrics(sig, windows=windows)
+        summary["truth"] = report.TRUTH_MODEL
+        sampled = cfg.sampling is not None
+        summary["quantisation"] = report.quantisation(
+            cfg.quantize and sampled,
+            SETPOINT_MESSAGE[cfg.sampling.setpoint_frame] if sampled else None,
+            "--no-quantize" if sampled else "continuous time: no bus")
+        if stop.is_set():
+            summary["stopped_early"] = f"{signals.reason} at t = {sig['t'][-1]:.3f} s"
+        summary["configuration"] = {"command": "simulate", "profile": profile.source,
+                                    **cfg.describe()}
+        summary["wall_time_s"] = wall
+        report.write_summary(out / "summary.json", summary)
+        rec.write_csv(out / "signals.csv")
+        dp = cfg.drive_params
+        figures = report.plot_figures(
+            sig, out, report.title_for(summary["configuration"]),
+            windows=summary["speed_error"]["windows"],
+            limits=report.limits_for(cfg.gains, None if dp.mode is DriveMode.IDEAL
+                                     else dp.u_lim, dp.i_trip),
+            delay_s=cfg.sampling.delay * cfg.sampling.period if sampled else 0.0)
+    print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive "
+          f"{cfg.drive_mode}, plant {cfg.plant.name}, load {cfg.load}, period {label}"
+          + ("" if cfg.sampling is None else
+             f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
+             f"{args.setpoint_frame[1]}), {cfg.discretisation} design"))
     print(report.summary_table(summary))
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
           + (", " + ", ".join(p.name for p in figures) if figures else
@@ -272,7 +390,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gateway-node", type=int, metavar="N",
                    help="the gateway's own node id (its heartbeat, which the drive watches); "
                         "default: the drive profile's [drive].gateway_node, 127 (0x7F)")
-    p.add_argument("--period", default="1ms", help="cycle period (SYNC), e.g. 1ms (default)")
+    p.add_argument("--period", default="1ms",
+                   help="cycle period (SYNC) with its unit, 100us … 100ms in whole µs, e.g. "
+                        "1ms (default) or 250us")
     p.add_argument("--timing", type=Timing, choices=list(Timing), default=Timing.LOCKSTEP,
                    help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
                         "faster than real time against the emulator); realtime: SYNC on an "
@@ -285,7 +405,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
                    help="1: the drive applies RPDOs at the next SYNC (CiA 301); 0: on receipt "
                         "(emulator option)")
-    p.add_argument("--duration", help="run this long instead of the profile's duration")
+    p.add_argument("--duration", help="run this long instead of the profile's duration "
+                   "(10s, 500ms; a bare number is seconds)")
     p.add_argument("--max-missed", type=int,
                    help="consecutive missed cycles that stop the loop (default: real time 50 "
                         "ms worth, at least 5 (50 at 1 ms); lockstep 5, each after 1 s)")
@@ -295,7 +416,26 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", default="bus.blf", metavar="NAME",
                    help="raw bus log in the run directory; .blf (default), .asc, .csv, .log "
                         "(candump) or .trc by suffix")
-    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<time>-<command>)")
+    _add_output_options(p, "runs/<time>-<command>")
+
+
+def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
+    """The run directory, its reuse, the record-size guard, the metric windows, progress."""
+    from gateway.report import RECORD_LIMIT
+
+    p.add_argument("--out", metavar="DIR",
+                   help=f"run directory (default {default_dir}, never reused: a second run in "
+                        "the same second gets -2, -3, …); an existing non-empty DIR is refused")
+    p.add_argument("--force", action="store_true",
+                   help="reuse an existing --out DIR (the earlier run's files are removed)")
+    p.add_argument("--allow-long", action="store_true",
+                   help=f"run even when the record would need more than "
+                        f"{RECORD_LIMIT / (1 << 30):g} GiB of memory (estimated from duration, "
+                        "period and columns before anything runs)")
+    p.add_argument("--windows", metavar="SPEC", default="auto",
+                   help="metric windows: auto (default: one per segment of the reference "
+                        "profile), paper ([0,0.5), [0.5,1.5), [1.5,end)), none, or boundaries "
+                        "in s such as 0.5,1.5 (docs/outputs.md)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
 
 
@@ -322,7 +462,12 @@ def _run_config(args: argparse.Namespace, drive: Any):
     if args.flux is FluxSource.TRUE and not drive.truth:
         raise UserError(f"--flux true needs the drive's true rotor flux, which only the "
                         f"emulator sends (TPDO3); {drive.name} has none: use --flux estimated")
-    period = parse_duration(args.period, "--period")
+    if drive.emulator:
+        from gateway.sim import emulator_rate
+
+        period = parse_period(args.period, "--period", emulator_rate())
+    else:
+        period = parse_period(args.period, "--period")
     if args.max_missed is not None and args.max_missed < 1:
         raise UserError(f"--max-missed {args.max_missed}: give a number of cycles >= 1")
     if not 0.0 < args.max_miss_rate <= 1.0:
@@ -372,12 +517,16 @@ def _finish_run(summary: dict[str, Any]) -> int:
 
 def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
                      open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]],
-                     plant: Any = None) -> int:
+                     plant: Any = None, truth: Any = None) -> int:
     """What `run` and `sim` share: inputs, signals, the run, the report, the exit status.
 
     ``open_buses(cfg)`` → (gateway bus, bus label, close): opens whatever the command needs
-    (for `sim` also the emulated drive) and returns how to close it all.
+    (for `sim` also the emulated drive) and returns how to close it all. ``truth``: the
+    emulator's full-resolution record (:class:`gateway.sim.TruthRecorder`), `sim` only.
+    Every input is checked before the run directory is made.
     """
+    from gateway import report
+    from gateway.loop import LoopRow
     from gateway.runner import StopSignals, run_gateway
 
     profile = _load_profile(args.profile)
@@ -397,25 +546,91 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     if not 1 <= gateway_node <= 127 or gateway_node == node:
         raise UserError(f"--gateway-node {gateway_node}: the gateway's node id is 1..127 and "
                         f"not the drive's ({node})")
-    out = _out_dir(args.out, kind)
-    signals = StopSignals()
-    with signals.installed():
-        bus, label, close = open_buses((cfg, motor, node))
-        try:
-            progress = Progress(f"{kind} {label}", True if args.progress else None)
-            summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
-                                  gateway_node=args.gateway_node,
-                                  own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
-                                  progress=progress, signals=signals, bus_label=label)
-            progress.done()
-        finally:
-            close()
+    total = cfg.duration or profile.duration
+    what = (f"--duration {args.duration}" if args.duration
+            else f"the profile's duration ({profile.duration:g} s)")
+    n_rows = _check_duration(total, cfg.period, what)
+    report.check_record_size(n_rows, len(LoopRow._fields), args.allow_long,
+                             f"running {total:g} s at {format_duration(cfg.period)}")
+    windows = report.profile_windows(profile, args.windows)
+    with _run_dir(args.out, kind, args.force, (args.log,)) as out:
+        signals = StopSignals()
+        with signals.installed():
+            bus, label, close = open_buses((cfg, motor, node))
+            try:
+                progress = Progress(f"{kind} {label}", True if args.progress else None)
+                summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
+                                      gateway_node=args.gateway_node,
+                                      own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
+                                      progress=progress, signals=signals, bus_label=label)
+                progress.done(complete=summary["run"]["exit_status"] == 0)
+            finally:
+                close()
+            _report_run(out, kind, summary, profile, cfg, drive, windows, truth)
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
           f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, load {cfg.load}, {cfg.timing}, "
           f"period {format_duration(cfg.period)}, delay {cfg.sampling.delay}, "
           f"{cfg.discretisation} design")
     _print_run(kind, summary, out, profile)
     return _finish_run(summary)
+
+
+def _report_run(out: Path, kind: str, summary: dict[str, Any], profile: Any, cfg: Any,
+                drive: Any, windows: Any, truth: Any) -> None:
+    """Fit the run's summary and figures to the profile and say what they rest on.
+
+    The metrics are recomputed over the profile's windows; with `sim` the emulator's
+    full-resolution truth replaces TPDO3's INT16 values in signals.csv and the metrics
+    (summary["truth"] says which); summary["quantisation"] gives each bus signal's LSB.
+    """
+    try:
+        _refit_run(out, kind, summary, cfg, drive, windows, truth)
+    except OSError as exc:  # the runner's files stand; say what could not be redone
+        summary.setdefault("write_errors", []).append(
+            f"cannot rewrite the run's files in {out}: {exc.strerror or exc}")
+        summary["run"]["exit_status"] = 1
+        print(f"{PROG}: {summary['write_errors'][-1]}", file=sys.stderr)
+
+
+def _refit_run(out: Path, kind: str, summary: dict[str, Any], cfg: Any, drive: Any,
+               windows: Any, truth: Any) -> None:
+    import numpy as np
+
+    from gateway import report
+    from gateway.sim import emulator_limits
+
+    summary["configuration"]["command"] = kind
+    summary["quantisation"] = report.quantisation(True, drive.setpoints)
+    csv_path = out / "signals.csv"
+    if summary.get("write_errors"):
+        return  # what was written stands as the runner reported it
+    if csv_path.is_file() and "speed_error" in summary:
+        sig = report.read_csv(csv_path)
+        full = None
+        if truth is not None and len(sig["t"]):
+            full = truth.columns(np.rint(sig["t"] / cfg.period))
+        if full is not None:
+            # the same cycles as TPDO3's: within half its LSB wherever it does not saturate
+            lsb = summary["quantisation"]["signals"]["w_m"]["lsb"]
+            ok = np.abs(sig["w_m"]) < 1000.0
+            if not np.all(np.abs(full["w_m"][ok] - sig["w_m"][ok]) <= lsb / 2 + 1e-9):
+                logging.getLogger(__name__).warning(
+                    "the emulator's truth does not match TPDO3's cycle by cycle; the "
+                    "summary uses TPDO3")
+                full = None
+        if full is not None:
+            sig.update(full)
+            report.write_columns_csv(csv_path, sig)
+        summary["truth"] = report.TRUTH_FULL if full is not None else report.TRUTH_TPDO3
+        summary.update(report.metrics(sig, windows))
+        i_trip, u_lim = emulator_limits() if drive.emulator else (None, None)
+        report.plot_figures(
+            sig, out, report.title_for(summary["configuration"]),
+            windows=summary["speed_error"]["windows"],
+            limits=report.limits_for(cfg.gains, None if cfg.drive_mode == "ideal" else u_lim,
+                                     i_trip),
+            delay_s=cfg.sampling.delay * cfg.period)
+    report.write_summary(out / "summary.json", summary)
 
 
 #: Interfaces that deliver this process's own frames back when asked (receive_own_messages).
@@ -440,7 +655,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
     from gateway.drive_profile import load_drive_profile
-    from gateway.sim import open_emulator
+    from gateway.sim import TruthRecorder, open_emulator
+
+    truth = TruthRecorder()
 
     plant = _load_scenario(args.plant)
     profile_load = _load_profile(args.profile).load
@@ -448,9 +665,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     def open_buses(ctx: Any) -> tuple[Any, str, Callable[[], None]]:
         cfg, motor, node = ctx
         return open_emulator(args.transport, node, motor, cfg.drive_mode, plant,
-                             profile_load)
+                             profile_load, on_sample=truth)
 
-    return _gateway_session(args, "sim", load_drive_profile(None), open_buses, plant)
+    return _gateway_session(args, "sim", load_drive_profile(None), open_buses, plant, truth)
 
 
 # ---------------------------------------------------------------------------- profile
@@ -484,10 +701,20 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_profile_plot(args: argparse.Namespace) -> int:
-    """`hil-gateway profile plot FILE`: references and derivatives as PNG."""
-    import numpy as np
+#: What `profile plot -o` can write (matplotlib picks the format from the suffix).
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
+
+def cmd_profile_plot(args: argparse.Namespace) -> int:
+    """`hil-gateway profile plot FILE`: references and their derivatives, in real units."""
+    if args.output:
+        out = Path(args.output)
+        if out.suffix.lower() not in PLOT_SUFFIXES:
+            raise UserError(f"-o {args.output!r}: a plot is written as "
+                            f"{', '.join(PLOT_SUFFIXES)} (by the suffix); e.g. -o "
+                            f"{out.with_suffix('.png')}")
+    else:
+        out = Path("runs") / f"profile-{Path(args.file).stem}.png"
     profile = _load_profile(args.file)
     try:
         import matplotlib
@@ -496,28 +723,59 @@ def cmd_profile_plot(args: argparse.Namespace) -> int:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise UserError("profile plot needs matplotlib: pip install 'can-drive-hil[plot]'") from exc
-    out = Path(args.output) if args.output else Path(Path(args.file).stem + ".png")
-    t = np.linspace(0.0, profile.duration, 2001)
+    from gateway.reference import sample_times
+
+    t = sample_times(profile, max_points=4000)
     s = profile.sample(t)
-    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(7, 7), layout="constrained")
-    ax[0].plot(t, s["w_ref"], label="ω* [rad/s]")
-    ax[0].plot(t, s["dw_ref"] / 10, ":", label="dω*/dt / 10 [rad/s²]")
-    ax[1].plot(t, s["psi_ref"], label="ψ* [Wb]")
-    ax[1].plot(t, s["dpsi_ref"] / 10, ":", label="dψ*/dt / 10 [Wb/s]")
-    ax[2].plot(t, s["T_L"], color="C3", label="T_L [N·m]")
-    ax[2].set_xlabel("time [s]")
-    for a in ax:
-        a.grid(True, alpha=0.3)
-        a.legend(loc="best", fontsize="small")
-    fig.suptitle(f"profile {profile.name}")
+    fig, ax = plt.subplots(3, 2, sharex=True, figsize=(10, 7), layout="constrained")
+    rows = (("w_ref", "dw_ref", "speed ω*", "rad/s", "C0"),
+            ("psi_ref", "dpsi_ref", "rotor flux ψ*", "Wb", "C1"),
+            ("T_L", "dT_L", "load torque T_L", "N·m", "C3"))
+    for j, (key, dkey, name, unit, color) in enumerate(rows):
+        ax[j, 0].plot(t, s[key], color=color)
+        ax[j, 0].set_ylabel(f"{name} [{unit}]")
+        ax[j, 1].plot(t, s[dkey], color=color, lw=0.9)
+        dunit = {"rad/s": "rad/s²"}.get(unit, f"{unit}/s")
+        ax[j, 1].set_ylabel(f"d/dt {name.split()[-1]} [{dunit}]")
+        for a in ax[j]:
+            a.grid(True, alpha=0.3)
+    ax[0, 0].set_title("references")
+    ax[0, 1].set_title("first derivatives (what the laws use)")
+    for a in ax[2]:
+        a.set_xlabel("time [s]")
+    fig.suptitle(f"reference profile {profile.name!r} ({args.file}), {profile.duration:g} s")
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
-                        "file with -o") from exc
+    except (OSError, ValueError) as exc:
+        raise UserError(f"cannot write {str(out)!r}: {getattr(exc, 'strerror', None) or exc}; "
+                        "choose another file with -o") from exc
     finally:
         plt.close(fig)
     print(f"wrote {out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- compare
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """`hil-gateway compare RUN_DIR…`: errors side by side, configuration differences, and
+    a figure of the speed and flux errors of every run overlaid."""
+    from gateway import report
+
+    runs = [report.load_run(Path(d)) for d in args.runs]
+    print(report.compare_table(runs))
+    out = Path(args.output) if args.output else runs[0].path / "compare.png"
+    if out.suffix.lower() not in PLOT_SUFFIXES:
+        raise UserError(f"-o {args.output!r}: the figure is written as "
+                        f"{', '.join(PLOT_SUFFIXES)} (by the suffix)")
+    try:
+        written = report.plot_compare(runs, out)
+    except OSError as exc:
+        raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
+                        "file with -o") from exc
+    print(f"wrote {written}" if written else "(install matplotlib for the figure)")
     return 0
 
 
@@ -550,19 +808,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "10 kHz, or voltage-fed (default: ideal for current-fed, voltage for "
                         "full-order); --drive is the old spelling")
     p.add_argument("--period", default="1ms",
-                   help="sampling period (1ms, 250us, ...) or 'continuous' (default 1ms)")
+                   help="sampling period with its unit, 100us … 100ms in whole µs (1ms, "
+                        "250us, ...), or 'continuous' (default 1ms)")
     p.add_argument("--setpoint-frame", type=SetpointFrame, choices=list(SetpointFrame),
                    default=SetpointFrame.DQ,
-                   help="dq: the drive turns the frame itself (ERRATA 9); ab: setpoints held "
-                        "in the fixed frame over the period")
+                   help="dq: the drive turns the frame itself (docs/paper.md §E9); ab: setpoints "
+                        "held in the fixed frame over the period")
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
                    help="periods between a sample and its setpoints acting (1 = CANopen SYNC)")
     _add_plant_option(p)
     p.add_argument("--no-quantize", action="store_true",
                    help="skip the INT16 quantisation of the PDO signals")
-    p.add_argument("--duration", help="simulate this long instead of the profile's duration")
-    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<time>-simulate-*)")
-    p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.add_argument("--duration", help="simulate this long instead of the profile's duration "
+                   "(10s, 500ms; a bare number is seconds)")
+    _add_output_options(p, "runs/<time>-simulate-<law>")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser(
@@ -601,6 +860,18 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_parser(sub)
     check.add_parser(sub)
 
+    p = sub.add_parser(
+        "compare", help="compare runs: errors side by side, configuration differences, figure",
+        description="Compare run directories (of simulate, sim or run): print the errors of "
+                    "each side by side with the configuration keys that differ, and write a "
+                    "figure with every run's speed and flux errors overlaid (compare.png in "
+                    "the first run's directory, or -o FILE). See docs/outputs.md.")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="figure file, .png, .svg or .pdf (default RUN_DIR/compare.png of the "
+                        "first run)")
+    p.set_defaults(func=cmd_compare)
+
     p = sub.add_parser("reference", aliases=["profile"],
                        help="check or plot a reference profile (alias: profile)",
                        description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
@@ -612,16 +883,33 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("file", metavar="FILE")
     pc.add_argument("--motor", metavar="FILE", help="motor parameters (TOML)")
     pc.set_defaults(func=cmd_profile_check)
-    pp = psub.add_parser("plot", help="plot the references as PNG",
-                         description="Plot ω*, ψ*, T_L and derivatives of a profile as PNG.")
+    pp = psub.add_parser("plot", help="plot the references and their derivatives",
+                         description="Plot ω*, ψ*, T_L and their time derivatives (each on "
+                                     "its own axis, in real units) of a profile.")
     pp.add_argument("file", metavar="FILE")
-    pp.add_argument("-o", "--output", metavar="PNG", help="output file (default FILE's stem.png)")
+    pp.add_argument("-o", "--output", metavar="FILE",
+                    help="output file, .png, .svg or .pdf (default runs/profile-<FILE's "
+                         "stem>.png; an existing file is replaced)")
     pp.set_defaults(func=cmd_profile_plot)
     from gateway import newdrive  # `profile new-drive`: a drive-profile skeleton from an EDS
 
     newdrive.add_action(psub)
     p.set_defaults(func=lambda a: _usage(p))
+    _debug_everywhere(parser)
     return parser
+
+
+def _debug_everywhere(parser: argparse.ArgumentParser) -> None:
+    """--debug also after the subcommand (``hil-gateway sim --debug``), as in hil-plant:
+    every subparser gets it with default SUPPRESS, so the top-level value stands unless
+    given there."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in {id(p): p for p in action.choices.values()}.values():
+                if "--debug" not in sub._option_string_actions:
+                    sub.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                                     help="show tracebacks and debug logging")
+                _debug_everywhere(sub)
 
 
 def _usage(p: argparse.ArgumentParser) -> int:
@@ -649,6 +937,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `hil-gateway sim | head`: the reader left; the files are written
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes stdout
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -10,7 +10,8 @@ import csv
 import json
 import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,34 @@ import numpy as np
 
 #: Metric windows of the paper scenario, s: start-up and first load, load steps, field weakening.
 DEFAULT_WINDOWS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.5), (1.5, math.inf))
+
+#: Memory a record holds per value while a run goes on: a Python float (24 bytes) and its
+#: pointer in the row (8), and the float64 copy the metrics and figures make (8); per row
+#: also the row tuple's header.
+BYTES_PER_VALUE = 40
+BYTES_PER_ROW = 56
+#: The record size above which a run must be asked for with --allow-long, bytes.
+RECORD_LIMIT = 1 << 30
+
+
+def record_bytes(n_rows: int, n_columns: int) -> int:
+    """Estimated memory of a record of ``n_rows`` rows of ``n_columns`` floats, bytes."""
+    return int(n_rows) * (n_columns * BYTES_PER_VALUE + BYTES_PER_ROW)
+
+
+def check_record_size(n_rows: int, n_columns: int, allow_long: bool, what: str) -> None:
+    """Refuse (:class:`UserError`) a run whose record would exceed :data:`RECORD_LIMIT`
+    unless ``allow_long``; ``what`` describes the run ("600 s at 1ms")."""
+    size = record_bytes(n_rows, n_columns)
+    if size > RECORD_LIMIT and not allow_long:
+        from gateway.errors import UserError
+
+        raise UserError(
+            f"{what} is {n_rows:.4g} cycles; their record ({n_columns} columns, about "
+            f"{n_columns * BYTES_PER_VALUE + BYTES_PER_ROW} bytes a cycle) would need about "
+            f"{size / (1 << 30):.3g} GiB of memory, above the {RECORD_LIMIT / (1 << 30):g} GiB "
+            "limit: shorten --duration, lengthen --period, or pass --allow-long to run it "
+            "anyway")
 
 class Record:
     """Per-cycle signals, appended row by row, read back as numpy columns.
@@ -58,6 +87,17 @@ class Record:
                 w.writerow([repr(float(x)) for x in row])
 
 
+def write_columns_csv(path: Path, sig: Mapping[str, np.ndarray]) -> None:
+    """Write columns (e.g. from :func:`read_csv`, amended) like :meth:`Record.write_csv`."""
+    names = list(sig)
+    data = np.column_stack([np.asarray(sig[n], dtype=float) for n in names])
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(names)
+        for row in data.tolist():
+            w.writerow([repr(x) for x in row])
+
+
 def read_csv(path: Path) -> dict[str, np.ndarray]:
     """Read a record written by :meth:`Record.write_csv`."""
     with path.open(newline="") as f:
@@ -78,28 +118,34 @@ def _error_stats(
         "final": float(e[-1]) if e.size else math.nan,
         "windows": [],
     }
-    for lo, hi in windows:
+    for w in windows:
+        lo, hi = w[0], w[1]
         sel = (t >= lo) & (t < hi)
         if not np.any(sel):
-            continue
+            continue  # a window the run did not reach is not reported
         ew = e[sel]
-        out["windows"].append({
+        entry = {
             "from": lo,
-            "to": float(t[sel][-1]) if math.isinf(hi) else hi,
+            "to": float(t[sel][-1]) if math.isinf(hi) or hi > t[-1] else hi,
             "max": float(np.max(np.abs(ew))),
             "rms": float(np.sqrt(np.mean(ew * ew))),
-        })
+        }
+        if len(w) > 2:
+            entry["label"] = w[2]
+        out["windows"].append(entry)
     return out
 
 
 def metrics(
-    sig: Mapping[str, np.ndarray], windows: Iterable[tuple[float, float]] = DEFAULT_WINDOWS
+    sig: Mapping[str, np.ndarray], windows: Iterable[tuple] = DEFAULT_WINDOWS
 ) -> dict[str, Any]:
     """The summary metrics (SI units).
 
     speed_error = ω − ω*, flux_error = |ψ_r| − ψ*, estimation_error = ω̂ − ω, each with
     max |·|, RMS, final value and per-window max/RMS; peak_current = max |i_s|,
-    peak_voltage = max |u_s| (average over a period).
+    peak_voltage = max |u_s| (average over a period). ``windows``: (from, to) or
+    (from, to, label) in s, e.g. :func:`profile_windows`; those the run did not reach are
+    left out.
     """
     windows = tuple(windows)
     t = sig["t"]
@@ -110,6 +156,46 @@ def metrics(
         "peak_current": float(np.max(np.hypot(sig["i_sa"], sig["i_sb"]))),
         "peak_voltage": float(np.max(np.hypot(sig["u_sa"], sig["u_sb"]))),
     }
+
+
+def profile_windows(profile: Any, spec: str | None = None) -> tuple[tuple[float, float, str], ...]:
+    """Metric windows (from, to, label), s, fitted to ``profile`` (docs/outputs.md).
+
+    ``spec`` None or "auto": one window per segment of the profile — from 0, and from the
+    start of each transition of ω*, ψ* or T_L (transitions that start together share one)
+    to the next, the last to the end; labelled by what starts it ("speed 0 → 100 rad/s").
+    "paper": the paper scenario's [0, 0.5), [0.5, 1.5), [1.5, end). "none": no windows.
+    Otherwise comma-separated boundaries in s, e.g. "0.5,1.5".
+    """
+    from gateway.errors import UserError
+
+    duration = float(profile.duration)
+    if spec in (None, "", "auto"):
+        starts: dict[float, list[str]] = {}
+        for sp in profile.set_points():
+            if sp.initial or sp.t_start >= duration:
+                continue
+            what = f"{sp.signal} {sp.start:g} → {sp.end:g} {sp.unit}"
+            starts.setdefault(round(sp.t_start, 9), []).append(what)
+        bounds = sorted(t for t in starts if t > 0.0)
+        labels = ["start" + (": " + ", ".join(starts[0.0]) if 0.0 in starts else "")]
+        labels += [", ".join(starts[t]) for t in bounds]
+    elif spec == "paper":
+        return tuple((lo, hi, f"paper [{lo:g}, {hi:g})") for lo, hi in DEFAULT_WINDOWS)
+    elif spec == "none":
+        return ()
+    else:
+        try:
+            bounds = sorted({float(x) for x in spec.split(",") if x.strip()})
+        except ValueError:
+            bounds = [math.nan]
+        if not bounds or not all(0.0 < b < duration for b in bounds):
+            raise UserError(f"--windows {spec!r}: give 'auto', 'paper', 'none' or "
+                            f"comma-separated times in s inside (0, {duration:g}), e.g. "
+                            "0.5,1.5")
+        labels = ["start"] + [f"from {b:g} s" for b in bounds]
+    edges = [0.0, *bounds, math.inf]
+    return tuple((edges[j], edges[j + 1], labels[j]) for j in range(len(edges) - 1))
 
 
 def _fmt(x: float, unit: str) -> str:
@@ -143,9 +229,74 @@ def summary_table(summary: Mapping[str, Any]) -> str:
         "  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j]) for j, c in enumerate(r))
         for r in lines
     )
+    labelled = [w for w in win if w.get("label")]
+    if labelled:
+        text += "\nwindows: " + "; ".join(f"[{w['from']:g},{w['to']:g}) {w['label']}"
+                                          for w in labelled)
     text += (f"\npeak current {summary['peak_current']:.3g} A, "
              f"peak voltage {summary['peak_voltage']:.3g} V")
+    if "truth" in summary:
+        text += f"\ntruth (ω, |ψr|): {summary['truth']}"
+    q = summary.get("quantisation")
+    if q and q.get("applied"):
+        sig = q["signals"]
+        parts = [f"{label} {_fmt(sig[name]['lsb'], sig[name]['unit'])}"
+                 for label, name in (("i", "i_sa"), ("u", "u_sa"), ("ω0", "w_0"),
+                                     ("ε0", "eps_0"), ("ω (TPDO3)", "w_m"),
+                                     ("ψr (TPDO3)", "psi_ra")) if name in sig]
+        text += "\nbus resolution (1 LSB): " + ", ".join(parts) + " (dbc/drive.dbc)"
+    elif q:
+        text += f"\nbus resolution: not applied ({q.get('reason', '--no-quantize')})"
     return text
+
+
+#: The bus signals the loop uses, by message (the setpoint message depends on the frame).
+_USED_MESSAGES = ("RPDO1", "RPDO2", "RPDO2_AB", "RPDO3", "TPDO1", "TPDO2", "TPDO3")
+
+
+def quantisation(applied: bool = True, setpoint_message: str | None = None,
+                 reason: str = "") -> dict[str, Any]:
+    """The resolution of each bus signal, from ``dbc/drive.dbc``: for summary.json.
+
+    ``signals``: name → message, lsb (one raw unit in ``unit``), unit, bits, signed, min,
+    max. Integer fields (controlword, statusword, SYNC counter) are left out. ``applied``:
+    whether the run's signals went through it (`simulate --no-quantize` or continuous
+    time: false, ``reason`` says why).
+    """
+    from dbc import load_database
+    from dbc.codec import INT_SIGNALS
+
+    skip = {"RPDO2", "RPDO2_AB"} - {setpoint_message} if setpoint_message else set()
+    db = load_database()
+    out: dict[str, Any] = {}
+    for name in _USED_MESSAGES:
+        if name in skip:
+            continue
+        try:
+            msg = db.get_message_by_name(name)
+        except KeyError:
+            continue
+        for sg in msg.signals:
+            if sg.name in INT_SIGNALS:
+                continue
+            raw_lo = -(1 << (sg.length - 1)) if sg.is_signed else 0
+            raw_hi = (1 << (sg.length - 1)) - 1 if sg.is_signed else (1 << sg.length) - 1
+            out[sg.name] = {"message": name, "lsb": float(sg.scale),
+                            "unit": (sg.unit or "").replace("N.m", "N·m"),
+                            "bits": sg.length, "signed": bool(sg.is_signed),
+                            "min": raw_lo * float(sg.scale), "max": raw_hi * float(sg.scale)}
+    q: dict[str, Any] = {"applied": bool(applied), "source": "dbc/drive.dbc"}
+    if not applied and reason:
+        q["reason"] = reason
+    q["signals"] = out
+    return q
+
+
+#: summary["truth"]: where ω and |ψr| of the error metrics come from.
+TRUTH_FULL = "emulator, full resolution"
+TRUTH_MODEL = "simulated motor state, full resolution"
+TRUTH_TPDO3 = "TPDO3, INT16 (ω to 0.03125 rad/s, ψr to 0.1 mWb)"
+
 
 
 def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
@@ -170,10 +321,97 @@ def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
         raise
 
 
-def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "") -> list[Path]:
-    """The paper's Fig. 1 (references and load) and Fig. 2 (errors), and the currents/voltages.
+def title_for(config: Mapping[str, Any]) -> str:
+    """One line naming the whole configuration of a run, from summary["configuration"]:
+    law, flux source and estimator, drive mode, period, delay, setpoint frame, and how it
+    ran (simulate, or over CAN with transport and timing)."""
+    def period_text(p: Any) -> str:
+        if p == "continuous" or p is None:
+            return "continuous time"
+        p = float(p)
+        return f"T = {p * 1e3:g} ms" if p >= 1e-3 else f"T = {p * 1e6:g} µs"
 
-    Returns the PNG paths written, or [] when matplotlib is not installed.
+    flux = config.get("flux", "?")
+    flux_text = ("true flux" if flux == "true"
+                 else f"estimated flux ({config.get('estimator', 'open-loop')})")
+    parts = [f"{config.get('law', '?')} law", flux_text,
+             f"{config.get('drive_mode', '?')} drive", period_text(config.get("period"))]
+    if config.get("period") not in (None, "continuous"):
+        parts.append(f"delay {config.get('delay', '?')}")
+        parts.append(f"{config.get('setpoint_frame', '?')} setpoints")
+    if config.get("command") == "simulate":
+        how = "simulate" + ("" if config.get("period") == "continuous" else
+                            (", INT16 bus signals" if config.get("quantize", True)
+                             else ", unquantised"))
+    else:
+        bus = str(config.get("bus", "")).split(":")[0] or "CAN"
+        how = f"over CANopen ({bus}, {config.get('timing', '?')})"
+    return ", ".join(parts) + " — " + how
+
+
+def limits_for(gains: Any, u_lim: float | None = None, i_trip: float | None = None
+               ) -> dict[str, float]:
+    """The limits Fig. 3 draws: the controller's current limit ``gains.i_max``, and the
+    drive's voltage limit and over-current trip when known."""
+    out = {"i_max": float(gains.i_max)}
+    if u_lim is not None:
+        out["u_lim"] = float(u_lim)
+    if i_trip is not None and math.isfinite(i_trip):
+        out["i_trip"] = float(i_trip)
+    return out
+
+
+def zoom_windows(sig: Mapping[str, np.ndarray], windows: Iterable[Mapping[str, Any]] = ()
+                 ) -> list[tuple[str, float, float]]:
+    """Fig. 3's zoomed panels, chosen from the profile's segments: start-up (to the end of
+    the first speed window, at most 0.3 s after it starts), the first load step (50 ms
+    before to 150 ms after), steady state (the last 150 ms). Panels outside the run are left
+    out."""
+    t = sig["t"]
+    if not t.size:
+        return []
+    t0, t1 = float(t[0]), float(t[-1])
+    span = min(0.15, 0.3 * (t1 - t0))
+    w = list(windows)
+    out: list[tuple[str, float, float]] = []
+    speed = [x for x in w if "speed" in str(x.get("label", ""))]
+    end_start = min(t1, 0.5 if not speed else max(min(speed[0]["to"], speed[0]["from"] + 0.3),
+                                                  0.1))
+    out.append(("start-up", t0, max(end_start, t0 + span)))
+    load = [x for x in w if "load" in str(x.get("label", ""))]
+    if load:
+        tl = float(load[0]["from"])
+        if t0 < tl < t1:
+            out.append((f"load step at {tl:g} s", max(t0, tl - span / 3), min(t1, tl + span)))
+    else:
+        dT = np.abs(np.diff(sig["T_L"])) if "T_L" in sig else np.array([])
+        if dT.size and np.max(dT) > 0:
+            tl = float(t[int(np.argmax(dT))])
+            out.append((f"load change at {tl:.3g} s", max(t0, tl - span / 3),
+                        min(t1, tl + span)))
+    out.append(("steady state (end)", max(t0, t1 - span), t1))
+    return out
+
+
+def _setpoints_ab(sig: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The current setpoints in the (a, b) frame: (i_sd*, i_sq*) turned by the frame angle
+    sent with them (for the interval they act on)."""
+    i = (sig["i_sd_ref"] + 1j * sig["i_sq_ref"]) * np.exp(1j * sig["eps_0"])
+    return i.real, i.imag
+
+
+def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
+                 windows: Iterable[Mapping[str, Any]] = (),
+                 limits: Mapping[str, float] | None = None, delay_s: float = 0.0
+                 ) -> list[Path]:
+    """The paper's Fig. 1 (references and load) and Fig. 2 (errors), and Fig. 3 (stator
+    currents and voltages: the whole run's magnitudes, then zoomed panels of start-up, a
+    load step and steady state with the setpoints and the limits).
+
+    ``title``: the configuration (:func:`title_for`); ``windows``: the metric windows of
+    the summary (drawn in Fig. 2, used to pick Fig. 3's zooms); ``limits``:
+    :func:`limits_for`; ``delay_s``: time from a row's sample to its setpoints acting
+    (delay·T). Returns the PNG paths written, or [] when matplotlib is not installed.
     """
     try:
         import matplotlib
@@ -183,9 +421,15 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "") 
     except ImportError:
         return []
     t = sig["t"]
+    windows = list(windows)
+    limits = dict(limits or {})
     written: list[Path] = []
 
-    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(7, 7), layout="constrained")
+    def suptitle(fig: Any, what: str) -> None:
+        conf = title.replace(" — ", "\n")  # configuration, then how it ran
+        fig.suptitle(f"{what}\n{conf}" if title else what, fontsize="medium")
+
+    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), layout="constrained")
     ax[0].plot(t, sig["w_ref"], label="ω* reference")
     ax[0].plot(t, sig["w_m"], "--", label="ω motor")
     ax[0].set_ylabel("speed [rad/s]")
@@ -198,13 +442,13 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "") 
     for a in ax:
         a.grid(True, alpha=0.3)
         a.legend(loc="best", fontsize="small")
-    fig.suptitle(f"Fig. 1 — speed and flux references, applied load {title}".strip())
+    suptitle(fig, "Fig. 1 — speed and flux references, applied load")
     p = out_dir / "fig1_references.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
     written.append(p)
 
-    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(7, 7), layout="constrained")
+    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), layout="constrained")
     ax[0].plot(t, sig["w_m"] - sig["w_ref"])
     ax[0].set_ylabel("ω − ω* [rad/s]")
     ax[1].plot(t, sig["psi_r_mod"] - sig["psi_ref"])
@@ -214,26 +458,220 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "") 
     ax[2].set_xlabel("time [s]")
     for a in ax:
         a.grid(True, alpha=0.3)
-    fig.suptitle(f"Fig. 2 — tracking and estimation errors {title}".strip())
+        for w in windows[1:]:
+            a.axvline(w["from"], color="0.6", lw=0.8, ls=":")
+    suptitle(fig, "Fig. 2 — tracking and estimation errors (dotted: metric windows)")
     p = out_dir / "fig2_errors.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
     written.append(p)
 
-    fig, ax = plt.subplots(2, 1, sharex=True, figsize=(7, 5), layout="constrained")
-    ax[0].plot(t, sig["i_sa"], label="i_sa")
-    ax[0].plot(t, sig["i_sb"], label="i_sb")
-    ax[0].set_ylabel("current [A]")
-    ax[1].plot(t, sig["u_sa"], label="u_sa")
-    ax[1].plot(t, sig["u_sb"], label="u_sb")
-    ax[1].set_ylabel("voltage [V]")
-    ax[1].set_xlabel("time [s]")
-    for a in ax:
-        a.grid(True, alpha=0.3)
-        a.legend(loc="upper right", fontsize="small")
-    fig.suptitle(f"Stator currents and average voltages {title}".strip())
+    written.append(_plot_fig3(plt, sig, out_dir, windows, limits, delay_s, suptitle))
+    return written
+
+
+def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
+               windows: list, limits: Mapping[str, float], delay_s: float,
+               suptitle: Callable[[Any, str], None]) -> Path:
+    t = sig["t"]
+    zooms = zoom_windows(sig, windows)
+    i_ref_a, i_ref_b = _setpoints_ab(sig)
+    t_ref = t + delay_s
+    fig = plt.figure(figsize=(11, 8), layout="constrained")
+    grid = fig.add_gridspec(3, len(zooms), height_ratios=(1.0, 1.3, 1.3))
+    top = fig.add_subplot(grid[0, :])
+    top.plot(t, np.hypot(sig["i_sa"], sig["i_sb"]), label="|i_s| [A]")
+    top.set_ylabel("|i_s| [A]")
+    top2 = top.twinx()
+    top2.plot(t, np.hypot(sig["u_sa"], sig["u_sb"]), color="C1", lw=0.8, label="|u_s| [V]")
+    top2.set_ylabel("|u_s| [V]", color="C1")
+    if "i_max" in limits:
+        top.axhline(limits["i_max"], color="C0", ls=":", lw=1, label="i_max (controller)")
+    if "u_lim" in limits:
+        top2.axhline(limits["u_lim"], color="C1", ls=":", lw=1, label="u_dc/√3 (drive)")
+    for _, lo, hi in zooms:
+        top.axvspan(lo, hi, color="0.85", zorder=0)
+    top.set_xlabel("time [s] (shaded: the zoomed panels below)")
+    top.grid(True, alpha=0.3)
+    h1, l1 = top.get_legend_handles_labels()
+    h2, l2 = top2.get_legend_handles_labels()
+    top.legend(h1 + h2, l1 + l2, loc="upper left", fontsize="x-small", ncol=4)
+    for j, (name, lo, hi) in enumerate(zooms):
+        sel = (t >= lo) & (t <= hi)
+        sel_ref = (t_ref >= lo) & (t_ref <= hi)
+        ai = fig.add_subplot(grid[1, j])
+        au = fig.add_subplot(grid[2, j], sharex=ai)
+        ai.plot(t[sel], sig["i_sa"][sel], color="C0", label="i_sa")
+        ai.plot(t[sel], sig["i_sb"][sel], color="C2", label="i_sb")
+        ai.step(t_ref[sel_ref], i_ref_a[sel_ref], "--", where="post", color="C0", lw=0.9,
+                label="i_sa* setpoint")
+        ai.step(t_ref[sel_ref], i_ref_b[sel_ref], "--", where="post", color="C2", lw=0.9,
+                label="i_sb* setpoint")
+        au.plot(t[sel], sig["u_sa"][sel], color="C1", label="u_sa")
+        au.plot(t[sel], sig["u_sb"][sel], color="C4", label="u_sb")
+        for key, a, color, text in (("i_max", ai, "k", "±i_max"), ("i_trip", ai, "C3",
+                                                                     "±i_trip"),
+                                    ("u_lim", au, "C3", "±u_dc/√3")):
+            if key in limits:
+                for sign in (1, -1):
+                    a.axhline(sign * limits[key], color=color, ls=":", lw=1,
+                              label=text if sign > 0 else None)
+        ai.set_title(name, fontsize="small")
+        au.set_xlabel("time [s]")
+        if j == 0:
+            ai.set_ylabel("current [A]")
+            au.set_ylabel("voltage, period average [V]")
+        for a in (ai, au):
+            a.grid(True, alpha=0.3)
+        if j == len(zooms) - 1:
+            ai.legend(loc="upper right", fontsize="x-small")
+            au.legend(loc="upper right", fontsize="x-small")
+    suptitle(fig, "Fig. 3 — stator currents (solid: measured, dashed: setpoints) and "
+                  "average voltages, with limits")
     p = out_dir / "fig3_currents_voltages.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
-    written.append(p)
-    return written
+    return p
+
+
+# --------------------------------------------------------------------------- comparison
+
+
+@dataclass
+class Run:
+    """A finished run read back from its directory: ``summary.json`` and ``signals.csv``."""
+
+    path: Path
+    summary: dict[str, Any]
+    signals: dict[str, np.ndarray]
+
+    @property
+    def name(self) -> str:
+        return self.path.name or str(self.path)
+
+
+def load_run(path: Path) -> Run:
+    """Read a run directory; :class:`UserError` naming what is missing."""
+    from gateway.errors import UserError
+
+    if not (path / "summary.json").is_file():
+        raise UserError(f"{str(path)!r} is not a run directory (no summary.json): give "
+                        "directories written by simulate, sim or run")
+    try:
+        summary = json.loads((path / "summary.json").read_text())
+        sig = read_csv(path / "signals.csv") if (path / "signals.csv").is_file() else {}
+    except (OSError, ValueError, StopIteration) as exc:
+        raise UserError(f"{str(path)!r}: cannot read the run's files ({exc})") from exc
+    return Run(path, summary, sig)
+
+
+def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_differences(runs: list[Run]) -> dict[str, list[Any]]:
+    """The configuration keys (flattened, e.g. ``gains.k_w``) that every run has and whose
+    values differ."""
+    flats = [_flat(r.summary.get("configuration", {})) for r in runs]
+    keys = sorted(set.intersection(*(set(f) for f in flats)))
+    return {k: [f.get(k) for f in flats] for k in keys
+            if len({json.dumps(f.get(k), sort_keys=True) for f in flats}) > 1}
+
+
+def config_only_in_some(runs: list[Run]) -> list[str]:
+    """Top-level configuration keys that only some runs have (simulate vs bus runs)."""
+    keys = [set(r.summary.get("configuration", {})) for r in runs]
+    return sorted(set.union(*keys) - set.intersection(*keys))
+
+
+def compare_table(runs: list[Run]) -> str:
+    """Errors side by side (one column per run) and the configuration keys that differ."""
+    rows: list[tuple[str, str, str, tuple[str, ...]]] = [
+        ("speed error max", "rad/s", "speed_error", ("max",)),
+        ("speed error rms", "rad/s", "speed_error", ("rms",)),
+        ("speed error final", "rad/s", "speed_error", ("final",)),
+        ("flux error max", "Wb", "flux_error", ("max",)),
+        ("flux error rms", "Wb", "flux_error", ("rms",)),
+        ("estimation error max", "rad/s", "estimation_error", ("max",)),
+        ("estimation error rms", "rad/s", "estimation_error", ("rms",)),
+        ("peak current", "A", "peak_current", ()),
+        ("peak voltage", "V", "peak_voltage", ()),
+    ]
+    heads = ["", *(r.name for r in runs)]
+    lines = [heads]
+    for label, unit, key, sub in rows:
+        cells = [label]
+        for r in runs:
+            v: Any = r.summary.get(key)
+            for k in sub:
+                v = v.get(k) if isinstance(v, Mapping) else None
+            cells.append("—" if v is None else _fmt(float(v), unit))
+        lines.append(cells)
+    win_sets = [tuple((w["from"], w.get("label", "")) for w in
+                      r.summary.get("speed_error", {}).get("windows", [])) for r in runs]
+    if win_sets and all(ws == win_sets[0] for ws in win_sets) and win_sets[0]:
+        for j, (lo, _) in enumerate(win_sets[0]):
+            cells = [f"speed max from {lo:g} s"]
+            cells += [_fmt(r.summary["speed_error"]["windows"][j]["max"], "rad/s")
+                      for r in runs]
+            lines.append(cells)
+    widths = [max(len(r[j]) for r in lines) for j in range(len(heads))]
+    text = "\n".join("  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j])
+                               for j, c in enumerate(r)) for r in lines)
+    diffs = config_differences(runs)
+    if diffs:
+        text += "\nconfiguration differences:"
+        for k, vals in diffs.items():
+            text += f"\n  {k}: " + " | ".join("—" if v is None else str(v) for v in vals)
+    else:
+        text += "\nsame configuration"
+    some = config_only_in_some(runs)
+    if some:
+        text += f"\nnot compared (only in some runs): {', '.join(some)}"
+    return text
+
+
+def plot_compare(runs: list[Run], out: Path) -> Path | None:
+    """Speed and flux errors of every run overlaid, labelled by run and by the
+    configuration keys that differ; None when matplotlib is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    diffs = config_differences(runs)
+    shown = [k for k in diffs if not k.endswith(("bus", "profile", "duration"))][:3]
+    fig, ax = plt.subplots(2, 1, sharex=True, figsize=(9, 6.5), layout="constrained")
+    for j, r in enumerate(runs):
+        sig = r.signals
+        if not sig or "w_m" not in sig or not np.any(np.isfinite(sig["w_m"])):
+            continue
+        extra = ", ".join(f"{k.split('.')[-1]} {diffs[k][j]}" for k in shown)
+        label = r.name + (f" ({extra})" if extra else "")
+        style = ("-", "--", ":", "-.")[j % 4]  # identical runs stay visible
+        ax[0].plot(sig["t"], sig["w_m"] - sig["w_ref"], style, lw=1, label=label)
+        ax[1].plot(sig["t"], sig["psi_r_mod"] - sig["psi_ref"], style, lw=1, label=label)
+    ax[0].set_ylabel("speed error ω − ω* [rad/s]")
+    ax[1].set_ylabel("flux error |ψr| − ψ* [Wb]")
+    ax[1].set_xlabel("time [s]")
+    for a in ax:
+        a.grid(True, alpha=0.3)
+    ax[0].legend(loc="best", fontsize="x-small")
+    conf0 = runs[0].summary.get("configuration", {})
+    title = ", ".join(f"{k.replace('_', ' ')} {conf0[k]}" for k in
+                      ("law", "flux", "estimator", "drive_mode", "delay", "setpoint_frame")
+                      if k in conf0 and k not in diffs)
+    fig.suptitle("Comparison of runs — speed and flux errors"
+                 + (f"\ncommon: {title}" if title else ""), fontsize="medium")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out

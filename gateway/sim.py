@@ -8,18 +8,47 @@ drive only through the contract (:mod:`dbc`) and the bus.
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Callable
 from typing import Any
 
 import can
+import numpy as np
 
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from gateway.transport import InProcessChannel
 from plant.device import DriveDevice
+from plant.drive import Measurement
 from plant.params import DriveParams
 from plant.scenario import PlantScenario, ScenarioError, resolve_scenario
+
+
+class TruthRecorder:
+    """The emulator's state at full resolution, cycle by cycle (ω, |ψr|, T_e as the model
+    has them, not through TPDO3's INT16): the device's ``on_sample`` hook."""
+
+    def __init__(self) -> None:
+        self._rows: dict[int, tuple[float, float, float]] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, cycle: int, meas: Measurement) -> None:
+        with self._lock:
+            self._rows[cycle] = (meas.w_m, abs(meas.psi_r_ab), meas.T_e)
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def columns(self, cycles: np.ndarray) -> dict[str, np.ndarray] | None:
+        """w_m, psi_r_mod, T_e for the given cycle numbers (k of t_k = k·T), or None when a
+        cycle is missing (the record then keeps TPDO3's values)."""
+        with self._lock:
+            rows = [self._rows.get(int(k)) for k in cycles]
+        if any(r is None for r in rows):
+            return None
+        data = np.asarray(rows, dtype=float).reshape(len(rows), 3)
+        return {"w_m": data[:, 0], "psi_r_mod": data[:, 1], "T_e": data[:, 2]}
 
 
 def load_scenario(arg: str | None) -> PlantScenario:
@@ -34,13 +63,15 @@ def load_scenario(arg: str | None) -> PlantScenario:
 
 def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode,
                   plant: PlantScenario | None = None, reference_load: Any = None,
+                  on_sample: Callable[[int, Measurement], None] | None = None,
                   ) -> tuple[can.BusABC, str, Callable[[], None]]:
     """Start the emulated drive at ``node`` on a new in-process bus; returns the gateway's
     bus, its label ('inprocess:hil-sim-…') and the function that stops and closes it all.
 
     ``plant``: how the emulated plant differs from the controller's model (the controller's
     ``motor`` × the scenario); ``reference_load``: the reference profile's load signal, for
-    a scenario whose dynamometer follows the profile."""
+    a scenario whose dynamometer follows the profile; ``on_sample``: the device's per-cycle
+    hook (e.g. a :class:`TruthRecorder`)."""
     if transport == "virtual":
         channel = f"hil-sim-{os.getpid()}"
         bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
@@ -55,7 +86,8 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
             bus_dev, node_id=node, motor=plant.plant_motor(motor),
             drive_params=plant.drive_params(DriveParams(mode=mode)),
             drive_options=plant.drive_options(
-                None if reference_load is None else (lambda t: reference_load.at(t)[0])))
+                None if reference_load is None else (lambda t: reference_load.at(t)[0])),
+            on_sample=on_sample)
     except ValueError as exc:
         bus_gw.shutdown()
         bus_dev.shutdown()
@@ -72,6 +104,11 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
         close()
         raise
     return bus_gw, f"{transport}:{channel}", close
+
+
+def emulator_rate() -> float:
+    """The emulated drive's nominal internal rate (PWM/current loop), Hz."""
+    return DriveParams().f_pwm
 
 
 def emulator_limits() -> tuple[float, float]:

@@ -170,15 +170,20 @@ def current_lag(drive: DriveMode, params: DriveParams) -> float:
 Progress = Callable[[float], None]
 
 
+def emulator_rate() -> float:
+    """The emulated drive's nominal internal rate (PWM/current loop), Hz."""
+    return DriveParams().f_pwm
+
+
 def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
         progress: Progress | None = None, stop: threading.Event | None = None) -> Record:
     """Simulate the profile; the record holds one row per period (or record step).
 
-    ``stop`` (sampled runs): when set, the run ends after the current cycle and the record
-    holds what was simulated so far.
+    ``stop``: when set, the run ends after the current cycle (continuous time: the current
+    solver step) and the record holds what was simulated so far.
     """
     if cfg.sampling is None:
-        return run_continuous(profile, motor, cfg, progress)
+        return run_continuous(profile, motor, cfg, progress, stop)
     return run_sampled(profile, motor, cfg, progress, stop)
 
 
@@ -253,11 +258,10 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
         out = cycle.step(k, measured, truth=Truth(meas.w_m, meas.psi_r_ab, meas.T_e))
         pending.update(link.rpdos(out.setpoints))
         rec.append(out.row)
-        if k % step_progress == 0:
-            if progress is not None:
-                progress(k / n_cycles)
-            if stop is not None and stop.is_set():
-                break
+        if progress is not None and k % step_progress == 0:
+            progress(k / n_cycles)
+        if stop is not None and stop.is_set():  # every cycle: a stop acts within one
+            break
     return rec
 
 
@@ -265,7 +269,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
 
 
 def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
-                   progress: Progress | None = None) -> Record:
+                   progress: Progress | None = None, stop: threading.Event | None = None
+                   ) -> Record:
     """The paper's continuous-time closed loop, integrated by scipy (LSODA, tight tolerances).
 
     Current-fed law with an ideal current source: state (ω, ψ_ra, ψ_rb, ε0, ω̂); the
@@ -294,7 +299,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     last = [0.0]
 
     def psi_r_used(x: np.ndarray) -> complex:
-        if estimated:  # (24), ERRATA 1: ψ_r = (L_r/M)(ψ_s − σ i_s)
+        if estimated:  # (24), §E1: ψ_r = (L_r/M)(ψ_s − σ i_s)
             return (complex(x[7], x[8]) - m.sigma * complex(x[3], x[4])) / k_r
         return complex(x[1], x[2])
 
@@ -335,8 +340,20 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
             x0[7:9] = (psi_s0.real, psi_s0.imag)
     else:
         x0[3:5] = (cfg.eps_0, cfg.w_hat_0)
+    t_stop: list[float] = []
+
+    def stopped(t: float, x: np.ndarray) -> float:
+        """Terminal event: +1 until ``stop`` is seen, −1 from the time it was first seen
+        (never at the start, which would leave no sign change: a stop requested before the
+        integration begins ends it after the first step)."""
+        if not t_stop and stop is not None and stop.is_set() and t > 0.0:
+            t_stop.append(t)
+        return 1.0 if not t_stop or t < t_stop[0] else -1.0
+
+    stopped.terminal = True  # type: ignore[attr-defined]
     sol = solve_ivp(rhs, (0.0, t_eval[-1]), x0, method="LSODA", t_eval=t_eval,
-                    rtol=1e-9, atol=1e-10, max_step=h)
+                    rtol=1e-9, atol=1e-10, max_step=h,
+                    events=stopped if stop is not None else None)
     if not sol.success:
         raise RuntimeError(f"continuous simulation failed: {sol.message}")
     rec = Record(CycleRow)

@@ -42,8 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_bus_options(run)
     run.add_argument("--node", type=int, default=1, help="CANopen node id 1..127 (default 1)")
     run.add_argument("--motor", metavar="FILE",
-                     help="motor parameters (TOML: J, R_s, R_r, L_s, L_r, M in SI units); "
-                          "default: the paper's 0.6 kW motor")
+                     help="motor parameters (TOML: J, R_s, R_r, L_s, L_r, M in SI units, "
+                          "e.g. gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     run.add_argument("--plant", metavar="SCENARIO",
                      help="plant scenario (TOML file or shipped name, e.g. rs+10; issue 14): "
                           "its motor factors multiply the device's motor (--motor or the "

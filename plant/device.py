@@ -51,6 +51,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -85,6 +86,9 @@ class DriveDevice:
     of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1).
     ``drive_options``: keyword arguments of every :class:`plant.drive.Drive` the device
     builds (the dynamometer ``load`` and ``motor_drift`` of a plant scenario, issue 14).
+    ``on_sample(cycle, measurement)``, optional: called in the receive thread after each
+    cycle's model step with the cycle number and the full-resolution :class:`Measurement`
+    (for diagnostics in the same process, e.g. `hil-gateway sim`'s truth record).
 
     The parts ``nmt``, ``sdo``, ``pdo`` and ``emcy`` are for diagnostics: every frame and
     timer goes through the device, which holds its lock while a part runs.
@@ -92,11 +96,13 @@ class DriveDevice:
 
     def __init__(self, bus: can.BusABC, node_id: int = 1, motor: MotorParams | None = None,
                  drive_params: DriveParams | None = None,
-                 drive_options: dict[str, Any] | None = None) -> None:
+                 drive_options: dict[str, Any] | None = None,
+                 on_sample: Callable[[int, Measurement], None] | None = None) -> None:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
         self.node_id = node_id
+        self.on_sample = on_sample
         self._motor0 = motor if motor is not None else MotorParams()
         self._params0 = drive_params if drive_params is not None else DriveParams()
         self._drive_options = dict(drive_options or {})
@@ -440,6 +446,8 @@ class DriveDevice:
         was_on = drive.enabled
         meas = drive.advance(self.pdo.period, self._T_L)
         self._cycles_total = m
+        if self.on_sample is not None:
+            self.on_sample(m, meas)
         if not (self._model_finite() and _finite(meas)):
             # the model failed numerically: Fault, and back at rest so the device stays usable
             drive.reset(MotorState())

@@ -4,7 +4,7 @@
 call simulates one period T as ``n = T·f_pwm`` internal steps of ``h = 1/f_pwm`` and returns
 the :class:`Measurement` sampled at its end.
 
-Setpoint frames (ERRATA 8, 9): (d, q) setpoints are turned by the drive itself,
+Setpoint frames (§E8, §E9): (d, q) setpoints are turned by the drive itself,
 ε(t) = eps_0 + w_0·(t − t_app), where t_app is the start of the first period the setpoints
 act on (the frame keeps turning if no new setpoints arrive); (a, b) setpoints are held.
 
@@ -14,7 +14,7 @@ Modes (:class:`plant.params.DriveParams`):
   integrated with RK4, which samples i_s(t) exactly at each stage (chosen over the exact
   discretisation with ω frozen: the same fourth-order integrator as the other modes, no
   error from ω changing within a step, and ~1.5 µs per step). The reported voltage is
-  the exact period average u = Δψ_s/T + R_s·mean(i_s), with ψ_s = σi_s + (M/L_r)ψ_r (ERRATA 1)
+  the exact period average u = Δψ_s/T + R_s·mean(i_s), with ψ_s = σi_s + (M/L_r)ψ_r (§E1)
   and the analytic mean of the turning current vector. A setpoint change makes i_s jump at
   the start of the period: the jump is counted in Δψ_s (ψ_s at the start is taken before
   the jump), so Σ u·T reproduces the true stator flux at the samples — what the estimator

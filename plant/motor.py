@@ -9,7 +9,7 @@ The induction motor with one pole pair, linear magnetics, load torque T_L an inp
 written with complex space vectors ψ_r = ψ_ra + jψ_rb, i_s = i_sa + ji_sb, u_s = u_sa + ju_sb
 (check: Re(jω·ψ_r) = −ω·ψ_rb, Im(−jβω·ψ_r) = −βω·ψ_ra, as printed). Rows 4–5 equal
 di_s/dt = (u_s − R_s·i_s)/σ − β·dψ_r/dt, i.e. dψ_s/dt = u_s − R_s·i_s with the stator flux
-ψ_s = σ·i_s + (M/L_r)·ψ_r (ERRATA 1). The current-fed model is rows 1–3 with i_s an input.
+ψ_s = σ·i_s + (M/L_r)·ψ_r (§E1). The current-fed model is rows 1–3 with i_s an input.
 
 Units: ω in rad/s, ψ in Wb, i in A, u in V, T in N·m, t in s.
 
@@ -68,7 +68,7 @@ def torque(motor: MotorParams, psi_r_ab: complex, i_s_ab: complex) -> float:
 
 
 def stator_flux(motor: MotorParams, psi_r_ab: complex, i_s_ab: complex) -> complex:
-    """ψ_s = σ·i_s + (M/L_r)·ψ_r, Wb (ERRATA 1)."""
+    """ψ_s = σ·i_s + (M/L_r)·ψ_r, Wb (§E1)."""
     return motor.sigma * i_s_ab + (motor.M / motor.L_r) * psi_r_ab
 
 

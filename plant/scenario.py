@@ -45,7 +45,7 @@ Load (the dynamometer of the emulator):
 
 The extra torque T_x(t) is always added, evaluated within the period. Whether the controller
 is *told* the load is ``known``: when true the law gets the profile's T_L and dT_L/dt (the
-paper's case, ERRATA 6; the extra torque is never told); when false it uses the load-torque
+paper's case, docs/paper.md §E6; the extra torque is never told); when false it uses the load-torque
 observer of :mod:`gateway.control.load_observer`. Default: told against the emulator, not
 told against a real drive (``hil-gateway run`` with a drive profile that is not the
 emulator).

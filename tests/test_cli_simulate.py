@@ -28,7 +28,13 @@ def test_simulate_continuous_reproduces_section_6(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     for key in ("speed_error", "flux_error", "estimation_error"):
         assert set(summary[key]) >= {"max", "rms", "final", "windows"}
-        assert [w["from"] for w in summary[key]["windows"]] == [0.0, 0.5, 1.5]
+        # one window per segment of the profile: start-up, speed ramp, load on, load off,
+        # field weakening
+        assert [w["from"] for w in summary[key]["windows"]] == [0.0, 0.32, 0.5, 1.0, 1.5]
+    assert summary["speed_error"]["windows"][1]["label"] == "speed 0 → 100 rad/s"
+    assert summary["speed_error"]["windows"][-1]["to"] == pytest.approx(2.5)
+    assert summary["truth"] == "simulated motor state, full resolution"
+    assert summary["quantisation"]["applied"] is False
     assert summary["speed_error"]["max"] < 5e-3  # mrad/s range
     assert abs(summary["speed_error"]["final"]) < 1e-4
     assert abs(summary["estimation_error"]["final"]) < 1e-4

@@ -152,7 +152,7 @@ def test_lyapunov_function_does_not_increase(paper_continuous):
 
 
 def test_converges_from_other_initial_conditions():
-    """ω(0) = 50 rad/s, ω̂(0) = 0, rotor flux at a random angle (ERRATA 12: slow modes)."""
+    """ω(0) = 50 rad/s, ω̂(0) = 0, rotor flux at a random angle (§E12: slow modes)."""
     rng = random.Random(7)
     angle = rng.uniform(-math.pi, math.pi)
     cfg = SimConfig(
@@ -210,7 +210,7 @@ def test_sampled_paper_run_shows_delay_and_frame_effects():
         rms[key] = float(np.sqrt(np.mean(e * e)))
         assert abs(e[-1]) < 0.5  # converges in every case
     assert rms["dq0"] < 0.8 * rms["dq1"]  # the SYNC delay costs accuracy
-    assert rms["dq1"] < 0.8 * rms["ab1"]  # so does holding (a, b) setpoints (ERRATA 9)
+    assert rms["dq1"] < 0.8 * rms["ab1"]  # so does holding (a, b) setpoints (§E9)
 
 
 # ------------------------------------------------------------------------- estimator
@@ -271,7 +271,7 @@ def test_controller_config_rejects_bad_values():
 
 
 def test_full_order_sampled_needs_larger_gamma_2():
-    """ERRATA 10: γ2 = γ1 works in continuous time but not sampled at 1 ms with a delay."""
+    """§E10: γ2 = γ1 works in continuous time but not sampled at 1 ms with a delay."""
     from gateway.reference import paper_profile
 
     base = dict(law="full-order", drive_mode="voltage", sampling=Sampling(1e-3, delay=1))

@@ -127,7 +127,7 @@ def test_ideal_voltage_integrates_to_stator_flux_including_current_jumps() -> No
 
 
 def test_dq_frame_turns_while_ab_setpoints_lag() -> None:
-    """ERRATA 9: (a, b) setpoints held over T lag the frame by ω0·T/2 at the sample."""
+    """§E9: (a, b) setpoints held over T lag the frame by ω0·T/2 at the sample."""
     i_dq, w_0, eps_0, T = 4.0 + 2.0j, 200.0, 0.3, 1e-3
     state, T_L, _ = steady_state(i_dq, w_0, eps_0)
     eps_end = eps_0 + w_0 * T

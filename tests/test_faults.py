@@ -260,8 +260,9 @@ def test_divergence_stops_the_run(emulator, tmp_path):
     emu = emulator()
     motor = tmp_path / "wrong-motor.toml"
     motor.write_text("R_s = 15.9\n")
-    rc = gateway_run(emu, tmp_path, "--motor", str(motor))
-    s = _summary(tmp_path)
+    out = tmp_path / "run"  # a run directory must be new (or --force)
+    rc = gateway_run(emu, out, "--motor", str(motor))
+    s = _summary(out)
     assert rc == 1 and s["run"]["stop"] == "DIVERGED", s["run"]
     assert "beyond" in s["run"]["stop_reason"]
     assert_disabled(emu)
@@ -301,7 +302,7 @@ def test_full_disk_for_the_bus_log_and_the_signals_is_reported(emulator, tmp_pat
     emu = emulator()
     (tmp_path / "bus.asc").symlink_to("/dev/full")
     (tmp_path / "signals.csv").symlink_to("/dev/full")
-    rc = gateway_run(emu, tmp_path, "--duration", "0.3s", "--log", "bus.asc")
+    rc = gateway_run(emu, tmp_path, "--duration", "0.3s", "--log", "bus.asc", "--force")
     s = _summary(tmp_path)
     assert rc == 1 and s["run"]["exit_status"] == 1
     errors = " ".join(s["write_errors"])

@@ -203,12 +203,14 @@ def test_no_interface_configured(tmp_path, capsys, monkeypatch):
 
 
 def test_sdo_abort_during_configuration(emulator, tmp_path, capsys):
-    """A cycle period the drive refuses (0x1006 below its 100 µs minimum): the abort is
-    reported with the object and its meaning."""
+    """A mode of operation the drive refuses (0x6060 below its EDS minimum −2, from a drive
+    profile that asks for −3): the abort is reported with the object and its meaning. (A
+    period outside 100 µs … 100 ms is refused before anything runs: test_cli_inputs.py.)"""
     emu = emulator()
-    assert gateway_run(emu, tmp_path / "out", "--period", "50us") == 2
+    prof = _drive_profile_copy(tmp_path, lambda t: t.replace("current = -1", "current = -3"))
+    assert gateway_run(emu, tmp_path / "out", "--drive", str(prof)) == 2
     err = capsys.readouterr().err
-    assert "0x1006" in err and "refused" in err and "0x06090032" in err
+    assert "0x6060" in err and "refused" in err and "0x06090032" in err
     assert "Traceback" not in err
     assert_disabled(emu)
 

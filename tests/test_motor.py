@@ -32,7 +32,7 @@ MOTOR = MotorParams.paper()
 def test_paper_motor_and_derived_parameters() -> None:
     m = MOTOR
     assert (m.J, m.R_s, m.R_r, m.L_s, m.L_r, m.M) == (0.0075, 5.3, 3.3, 0.365, 0.375, 0.34)
-    # ERRATA 1: both forms of σ
+    # §E1: both forms of σ
     assert m.sigma == pytest.approx(m.L_s * (1.0 - m.M**2 / (m.L_s * m.L_r)), rel=1e-14)
     assert m.sigma == pytest.approx(0.0567333333, rel=1e-9)
     assert m.alpha == pytest.approx(3.3 / 0.375)
@@ -150,7 +150,7 @@ def test_complex_form_matches_printed_rows() -> None:
         ref = rhs_full(0.0, [w, psi.real, psi.imag, i.real, i.imag], MOTOR, u, T_L)
         got = [dw, dpsi.real, dpsi.imag, di.real, di.imag]
         assert got == pytest.approx(ref, rel=1e-12, abs=1e-9)
-        # rows 4–5 are dψ_s/dt = u − R_s·i_s (ERRATA 1)
+        # rows 4–5 are dψ_s/dt = u − R_s·i_s (§E1)
         dpsi_s = c.sigma * di + c.M_over_L_r * dpsi
         assert dpsi_s == pytest.approx(u - MOTOR.R_s * i, rel=1e-12, abs=1e-9)
 

@@ -1,6 +1,6 @@
 """The discrete-time sensorless controller: one object, one step per sampling period.
 
-It implements the laws of :mod:`gateway.control.laws` sampled with period T (ERRATA 9):
+It implements the laws of :mod:`gateway.control.laws` sampled with period T (§E9):
 at each sample t_k it takes the measured currents i_s_ab(t_k), the average applied voltage
 over (t_{k−1}, t_k] and, only in the comparison mode ``flux="true"``, the true rotor flux;
 it returns the setpoints for the next interval and integrates its own states (frame angle
@@ -120,7 +120,7 @@ class ControllerConfig:
     current_lag: time constant of the drive's current response to a setpoint step, s
         (0: ideal current source; only the exact design uses it).
     Strings are accepted for the enums (the command-line words) and converted.
-    load: "known" (the laws get the profile's T_L, dT_L/dt: the paper, ERRATA 6) or
+    load: "known" (the laws get the profile's T_L, dT_L/dt: the paper, docs/paper.md §E6) or
         "observed" (issue 14: T̂_L, dT̂_L/dt of :class:`LoadObserver` instead).
     load_bandwidth, load_speed_gain, load_current_rise: the load observer's tuning
         (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).

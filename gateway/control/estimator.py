@@ -1,12 +1,12 @@
-"""Rotor-flux estimation from stator-flux integration, (24) as corrected in ERRATA 1.
+"""Rotor-flux estimation from stator-flux integration, (24) as corrected in §E1.
 
 Only the stator flux is integrated, in the fixed (a, b) frame:
 
-    dψ_s/dt = u_s − R_s·i_s,                     (24), first two lines, ERRATA 1
+    dψ_s/dt = u_s − R_s·i_s,                     (24), first two lines, §E1
 
 and the rotor flux follows algebraically from the flux linkages:
 
-    ψ_r = (L_r/M)·(ψ_s − σ·i_s).                 (24), last two lines, ERRATA 1
+    ψ_r = (L_r/M)·(ψ_s − σ·i_s).                 (24), last two lines, §E1
 
 Rotating (a, b) → (d, q) by ε0 afterwards is equivalent to the printed rotating-frame form.
 
@@ -18,7 +18,7 @@ current samples.
 Two variants:
 
 * :class:`OpenLoopFluxEstimator` — the paper's open-loop integrator from zero initial
-  conditions. Any current-sensor offset or R_s error is integrated without bound (ERRATA 2).
+  conditions. Any current-sensor offset or R_s error is integrated without bound (§E2).
 * :class:`DriftFreeFluxEstimator` — the integrator with a first-order correction towards
   the stator flux that field orientation implies,
 
@@ -49,7 +49,7 @@ class Motor(Protocol):
 
 
 class OpenLoopFluxEstimator:
-    """Pure integrator of (24) (ERRATA 1, 2): ψ_s(0) = 0, drifts with any offset."""
+    """Pure integrator of (24) (§E1, §E2): ψ_s(0) = 0, drifts with any offset."""
 
     def __init__(self, motor: Motor) -> None:
         self._R_s = motor.R_s
@@ -92,7 +92,7 @@ class OpenLoopFluxEstimator:
             self._i_prev *= rot
 
     def rotor_flux(self, i_s_ab: complex) -> complex:
-        """ψ_r = (L_r/M)·(ψ_s − σ·i_s) (ERRATA 1), Wb."""
+        """ψ_r = (L_r/M)·(ψ_s − σ·i_s) (§E1), Wb."""
         return self._k_r * (self.psi_s_ab - self._sigma * i_s_ab)
 
 

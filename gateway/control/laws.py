@@ -1,6 +1,6 @@
 """The control laws of Marino, Tomei & Verrelli (IFAC 2002), as pure functions.
 
-Both laws are written in the rotating (d, q) frame of angle ε0 (ERRATA 8). They take the
+Both laws are written in the rotating (d, q) frame of angle ε0 (§E8). They take the
 references of the instant (a :class:`References`-like object with ``w_ref``, ``dw_ref``,
 ``ddw_ref``, ``psi_ref``, ``dpsi_ref``, ``ddpsi_ref``, ``T_L``, ``dT_L``), the controller's
 speed estimate ω̂ and the rotor flux in the frame, and return the setpoints, the frame speed
@@ -44,7 +44,7 @@ class Motor(Protocol):
 
 
 def sat_tanh(x: float) -> float:
-    """The default sat(·) of (15): tanh, C∞, odd, slope 1 at 0, limits ±1 (ERRATA 7)."""
+    """The default sat(·) of (15): tanh, C∞, odd, slope 1 at 0, limits ±1 (§E7, §C1)."""
     return math.tanh(x)
 
 
@@ -61,8 +61,8 @@ class Gains:
     k_w: speed gain kω of (15)/(25), s⁻¹ (paper: 800).
     gamma_1: observer gain γ1 of (18)/(20), Wb²·s (paper: 0.0008).
     gamma_2: observer gain γ2 of (30)/(32), full-order law. The paper gives no value
-        (ERRATA 7). With γ2 = γ1 the term β·ψ*·e_q/γ2 of (32) has a gain of about
-        2·10⁴ s⁻¹ and the sampled loop fails (ERRATA 10: 27 rad/s peak speed error at 1 ms
+        (§E7). With γ2 = γ1 the term β·ψ*·e_q/γ2 of (32) has a gain of about
+        2·10⁴ s⁻¹ and the sampled loop fails (§E10: 27 rad/s peak speed error at 1 ms
         with one period of delay). Default 0.1: over γ2 ∈ {0.1, 0.3, 1, 3} × ke ∈ {300, 600,
         900} s⁻¹ at 1 ms with one period of delay, γ2 = 0.1 is the value that converges for
         every ke (larger γ2 goes unstable at larger ke); in continuous time the choice costs
@@ -70,7 +70,7 @@ class Gains:
     k_e: current-error gain ke of (32), s⁻¹. The paper gives no value. Default 600 s⁻¹
         (ke·T = 0.6 at 1 ms): on the grid above, 2× smaller peak speed error at 1 ms than
         300 s⁻¹ and still a margin to 900 s⁻¹.
-    i_max: current-vector limit of the setpoints, A (ERRATA 11: (15) divides by μψ*, and at
+    i_max: current-vector limit of the setpoints, A (§E11: (15) divides by μψ*, and at
         ψ* = 0.001 Wb any speed-estimate error asks for thousands of amperes). The d current
         (magnetising) has priority; i_sq* is clipped to √(i_max² − i_sd*²).
     """
@@ -178,13 +178,13 @@ def full_order(
     With e_d = i_sd − i_sd*, e_q = i_sq − i_sq* (28), φ_d1 = −β·ψ_rq, φ_q1 = β·ψ_rd:
     w = (ψ*·ψ̃_rq − φ_d1·e_d − φ_q1·e_q)/γ2, u_sd = σ·(−φ_d0 − αM·ψ̃_rd − ke·e_d),
     u_sq = σ·(−φ_q0 − ke·e_q) (32). φ_q0 needs d sat(ω̂ − ω*)/dt = sat′·(dω̂/dt − ω̇*)
-    (ERRATA 7), computed here from (27). When the current limit clips i_sq*, its derivative
+    (§E7), computed here from (27). When the current limit clips i_sq*, its derivative
     terms in φ_q0 are dropped (the clipped reference is constant).
     """
     alpha, beta, M, sigma, mu = m.alpha, m.beta, m.M, m.sigma, m.mu
     psi_ref = r.psi_ref
     i_sd_ref, i_sq_ref, s, limited = _current_references(r, w_hat, m, g, sat)
-    w_0 = w_hat + alpha * M * i_sq / psi_ref  # (26): measured i_sq (ERRATA 5)
+    w_0 = w_hat + alpha * M * i_sq / psi_ref  # (26): measured i_sq (§E5)
     e_d = i_sd - i_sd_ref  # (28)
     e_q = i_sq - i_sq_ref
     psi_rd_err = psi_rd - psi_ref

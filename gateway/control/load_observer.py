@@ -2,7 +2,7 @@
 
 Both laws of the paper use the load torque T_L — (15) and (16) through T_L/J, the
 full-order law (25)–(27) and φ_q0 of (32) also through dT_L/dt — and treat it as known
-(ERRATA 6). A real drive is not told its load. This module estimates T_L (and dT_L/dt)
+(docs/paper.md §E6). A real drive is not told its load. This module estimates T_L (and dT_L/dt)
 from what the sensorless controller has each period: the measured stator currents, the
 period's average voltage, the frame angle ε0 and ψ*.
 
@@ -16,7 +16,7 @@ Derivation, from model (1):
 
       ω_m = dθ/dt − αM·Im(conj(ψ_r)·i_s)/|ψ_r|².
 
-* The flux: the voltage model of (24) (ERRATA 1), integrated by the observer itself,
+* The flux: the voltage model of (24) (docs/paper.md §E1), integrated by the observer itself,
   Δψ_r = (L_r/M)·(T·ū_s − R_s·∫i_s dt − σ·Δi_s), with ∫i_s dt = T·ī·e^{−jΔθ/2} from the
   period's mean current ī = (1 − ρ)·i_s(t_k) + ρ·i_s(t_{k−1}) (the current is held in the
   rotating frame over the period; ρ is the fraction of the period the drive needs to reach

@@ -448,7 +448,7 @@ class FullOrderSampledController(SampledController):
         Over an interval the reference is the one the command aimed at (interpolated between
         its start and end), not i*(ω̂) re-evaluated with the updated ω̂: that would feed the
         observer's own prediction error back through kω/(μψ*) ≈ 6 A per rad/s and β·ψ/γ2,
-        a loop gain near 1 per period at 1 ms (ERRATA 10).
+        a loop gain near 1 per period at 1 ms (docs/paper.md §E10).
         """
         m, g = self.motor, self._g
         e_d, e_q = i.real - i_ref.real, i.imag - i_ref.imag

@@ -9,7 +9,7 @@
   (``demand``, ``demand_trace``, ``Demand``); pure.
 """
 
-from gateway.reference.demand import Demand, MotorLike, demand, demand_trace
+from gateway.reference.demand import Demand, MotorLike, demand, demand_trace, sample_times
 from gateway.reference.signals import (
     REFERENCE_KEYS,
     Profile,
@@ -36,4 +36,5 @@ __all__ = [
     "load_profile",
     "paper_profile",
     "parse_profile",
+    "sample_times",
 ]

@@ -14,7 +14,7 @@ import numpy as np
 
 from gateway.reference.signals import Profile
 
-__all__ = ["Demand", "MotorLike", "demand", "demand_trace"]
+__all__ = ["Demand", "MotorLike", "demand", "demand_trace", "sample_times"]
 
 
 class MotorLike(Protocol):
@@ -58,26 +58,45 @@ class Demand:
     i_sq_peak: float
 
 
+def sample_times(profile: Profile, dt: float | None = None, max_points: int = 200_000
+                 ) -> np.ndarray:
+    """Times to sample ``profile`` at, s: a uniform grid of step ``dt`` (default 1e-4 s or
+    1/200 of the shortest ramp if smaller) when that takes at most ``max_points``;
+    otherwise every transition at step ``dt`` (at most 2000 points each) and the constant
+    stretches between them coarsely, so a long profile (``duration = 1e7``) costs megabytes,
+    not gigabytes, and no transition is skipped."""
+    steps = [s for sig in (profile.speed, profile.flux, profile.load) for s in sig.steps]
+    if dt is None:
+        dt = min([1e-4, *(s.ramp / 200.0 for s in steps)])
+    duration = profile.duration
+    n = max(2, math.ceil(duration / dt) + 1)
+    if n <= max_points:
+        return np.linspace(0.0, duration, n)
+    parts = [np.linspace(0.0, duration, max(2, max_points // 4))]
+    for s in steps:
+        if s.t < duration:
+            end = min(s.end, duration)
+            parts.append(np.linspace(s.t, end, min(2000, max(3, math.ceil((end - s.t) / dt)))))
+    return np.unique(np.concatenate(parts))
+
+
 def demand_trace(profile: Profile, motor: MotorLike, dt: float | None = None
                  ) -> dict[str, np.ndarray]:
     """Open-loop currents, frame speed and voltages along the reference profile ``profile``
     on a fine grid.
 
-    Grid step ``dt`` (s): by default 1e-4 s or 1/200 of the shortest ramp if smaller.
+    Grid (:func:`sample_times`) of step ``dt`` (s): by default 1e-4 s or 1/200 of the
+    shortest ramp if smaller; long profiles get a dense grid only on their transitions.
     Perfect tracking (ω = ω*, ψ_rd = ψ*, ψ_rq = 0):
       i_sd* = ψ*/M + ψ̇*/(αM)                  (9)
       i_sq* = (T_L/J + ω̇*)/(μψ*)              (10)
       ω0 = ω* + αM·i_sq*/ψ*                     (11)
-      ψ_sd = σ·i_sd* + (M/L_r)·ψ*,  ψ_sq = σ·i_sq*   (stator flux, ERRATA 1)
+      ψ_sd = σ·i_sd* + (M/L_r)·ψ*,  ψ_sq = σ·i_sq*   (stator flux, §E1)
       u_sd = dψ_sd/dt + R_s·i_sd* − ω0·ψ_sq,  u_sq = dψ_sq/dt + R_s·i_sq* + ω0·ψ_sd
     with dψ_s/dt by central finite differences (numpy.gradient) on the grid.
     Keys: t, w_ref, psi_ref, T_L, i_sd, i_sq, w_0, u_sd, u_sq, T_e (N·m).
     """
-    if dt is None:
-        ramps = [s.ramp for sig in (profile.speed, profile.flux, profile.load) for s in sig.steps]
-        dt = min([1e-4, *(r / 200.0 for r in ramps)])
-    n = max(2, math.ceil(profile.duration / dt) + 1)
-    t = np.linspace(0.0, profile.duration, n)
+    t = sample_times(profile, dt)
     r = profile.sample(t)
     m = motor
     alpha, mu, sigma, M = m.alpha, m.mu, m.sigma, m.M

@@ -2,7 +2,7 @@
 
 The laws of Marino, Tomei & Verrelli (IFAC 2002) need smooth references: (15) uses ψ̇* and
 ω̇* (through (9), (10)), the full-order law (25)–(32) also ψ̈*, ω̈* and dT_L/dt in φ_d0, φ_q0
-(ERRATA 7: references must be at least C²; ERRATA 6: T_L is treated as known). Every signal
+(§E7: references must be at least C²; §E6: T_L is treated as known). Every signal
 here is a constant ``initial`` value followed by transitions to new set points. Each
 transition starts at ``t`` and lasts ``ramp`` > 0 and follows the **quintic smoothstep**
 
@@ -53,7 +53,7 @@ class References:
 
     w_ref, dw_ref, ddw_ref: ω* (rad/s), dω*/dt (rad/s²), d²ω*/dt² (rad/s³).
     psi_ref, dpsi_ref, ddpsi_ref: ψ* > 0 (Wb), ψ̇* (Wb/s), ψ̈* (Wb/s²).
-    T_L, dT_L: load torque (N·m) and its derivative (N·m/s), known to the laws (ERRATA 6).
+    T_L, dT_L: load torque (N·m) and its derivative (N·m/s), known to the laws (§E6).
     """
 
     w_ref: float

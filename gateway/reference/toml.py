@@ -176,7 +176,8 @@ def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any
             raise _fail(
                 src, f"{w}.ramp = {ramp_raw!r}",
                 f"must be > 0: a jump has no derivative and the laws need C² references "
-                f"(ERRATA 7); use a short ramp, e.g. ramp = {0.01 / tscale:g} ({tunit_name})",
+                f"(docs/paper.md §E7); use a short ramp, e.g. ramp = {0.01 / tscale:g} "
+                f"({tunit_name})",
             )
         if t < prev_end * (1.0 - 1e-12):
             raise _fail(
