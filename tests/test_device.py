@@ -563,8 +563,10 @@ def test_random_frames_never_crash_or_corrupt(fuzz_rig, frames):
         if can_id == 0 and len(data) == 2 and data[0] in (0x81, 0x82):
             continue  # resets are legitimate state changes tested elsewhere
         rig.net.send_message(can_id, data)
-    # back to a known configuration through the standard services only
-    rig.node.nmt.state = "RESET COMMUNICATION"
+    # back to a known configuration through the standard services only: reset node (the
+    # random frames may have left the motor spinning past the over-speed limit: a load
+    # torque on a disabled drive; reset node puts the emulated motor at rest)
+    rig.node.nmt.state = "RESET"
     rig.heartbeats.clear()
     rig.wait_for(lambda: 0 in rig.heartbeats, "boot-up")
     assert rig.read(0x1000) == 0x00010192
