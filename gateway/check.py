@@ -75,7 +75,7 @@ class CheckReport:
     drive: str
     node: int
     checks: list[Check] = field(default_factory=list)
-    latency: dict[str, dict[str, float]] = field(default_factory=dict)
+    latency: dict[str, dict[str, Any]] = field(default_factory=dict)
     cycles: int = 0
     complete_cycles: int = 0
     power_stage_enabled: bool = False
@@ -103,6 +103,9 @@ class CheckReport:
         if self.cycles:
             lines.append(f"  SYNC cycles: {self.cycles}, with every TPDO: {self.complete_cycles}")
             for name, lat in self.latency.items():
+                if not lat["received"]:
+                    lines.append(f"    {name}: never received")
+                    continue
                 lines.append(f"    {name}: {lat['received']} received, latency after SYNC "
                              f"median {lat['median_us']:.0f} µs, p99 {lat['p99_us']:.0f} µs")
         for n in self.notes:
@@ -306,8 +309,8 @@ def _sync_cycles(report: CheckReport, master: DriveMaster, pd: ProcessData, bus:
         xs = lat[c]
         report.latency[name] = {
             "cob_id": c, "received": len(xs),
-            "median_us": statistics.median(xs) * 1e6 if xs else float("nan"),
-            "p99_us": _pct(xs, 0.99) * 1e6 if xs else float("nan")}
+            "median_us": statistics.median(xs) * 1e6 if xs else None,
+            "p99_us": _pct(xs, 0.99) * 1e6 if xs else None}
     report.notes.append(f"{in_period} of {n} cycles had every TPDO within the period "
                         f"({period * 1e3:g} ms): what --timing realtime would see")
     faults = [f.describe() for f in master.state.faults]

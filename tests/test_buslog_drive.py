@@ -123,3 +123,24 @@ def test_cli_log_drive_bad_profile(tmp_path, capsys) -> None:
     rc = main(["log", "-i", "virtual", "-c", "x", "-o", str(tmp_path / "a.blf"),
                "--drive", str(tmp_path / "missing.toml"), "--decode"])
     assert rc == 2 and "cannot read the drive profile" in capsys.readouterr().err
+
+
+def test_an_ab_emulator_run_log_decodes_as_ab(emulator, tmp_path) -> None:
+    """The bus log of a real (a, b) run on the emulator: RPDO2 decoded by the profile as
+    RPDO2_AB, every frame of the log accounted for, no wrong-length frames."""
+    text = (Path(__file__).parents[1] / "gateway/drives/emulator.toml").read_text()
+    ab = tmp_path / "emulator_ab.toml"
+    ab.write_text(text.replace('setpoints = "RPDO2"', 'setpoints = "RPDO2_AB"'))
+    emu = emulator("ideal")
+    out = tmp_path / "run"
+    rc = main(["run", "-i", "virtual", "-c", emu.channel, "--drive", str(ab),
+               "--reference", "profiles/quick.toml", "--out", str(out)])
+    assert rc == 0
+    frames = read_log(out / "bus.blf")
+    errors: Counter[str] = Counter()
+    rows = decode_frames(frames, drive=load_drive_profile(ab), errors=errors)
+    names = Counter(r["name"] for r in rows)
+    assert names["RPDO2_AB"] >= 400 and "RPDO2" not in names and not errors
+    sp = [r for r in rows if r["name"] == "RPDO2_AB"]
+    peak = max(abs(complex(r["i_sa_ref"], r["i_sb_ref"])) for r in sp)
+    assert 0.5 < peak < 30.0  # currents in A, in the fixed frame
