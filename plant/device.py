@@ -446,8 +446,6 @@ class DriveDevice:
         was_on = drive.enabled
         meas = drive.advance(self.pdo.period, self._T_L)
         self._cycles_total = m
-        if self.on_sample is not None:
-            self.on_sample(m, meas)
         if not (self._model_finite() and _finite(meas)):
             # the model failed numerically: Fault, and back at rest so the device stays usable
             drive.reset(MotorState())
@@ -457,6 +455,8 @@ class DriveDevice:
             self._fault(Emcy.OVERCURRENT)
         elif was_on and abs(meas.w_m) > drive.params.w_max:
             self._fault(Emcy.OVERSPEED)
+        if self.on_sample is not None:  # what the TPDOs carry: the at-rest sample after a
+            self.on_sample(m, meas)     # non-finite model, not its NaNs
         self._limit = meas.limit_active
         self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
         self.pdo.transmit(m)
