@@ -397,6 +397,7 @@ def test_a_second_run_after_a_fault_starts_from_a_motor_at_rest(emulator, tmp_pa
     """The emulated model advances only on SYNC; between runs the real motor's flux decays.
     After a fault mid-run, a new run on the same drive must not inherit a magnetised model."""
     emu = emulator()
+    (tmp_path / "r1").mkdir()
     th, result = _run_until(emu, tmp_path / "r1", 300)
     _intrude(emu, (0x201, b"\x00"))  # an RPDO of wrong length: the drive faults (0x8210)
     assert _finished(th, result)["run"]["stop"] == "DRIVE_FAULT"
