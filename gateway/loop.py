@@ -73,43 +73,13 @@ RECENT_FRAMES = 24
 SPIN_MARGIN = 0.0003
 
 
-class LoopRow(NamedTuple):
-    """A bus cycle's record: the cycle's columns (:class:`gateway.cycle.CycleRow`) and the
-    bus's: statusword and SYNC-counter echo of TPDO1; SYNC period, SYNC → last TPDO and
-    last TPDO → RPDOs sent (reaction), s; missed cycles so far."""
-
-    t: float
-    w_ref: float
-    psi_ref: float
-    T_L: float
-    w_m: float
-    psi_r_mod: float
-    w_hat: float
-    psi_r_mod_hat: float
-    i_sa: float
-    i_sb: float
-    u_sa: float
-    u_sb: float
-    i_sd_ref: float
-    i_sq_ref: float
-    u_sd_ref: float
-    u_sq_ref: float
-    eps_0: float
-    w_0: float
-    psi_rd_hat: float
-    psi_rq_hat: float
-    T_e: float
-    i_limited: float
-    u_limit_active: float
-    statusword: float
-    sync_counter: float
-    sync_period: float
-    sync_to_tpdo: float
-    reaction: float
-    missed: float
-
-
-assert LoopRow._fields[:len(CycleRow._fields)] == CycleRow._fields
+#: A bus cycle's record: the cycle's columns (:class:`gateway.cycle.CycleRow`) and the
+#: bus's: statusword and SYNC-counter echo of the drive; SYNC period, SYNC → last TPDO and
+#: last TPDO → RPDOs sent (reaction), s; missed cycles so far.
+LoopRow = NamedTuple("LoopRow", [*((name, float) for name in CycleRow._fields),
+                                 ("statusword", float), ("sync_counter", float),
+                                 ("sync_period", float), ("sync_to_tpdo", float),
+                                 ("reaction", float), ("missed", float)])
 
 
 @dataclass(frozen=True)

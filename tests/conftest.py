@@ -78,3 +78,32 @@ def emulator():
     from gw_support import emulator_factory
 
     yield from emulator_factory()
+
+
+@pytest.fixture
+def foreign(tmp_path):
+    """``foreign(node, gateway_node=0x7F)`` → (drive, channel, profile path): the CiA 402
+    drive of tests/foreign_drive.py started on a fresh virtual channel, its EDS, DBC and
+    drive profile written into tmp_path; stopped after the test."""
+    import itertools
+    import time
+
+    import can
+    from foreign_drive import ForeignDrive, write_files
+
+    drives = []
+    counter = itertools.count()
+
+    def make(node: int, gateway_node: int = 0x7F):
+        channel = f"foreign-{next(counter)}-{time.monotonic_ns()}"
+        bus = can.Bus(interface="virtual", channel=channel)
+        profile = write_files(tmp_path, node, gateway_node)
+        drive = ForeignDrive(bus, node, tmp_path / "foreign.eds")
+        drive.start()
+        drives.append((drive, bus))
+        return drive, channel, profile
+
+    yield make
+    for drive, bus in drives:
+        drive.stop()
+        bus.shutdown()

@@ -7,9 +7,7 @@ import json
 import threading
 import time
 
-import can
 import pytest
-from foreign_drive import ForeignDrive, write_files
 
 from dbc.cia402 import State
 from gateway.cli import main
@@ -36,25 +34,6 @@ class _StateWatch:
         self._stop.set()
         self._t.join()
         return self.states
-
-
-@pytest.fixture
-def foreign(tmp_path):
-    drives = []
-
-    def make(node: int, gateway_node: int = 0x7F):
-        channel = f"check-{next(_channels)}-{time.monotonic_ns()}"
-        bus = can.Bus(interface="virtual", channel=channel)
-        profile = write_files(tmp_path, node, gateway_node)
-        drive = ForeignDrive(bus, node, tmp_path / "foreign.eds")
-        drive.start()
-        drives.append((drive, bus))
-        return drive, channel, profile
-
-    yield make
-    for drive, bus in drives:
-        drive.stop()
-        bus.shutdown()
 
 
 def test_the_emulator_passes_without_power(emulator, tmp_path, capsys):

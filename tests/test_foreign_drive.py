@@ -7,34 +7,12 @@ from __future__ import annotations
 
 import itertools
 import json
-import time
 
-import can
 import pytest
-from foreign_drive import ForeignDrive, write_files
 
 from gateway.cli import main
 
 _channels = itertools.count()
-
-
-@pytest.fixture
-def foreign(tmp_path):
-    drives = []
-
-    def make(node: int, gateway_node: int = 0x7F):
-        channel = f"foreign-{next(_channels)}-{time.monotonic_ns()}"
-        bus = can.Bus(interface="virtual", channel=channel)
-        profile = write_files(tmp_path, node, gateway_node)
-        drive = ForeignDrive(bus, node, tmp_path / "foreign.eds")
-        drive.start()
-        drives.append((drive, bus))
-        return drive, channel, profile
-
-    yield make
-    for drive, bus in drives:
-        drive.stop()
-        bus.shutdown()
 
 
 def _run(channel: str, profile, out, *args: str) -> tuple[int, dict]:
