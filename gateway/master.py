@@ -553,13 +553,6 @@ class DriveMaster:
                                 "with the drive's supervision on, so the drive trips itself")
         return report
 
-    def disable(self) -> None:
-        """Controlword 'disable voltage' (power stage off); best effort, never raises."""
-        try:
-            self._entry(CONTROLWORD, 0).raw = Controlword.DISABLE_VOLTAGE
-        except Exception as exc:
-            log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
-
     def shutdown(self) -> ShutdownReport | None:
         """Bring the drive down safely (:meth:`bring_down`), stop the heartbeat and the
         notifier; returns the report (None if the bus was never connected).
