@@ -102,20 +102,50 @@ def test_bus_log_replays_and_decodes_like_the_csv(emulator, tmp_path):
 # ------------------------------------------------------------------- real time
 
 
-def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path):
+#: Real time is paced by the host's clock, so its load decides how many cycles are missed or
+#: answered late (BENCHMARKS.md). This test is about pacing and the timing report, so it keeps
+#: what load does to control small: a 2 ms period (twice the slack per cycle) and a drive frame
+#: that turns slowly (30 rad/s: a late RPDO's frame angle is off by ≤ 0.06 rad). At 1 ms the
+#: paper scenario's 200 rad/s field weakening diverged once in CI with 6 % missed cycles and
+#: 10 % late RPDOs (the divergence guard stopped it with exit 1, as it should); with two CPU
+#: hogs on both cores even this profile diverged at 1 ms (25 % missed, 40 % late) and passed
+#: 4 of 4 at 2 ms. Control through missed cycles is tested deterministically in
+#: test_sampled.py; one-process 1 ms figures are in BENCHMARKS.md.
+SLOW_HOLD = """
+[units]
+time = "s"
+speed = "rad/s"
+flux = "Wb"
+torque = "N*m"
+[profile]
+name = "slow-hold"
+duration = 3.0
+[flux]
+initial = 0.001
+steps = [{ t = 0.0, value = 1.16, ramp = 0.3 }]
+[speed]
+initial = 0.0
+steps = [{ t = 0.4, value = 30.0, ramp = 0.5 }]
+[load]
+steps = [{ t = 1.5, value = 2.0, ramp = 0.05 }]
+"""
+
+
+def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_factory):
     emu = emulator()
-    # drift-free: a missed cycle leaves no lasting flux error (timing is what this tests)
+    ref = tmp_path_factory.mktemp("reference") / "slow-hold.toml"
+    ref.write_text(SLOW_HOLD)
     rc = gateway_run(emu, tmp_path, "--timing", "realtime", "--duration", "3s",
-                     "--max-missed", "500", "--max-miss-rate", "0.5", "--estimator",
-                     "drift-free")
+                     "--period", "2ms", "--reference", str(ref), "--max-missed", "500",
+                     "--max-miss-rate", "0.8", "--estimator", "drift-free")
     s = json.loads((tmp_path / "summary.json").read_text())
     assert rc == 0, s["run"]
     run_ = s["run"]
-    assert run_["cycles"] + run_["missed_cycles"] >= 2990
-    assert run_["missed_cycles"] < 0.2 * 3000  # best effort in one process (see BENCHMARKS.md)
-    assert 2.9 < run_["wall_time_s"] < 6.0  # paced by the clock, not as fast as possible
+    assert run_["cycles"] + run_["missed_cycles"] >= 1495
+    assert run_["missed_cycles"] < 0.5 * 1500  # best effort in one process (see BENCHMARKS.md)
+    assert 2.9 < run_["wall_time_s"] < 8.0  # paced by the clock, not as fast as possible
     t = s["timing"]
-    assert t["sync_period"]["median"] == pytest.approx(1e-3, rel=0.05)
+    assert t["sync_period"]["median"] == pytest.approx(2e-3, rel=0.05)
     assert {"sync_jitter", "sync_to_tpdo", "reaction"} <= set(t)
     assert_disabled(emu)
 
