@@ -201,7 +201,10 @@ def candump(channel: str, logdir: Path, name: str = "candump") -> Iterator[Candu
     logdir.mkdir(parents=True, exist_ok=True)
     path = logdir / f"{name}.log"
     with open(path, "wb") as fo, open(logdir / f"{name}.err", "wb") as fe:
-        p = subprocess.Popen(["candump", "-L", channel], stdin=subprocess.DEVNULL, stdout=fo,
+        # -r: a 4 MiB socket receive buffer, so that a slow sandbox (QEMU under TCG) does not
+        # make candump drop frames while it is descheduled (the default holds ~1,000 frames)
+        p = subprocess.Popen(["candump", "-L", "-r", str(4 << 20), channel],
+                             stdin=subprocess.DEVNULL, stdout=fo,
                              stderr=fe, start_new_session=True)
     proc = Proc(p, path, logdir / f"{name}.err")
     dump = Candump(proc, path, channel)
