@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import signal
 import time
@@ -27,6 +28,7 @@ from twoproc_support import (
     candump,
     candump_lines,
     find_stretch,
+    find_stretch_concurrent,
     frame_key,
     frames_without_probes,
     gateway_cmd,
@@ -34,6 +36,7 @@ from twoproc_support import (
     run,
     sdo_upload,
     stop_plant,
+    stretch_mismatch,
     wait_for,
 )
 
@@ -177,9 +180,13 @@ def test_candump_sees_exactly_the_gateways_log(candump_channel, paper_run):
     assert all(m.arbitration_id != PROBE_ID for m in logged)
     keys_dump = [frame_key(m) for m in dumped]
     keys_log = [frame_key(m) for m in logged]
-    starts = find_stretch(keys_dump, keys_log)
+    # In order on one CPU (UML); on an SMP kernel (native, QEMU) frames that two processes put
+    # on the bus at the same moment may reach two sockets in either order, every sender's own
+    # frames still in order (find_stretch_concurrent).
+    starts = find_stretch(keys_dump, keys_log) or find_stretch_concurrent(keys_dump, keys_log)
     assert len(starts) == 1, (f"the gateway's {len(keys_log)} frames are not one stretch of "
-                              f"candump's {len(keys_dump)}")
+                              f"candump's {len(keys_dump)}: "
+                              f"{stretch_mismatch(keys_dump, keys_log)}")
     i = starts[0]
     # candump saw more: the emulator's boot-up before, its heartbeats after the run
     assert i > 0 and (HB_DRIVE, False, False, False, 1, b"\x00") in keys_dump[:i]
@@ -289,6 +296,11 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
     """Real-time timing at 10 ms for 2 s: SYNC from the kernel's broadcast manager (a BCM
     tx_op of the 240 SYNC frames every 10 ms in /proc/net/can-bcm while the run lasts), timing
     statistics in the summary."""
+    if os.environ.get("VCAN_RUN_SANDBOX_KIND") == "qemu":
+        pytest.skip("QEMU under TCG (vcan-run's last resort) emulates every instruction: the "
+                    "emulated motor, 18-35x faster than real time natively (BENCHMARKS.md), "
+                    "runs at about real time there, so no period keeps real time; the "
+                    "real-time figures come from native vcan or UML")
     ch = vcan_channel
     with plant(ch, tmp_path):
         gw = Proc.start(gateway_run(ch, tmp_path / "run", "--timing", "realtime", "--period",

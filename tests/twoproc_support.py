@@ -240,6 +240,76 @@ def find_stretch(whole: Sequence, part: Sequence) -> list[int]:
             if whole[i] == first and whole[i:i + n] == part]
 
 
+def find_stretch_concurrent(whole: Sequence, part: Sequence, max_shift: int = 8) -> list[int]:
+    """Every index i where whole[i:i + len(part)] holds the same frames as ``part``, each CAN
+    id's frames in the same order, none more than ``max_shift`` places from where ``part``
+    has it. Each id has one sender, so this is "every sender's frames in its order"; frames of
+    two senders on the bus at the same moment may be seen in either order by two sockets on an
+    SMP kernel (each CPU delivers the frames it received), which a one-CPU sandbox (UML)
+    never shows. Frames are keys of :func:`frame_key` (the id first)."""
+    n = len(part)
+    if n == 0 or n > len(whole):
+        return []
+    need: dict = {}
+    for k in part:
+        need[k] = need.get(k, 0) + 1
+    for k in whole[:n]:
+        need[k] = need.get(k, 0) - 1
+    off = sum(1 for v in need.values() if v)
+    starts = []
+    for i in range(len(whole) - n + 1):
+        if i:
+            for k, d in ((whole[i - 1], 1), (whole[i + n - 1], -1)):
+                before = need.get(k, 0)
+                need[k] = before + d
+                off += (need[k] != 0) - (before != 0)
+        if off == 0 and _same_order_per_id(whole[i:i + n], part, max_shift):
+            starts.append(i)
+    return starts
+
+
+def _same_order_per_id(window: Sequence, part: Sequence, max_shift: int) -> bool:
+    pos_w: dict = {}
+    pos_p: dict = {}
+    for j, k in enumerate(window):
+        pos_w.setdefault(k[0], []).append((k, j))
+    for j, k in enumerate(part):
+        pos_p.setdefault(k[0], []).append((k, j))
+    for cob, seq_w in pos_w.items():
+        seq_p = pos_p.get(cob, [])
+        if [k for k, _ in seq_w] != [k for k, _ in seq_p]:
+            return False
+        if any(abs(a - b) > max_shift for (_, a), (_, b) in zip(seq_w, seq_p, strict=True)):
+            return False
+    return True
+
+
+def stretch_mismatch(whole: Sequence, part: Sequence) -> str:
+    """Why ``part`` is not a stretch of ``whole``: where the best alignment of its first
+    frame breaks, the frames around it, and whether the frames are the same as a multiset
+    (a reordering) or some are missing or extra."""
+    from collections import Counter
+
+    best, at = -1, -1
+    for i in (j for j, k in enumerate(whole) if part and k == part[0]):
+        n = 0
+        while n < len(part) and i + n < len(whole) and whole[i + n] == part[n]:
+            n += 1
+        if n > best:
+            best, at = n, i
+    if at < 0:
+        return "the first logged frame is not in the whole at all"
+    window = whole[at:at + len(part)]
+    diff_w, diff_p = Counter(window) - Counter(part), Counter(part) - Counter(window)
+    kind = ("the same frames in another order" if not diff_w and not diff_p else
+            f"{sum(diff_p.values())} logged frames not in the window, {sum(diff_w.values())} "
+            "window frames not logged")
+    fmt = lambda ks: [f"{k[0]:03x}#{k[5].hex()}" for k in ks]  # noqa: E731
+    return (f"aligned at {at}, equal for {best} of {len(part)} frames; then whole "
+            f"{fmt(whole[at + best:at + best + 4])} vs part {fmt(part[best:best + 4])}; "
+            f"over the whole length: {kind}")
+
+
 # -------------------------------------------------------------------------------- SDO
 
 
