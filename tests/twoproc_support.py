@@ -21,6 +21,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+#: Time limits here catch hangs; under QEMU's TCG (scripts/vcan-run's last resort, which sets
+#: VCAN_RUN_SANDBOX_KIND) every process runs 20-40x slower than natively, so they are longer.
+SLOW = 4.0 if os.environ.get("VCAN_RUN_SANDBOX_KIND") == "qemu" else 1.0
 _BIN = Path(sys.executable).parent
 
 
@@ -85,7 +88,8 @@ class Proc:
                 f"{self.stdout()[-3000:]}\n--- stderr\n{self.stderr()[-3000:]}")
 
     def wait(self, timeout: float) -> int:
-        """Exit status; on timeout the group is killed and the test fails."""
+        """Exit status; on timeout (× :data:`SLOW`) the group is killed and the test fails."""
+        timeout *= SLOW
         try:
             return self.popen.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -115,7 +119,9 @@ def run(cmd: Sequence[str], logdir: Path, name: str, timeout: float) -> Proc:
 
 def wait_for(cond, timeout: float, what: str, alive: Proc | None = None,
              poll: float = 0.02) -> None:
-    """Poll ``cond()`` until true; fail after ``timeout`` s or when ``alive`` exits."""
+    """Poll ``cond()`` until true; fail after ``timeout`` s (× :data:`SLOW`) or when ``alive``
+    exits."""
+    timeout *= SLOW
     deadline = time.monotonic() + timeout
     while not cond():
         if alive is not None and alive.popen.poll() is not None:
@@ -182,6 +188,7 @@ class Candump:
     def mark(self, tag: int, timeout: float = 20.0) -> None:
         """Send probe frame PROBE_ID#tag until candump has logged it (it is listening, and
         everything before it is in the file)."""
+        timeout *= SLOW
         frame = f"{PROBE_ID:03X}#{tag:02X}"
         deadline = time.monotonic() + timeout
         while frame not in self.text():
