@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import can
@@ -67,12 +68,19 @@ def assert_disabled(emu: Emulator) -> None:
 
 
 def run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals):
+    """A gateway run in a thread of this process, against ``emu``. The drive watches the
+    gateway's heartbeat with 1 s instead of the emulator profile's 300 ms: gateway, emulator
+    and test share one interpreter here, and on a loaded 2-core CI host the heartbeat thread
+    once went unscheduled long enough to trip the drive (EMCY 0x8130) before cycle 1. No test
+    using this helper is about that timeout (tests/test_device.py and the two-process tests
+    are)."""
     result: dict = {}
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
+    drive = replace(load_drive_profile(None), heartbeat_timeout_ms=1000)
 
     def target() -> None:
         try:
-            result["summary"] = run_gateway(bus, load_drive_profile(None), paper_profile(),
+            result["summary"] = run_gateway(bus, drive, paper_profile(),
                                             MOTOR, cfg, out, signals=signals)
         except BaseException as exc:
             result["error"] = exc
