@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import signal
 import time
@@ -22,6 +21,7 @@ import numpy as np
 import pytest
 from conftest import require_vcan
 from twoproc_support import (
+    IN_QEMU,
     PROBE_ID,
     Proc,
     bcm_tx_ops,
@@ -296,7 +296,7 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
     """Real-time timing at 10 ms for 2 s: SYNC from the kernel's broadcast manager (a BCM
     tx_op of the 240 SYNC frames every 10 ms in /proc/net/can-bcm while the run lasts), timing
     statistics in the summary."""
-    if os.environ.get("VCAN_RUN_SANDBOX_KIND") == "qemu":
+    if IN_QEMU:
         pytest.skip("QEMU under TCG (vcan-run's last resort) emulates every instruction: the "
                     "emulated motor, 18-35x faster than real time natively (BENCHMARKS.md), "
                     "runs at about real time there, so no period keeps real time; the "

@@ -23,7 +23,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 #: Time limits here catch hangs; under QEMU's TCG (scripts/vcan-run's last resort, which sets
 #: VCAN_RUN_SANDBOX_KIND) every process runs 20-40x slower than natively, so they are longer.
-SLOW = 4.0 if os.environ.get("VCAN_RUN_SANDBOX_KIND") == "qemu" else 1.0
+IN_QEMU = os.environ.get("VCAN_RUN_SANDBOX_KIND") == "qemu"
+SLOW = 4.0 if IN_QEMU else 1.0
 _BIN = Path(sys.executable).parent
 
 
