@@ -28,10 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dbc.motor import MotorParams  # noqa: E402
+from dbc.timing import Sampling  # noqa: E402
 from gateway.reference import load_profile, paper_profile  # noqa: E402
-from gateway.simulate import run  # noqa: E402
+from gateway.simulate import SimConfig, run  # noqa: E402
 from plant.scenario import resolve_scenario  # noqa: E402
-from tests.sim_support import sim_config  # noqa: E402
 
 RUNAWAY = 50.0  # rad/s
 
@@ -94,6 +94,17 @@ def blocks() -> dict[str, list[Case]]:
                     for s in ("offset10mA", "noise5mA", "rs+10", "rr+20", "real-drive")
                     for load in ("known", "observed")]
     return out
+
+
+def sim_config(drive: str | None = None, **kw) -> SimConfig:
+    """SimConfig of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design (the
+    design the R_s adaptation and the load observer were measured with). Built here, not
+    imported from tests/: a third-party package (eds-utils) installs a top-level ``tests``
+    package that shadows the project's."""
+    if drive is not None:
+        kw["drive_mode"] = drive
+    kw.setdefault("discretisation", "euler")
+    return SimConfig(sampling=Sampling(1e-3, 1, "dq"), **kw)
 
 
 def simulate(case: Case) -> Case:
