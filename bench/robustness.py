@@ -5,7 +5,8 @@ Python API (sampled 1 ms, one period of SYNC delay, (d, q) setpoints, INT16 PDOs
     .venv/bin/python bench/robustness.py                  # the table on stdout, PNG in runs/
     .venv/bin/python bench/robustness.py --markdown       # Markdown for README/BENCHMARKS.md
     .venv/bin/python bench/robustness.py --only paper     # one block: paper, zero-speed,
-                                                          #   slow-reversal, full-order, load
+                                                          #   slow-reversal, exact,
+                                                          #   full-order, load
 
 Columns are speed errors ω − ω* in rad/s: RMS over the run, max |·|, and the final value
 (last sample). "runaway" marks max |ω − ω*| > 50 rad/s. The PNG (``--png``, default
@@ -73,6 +74,15 @@ def blocks() -> dict[str, list[Case]]:
     for prof in ("zero-speed", "slow-reversal"):
         out[prof] = [Case(prof, prof, s, c, kw) for s in ("nominal", "rs+10", "rs-10")
                      for c, kw in CONTROLLERS.items()]
+    exact = {"discretisation": "exact"}
+    out["exact"] = [Case("exact", prof, s, c, {**exact, **kw}, row=f"{prof}, {s}")
+                    for prof, scns in (("paper", ("nominal", "rs+10", "rs-10",
+                                                  "offset10mA-rs+10", "offset10mA-rs-10",
+                                                  "rr+20", "rr-20")),
+                                       ("zero-speed", ("rs+10", "rs-10")),
+                                       ("slow-reversal", ("rs+10", "rs-10")))
+                    for s in scns
+                    for c, kw in CONTROLLERS.items() if c != "open-loop"]
     fo = {"law": "full-order", "drive": "voltage"}
     out["full-order"] = [Case("full-order", "paper", s, c, {**fo, **kw})
                          for s in ("nominal", "rs+5", "rs-5")
@@ -97,8 +107,9 @@ def blocks() -> dict[str, list[Case]]:
 
 
 def sim_config(drive: str | None = None, **kw) -> SimConfig:
-    """SimConfig of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design (the
-    design the R_s adaptation and the load observer were measured with). Built here, not
+    """SimConfig of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design unless
+    the case says otherwise (the load observer exists in it only; block "exact" has the
+    sampled-data design). Built here, not
     imported from tests/: a third-party package (eds-utils) installs a top-level ``tests``
     package that shadows the project's."""
     if drive is not None:
@@ -162,6 +173,8 @@ TITLES = {
     "zero-speed": "zero speed under ±5.8 N·m, then zero stator frequency "
                   "(profiles/zero-speed.toml)",
     "slow-reversal": "slow reversal ±30 rad/s at 2 N·m (profiles/slow-reversal.toml)",
+    "exact": "the sampled-data design (--discretisation exact, the CLI's default), "
+             "current-fed law, ideal drive",
     "full-order": "paper scenario, full-order law, voltage drive",
     "load": "paper scenario, load applied within the period, known or observed",
 }

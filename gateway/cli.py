@@ -211,13 +211,13 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    default=EstimatorKind.OPEN_LOOP,
                    help="flux estimator: the paper's open-loop integrator, the drift-free "
                         "one, or drift-free with on-line R_s adaptation (rs-adaptive, "
-                        "docs/robustness.md; with --discretisation euler)")
+                        "docs/robustness.md)")
     p.add_argument("--discretisation", type=Discretisation, choices=list(Discretisation),
                    help="sampled controller: exact (the sampled-data design of "
                         "docs/sampled-control.md) or euler (the continuous laws stepped with "
                         "forward Euler, the earlier design); default exact, euler with "
-                        "--estimator rs-adaptive or an observed load (the exact design has "
-                        "neither yet); the full-order law has an exact design for voltage-fed "
+                        "an observed load (the exact design has no load observer); the "
+                        "full-order law has an exact design for voltage-fed "
                         "(d, q) drives only")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML, SI units; template: "
                    "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
@@ -238,13 +238,14 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
 
 
 def _design(args: argparse.Namespace, estimator: Any, load: str) -> Any:
-    """--discretisation, else exact, or euler where only it has the estimator or the load
-    observer asked for."""
-    from gateway.control.controller import Discretisation, EstimatorKind
+    """--discretisation, else exact, or euler where only it has what is asked for (the load
+    observer). ``estimator``: every estimator exists in both designs."""
+    from gateway.control.controller import Discretisation
 
+    del estimator
     if args.discretisation is not None:
         return args.discretisation
-    if estimator == EstimatorKind.RS_ADAPTIVE or load == "observed":
+    if load == "observed":
         return Discretisation.EULER
     return Discretisation.EXACT
 

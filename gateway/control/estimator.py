@@ -183,8 +183,8 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
         self.psi_s_ab = self._sigma * i_s_ab + self._m_lr * psi_r_ab
 
 
-class RsAdaptiveFluxEstimator(DriftFreeFluxEstimator):
-    """The drift-free estimator with on-line stator-resistance adaptation (issue 14).
+class RsAdaptation:
+    """The on-line stator-resistance law shared by the R_s-adaptive estimators (issue 14).
 
     With the correction −ω_c·(ψ_s − ψ_s°), a resistance error ΔR = R_s − R̂_s leaves, for a
     current phasor turning at the stator frequency ω0, the steady residual
@@ -211,13 +211,48 @@ class RsAdaptiveFluxEstimator(DriftFreeFluxEstimator):
     errors also leave a residual and bias R̂_s.
     """
 
-    def __init__(self, motor: Motor, w_c: float = 5.0, gamma_r: float = 60.0) -> None:
-        super().__init__(motor, w_c)
+    def __init__(self, R_nom: float, w_c: float, gamma_r: float) -> None:
         if not gamma_r > 0.0:
             raise ValueError(f"Rs-adaptive estimator: gamma_r = {gamma_r!r} 1/s must be > 0")
         self.gamma_r = gamma_r
-        self._R_nom = motor.R_s
+        self.w_c = w_c
+        self._R_nom = R_nom
         self._eps_prev: float | None = None
+
+    def update(self, R_s: float, psi_s_ab: complex, psi_s_o: complex, i_s_ab: complex,
+               eps_0: float, T: float) -> float:
+        """R̂_s after one period (Ω): the stator flux before the correction, its
+        field-oriented target ψ_s°, the current and the frame angle at the sample."""
+        w_0 = 0.0
+        if self._eps_prev is not None:
+            w_0 = ((eps_0 - self._eps_prev + math.pi) % (2.0 * math.pi) - math.pi) / T
+        self._eps_prev = eps_0
+        i2 = i_s_ab.real * i_s_ab.real + i_s_ab.imag * i_s_ab.imag
+        if i2 <= 0.25:
+            return R_s
+        res = complex(self.w_c, w_0) * (psi_s_ab - psi_s_o) * i_s_ab.conjugate()
+        w_c2 = self.w_c * self.w_c
+        weight = w_c2 / (w_c2 + w_0 * w_0)  # the residual's sensitivity to ΔR, squared
+        r = R_s + T * self.gamma_r * weight * res.real / i2
+        return min(max(r, 0.5 * self._R_nom), 2.0 * self._R_nom)
+
+
+def oriented_stator_flux(motor_sigma: float, m_lr: float, i_s_ab: complex, eps_0: float,
+                         psi_ref: float) -> complex:
+    """ψ_s° = e^{jε0}·(σ·i_sd + (M/L_r)·ψ* + j·σ·i_sq): the stator flux field orientation
+    implies (the drift-free correction's target), (a, b) frame, Wb."""
+    rot = cmath.exp(1j * eps_0)
+    i_s_dq = i_s_ab * rot.conjugate()
+    return rot * complex(motor_sigma * i_s_dq.real + m_lr * psi_ref, motor_sigma * i_s_dq.imag)
+
+
+class RsAdaptiveFluxEstimator(DriftFreeFluxEstimator):
+    """The drift-free estimator with on-line stator-resistance adaptation (issue 14):
+    :class:`RsAdaptation` before each period's update (the Euler design)."""
+
+    def __init__(self, motor: Motor, w_c: float = 5.0, gamma_r: float = 60.0) -> None:
+        super().__init__(motor, w_c)
+        self.adaptation = RsAdaptation(motor.R_s, w_c, gamma_r)
 
     @property
     def R_s_hat(self) -> float:
@@ -227,20 +262,30 @@ class RsAdaptiveFluxEstimator(DriftFreeFluxEstimator):
     def update(
         self, i_s_ab: complex, u_s_ab: complex, T: float, eps_0: float = 0.0, psi_ref: float = 0.0
     ) -> complex:
-        rot = cmath.exp(1j * eps_0)
-        i_s_dq = i_s_ab * rot.conjugate()
-        psi_s_o = rot * complex(
-            self._sigma * i_s_dq.real + self._m_lr * psi_ref, self._sigma * i_s_dq.imag
-        )
-        w_0 = 0.0
-        if self._eps_prev is not None:
-            w_0 = ((eps_0 - self._eps_prev + math.pi) % (2.0 * math.pi) - math.pi) / T
-        self._eps_prev = eps_0
-        i2 = i_s_ab.real * i_s_ab.real + i_s_ab.imag * i_s_ab.imag
-        if i2 > 0.25:
-            res = complex(self.w_c, w_0) * (self.psi_s_ab - psi_s_o) * i_s_ab.conjugate()
-            w_c2 = self.w_c * self.w_c
-            weight = w_c2 / (w_c2 + w_0 * w_0)  # the residual's sensitivity to ΔR, squared
-            r = self._R_s + T * self.gamma_r * weight * res.real / i2
-            self._R_s = min(max(r, 0.5 * self._R_nom), 2.0 * self._R_nom)
+        psi_s_o = oriented_stator_flux(self._sigma, self._m_lr, i_s_ab, eps_0, psi_ref)
+        self._R_s = self.adaptation.update(self._R_s, self.psi_s_ab, psi_s_o, i_s_ab, eps_0, T)
         return super().update(i_s_ab, u_s_ab, T, eps_0, psi_ref)
+
+
+class IntervalRsAdaptiveFluxEstimator(IntervalFluxEstimator):
+    """:class:`IntervalFluxEstimator` with the drift-free correction and
+    :class:`RsAdaptation` (the sampled-data design's R_s-adaptive estimator)."""
+
+    def __init__(self, motor: Motor, w_c: float = 5.0, gamma_r: float = 60.0) -> None:
+        super().__init__(motor, w_c)
+        if not w_c > 0.0:
+            raise ValueError(f"Rs-adaptive estimator: w_c = {w_c!r} rad/s must be > 0")
+        self.adaptation = RsAdaptation(motor.R_s, w_c, gamma_r)
+
+    @property
+    def R_s_hat(self) -> float:
+        """The adapted stator resistance, Ω."""
+        return self._R_s
+
+    def update(  # type: ignore[override]
+        self, i_s_ab: complex, u_s_ab: complex, T: float, int_i_ab: complex,
+        i_end_ab: complex, eps_0: float = 0.0, psi_ref: float = 0.0,
+    ) -> complex:
+        psi_s_o = oriented_stator_flux(self._sigma, self._m_lr, i_s_ab, eps_0, psi_ref)
+        self._R_s = self.adaptation.update(self._R_s, self.psi_s_ab, psi_s_o, i_s_ab, eps_0, T)
+        return super().update(i_s_ab, u_s_ab, T, int_i_ab, i_end_ab, eps_0, psi_ref)

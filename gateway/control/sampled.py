@@ -53,7 +53,7 @@ from gateway.control.controller import (
     Sample,
     wrap_angle,
 )
-from gateway.control.estimator import IntervalFluxEstimator
+from gateway.control.estimator import IntervalFluxEstimator, IntervalRsAdaptiveFluxEstimator
 from gateway.control.laws import Refs, sat_tanh
 
 
@@ -108,8 +108,11 @@ class SampledController:
         self._lag = config.current_lag
         m = motor
         self._aM = m.alpha * m.M
-        self.estimator = IntervalFluxEstimator(
-            motor, config.w_c if config.estimator is EstimatorKind.DRIFT_FREE else 0.0)
+        if config.estimator is EstimatorKind.RS_ADAPTIVE:  # docs/robustness.md
+            self.estimator: IntervalFluxEstimator = IntervalRsAdaptiveFluxEstimator(motor)
+        else:
+            self.estimator = IntervalFluxEstimator(
+                motor, config.w_c if config.estimator is EstimatorKind.DRIFT_FREE else 0.0)
         self._k = 0  # samples taken (t_k = k·T)
         self._refs_cache: dict[int, Refs] = {}
         self.eps_0 = wrap_angle(eps_0)
