@@ -10,7 +10,7 @@ def sim_config(period: float | None = 1e-3, delay: int = 1, setpoint_frame: str 
                drive: str | None = None, discretisation: str = "euler", **kw) -> SimConfig:
     """A SimConfig (period None: continuous time). The Euler design by default: the plant
     scenario and robustness figures (docs/robustness.md) were measured with it, and the R_s
-    adaptation and the load observer exist in it only."""
+    adaptation were first measured with it, and the load observer exists in it only."""
     if drive is not None:
         kw["drive_mode"] = drive
     sampling = None if period is None else Sampling(period, delay, setpoint_frame)
