@@ -9,8 +9,8 @@ from gateway.simulate import SimConfig
 def sim_config(period: float | None = 1e-3, delay: int = 1, setpoint_frame: str = "dq",
                drive: str | None = None, discretisation: str = "euler", **kw) -> SimConfig:
     """A SimConfig (period None: continuous time). The Euler design by default: the plant
-    scenario and robustness figures (docs/robustness.md) were measured with it, and the R_s
-    adaptation were first measured with it, and the load observer exists in it only."""
+    scenario and robustness figures (docs/robustness.md) were first measured with it, and the
+    load observer exists in it only."""
     if drive is not None:
         kw["drive_mode"] = drive
     sampling = None if period is None else Sampling(period, delay, setpoint_frame)
