@@ -22,19 +22,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dbc.motor import MotorParams
-from dbc.timing import Sampling
 from gateway import report
 from gateway.reference import paper_profile
 from gateway.simulate import SimConfig, run
 
-
-def sim_config(period: float | None = 1e-3, delay: int = 1, setpoint_frame: str = "dq",
-               drive: str | None = None, **kw) -> SimConfig:
-    """A SimConfig from the command line's words (period None: continuous time)."""
-    if drive is not None:
-        kw["drive_mode"] = drive
-    sampling = None if period is None else Sampling(period, delay, setpoint_frame)
-    return SimConfig(sampling=sampling, **kw)
+sim_config = SimConfig.from_words  # SimConfig from the command line's words
 
 
 

@@ -29,7 +29,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dbc.motor import MotorParams  # noqa: E402
-from dbc.timing import Sampling  # noqa: E402
 from gateway.reference import load_profile, paper_profile  # noqa: E402
 from gateway.simulate import SimConfig, run  # noqa: E402
 from plant.scenario import resolve_scenario  # noqa: E402
@@ -109,13 +108,10 @@ def blocks() -> dict[str, list[Case]]:
 def sim_config(drive: str | None = None, **kw) -> SimConfig:
     """SimConfig of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design unless
     the case says otherwise (the load observer exists in it only; block "exact" has the
-    sampled-data design). Built here, not
-    imported from tests/: a third-party package (eds-utils) installs a top-level ``tests``
-    package that shadows the project's."""
-    if drive is not None:
-        kw["drive_mode"] = drive
+    sampled-data design). Not imported from tests/: a third-party package (eds-utils)
+    installs a top-level ``tests`` package that shadows the project's."""
     kw.setdefault("discretisation", "euler")
-    return SimConfig(sampling=Sampling(1e-3, 1, "dq"), **kw)
+    return SimConfig.from_words(1e-3, 1, "dq", drive, **kw)
 
 
 def simulate(case: Case) -> Case:

@@ -91,6 +91,18 @@ class SimConfig:
     plant: PlantScenario = field(default_factory=PlantScenario)
     load: LoadSource = LoadSource.KNOWN
 
+    @classmethod
+    def from_words(cls, period: float | None = 1e-3, delay: int = 1,
+                   setpoint_frame: str = "dq", drive: str | None = None,
+                   **kw: Any) -> SimConfig:
+        """A SimConfig from the command line's words: sampled with ``period`` (s; None:
+        continuous time), ``delay`` periods of SYNC delay, the ``setpoint_frame``, and
+        ``drive`` as the drive mode; the other keywords are fields."""
+        if drive is not None:
+            kw["drive_mode"] = drive
+        sampling = None if period is None else Sampling(period, delay, setpoint_frame)
+        return cls(sampling=sampling, **kw)
+
     def __post_init__(self) -> None:
         try:
             for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),

@@ -27,14 +27,7 @@ from gateway.simulate import SimConfig, run
 from plant.drive import Drive, Setpoints
 from plant.params import DriveParams
 
-
-def sim_config(period: float | None = 1e-3, delay: int = 1, setpoint_frame: str = "dq",
-               drive: str | None = None, **kw) -> SimConfig:
-    """A SimConfig from the command line's words (period None: continuous time)."""
-    if drive is not None:
-        kw["drive_mode"] = drive
-    sampling = None if period is None else Sampling(period, delay, setpoint_frame)
-    return SimConfig(sampling=sampling, **kw)
+sim_config = SimConfig.from_words  # SimConfig from the command line's words
 
 
 MOTOR = MotorParams.paper()
