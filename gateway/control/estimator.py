@@ -55,6 +55,7 @@ class OpenLoopFluxEstimator:
         self._R_s = motor.R_s
         self._sigma = motor.sigma
         self._k_r = motor.L_r / motor.M
+        self._m_lr = motor.M / motor.L_r
         self.psi_s_ab = 0j
         self._i_prev: complex | None = None
 
@@ -95,6 +96,18 @@ class OpenLoopFluxEstimator:
         """ψ_r = (L_r/M)·(ψ_s − σ·i_s) (§E1), Wb."""
         return self._k_r * (self.psi_s_ab - self._sigma * i_s_ab)
 
+    def _oriented(self, i_s_ab: complex, eps_0: float, psi_ref: float) -> complex:
+        """ψ_s° = e^{jε0}·(σ·i_sd + (M/L_r)·ψ* + j·σ·i_sq): the stator flux field orientation
+        implies (the drift-free correction's target), (a, b) frame, Wb."""
+        rot = cmath.exp(1j * eps_0)
+        i_s_dq = i_s_ab * rot.conjugate()
+        return rot * complex(self._sigma * i_s_dq.real + self._m_lr * psi_ref,
+                             self._sigma * i_s_dq.imag)
+
+    def _adapt(self, psi_s_o: complex, i_s_ab: complex, eps_0: float, T: float) -> None:
+        """Called by the corrected estimators with the correction's target ψ_s° before a
+        period is integrated; the R_s-adaptive ones update R̂_s here."""
+
 
 class DriftFreeFluxEstimator(OpenLoopFluxEstimator):
     """Integrator with low-frequency correction towards the field-oriented stator flux."""
@@ -104,7 +117,6 @@ class DriftFreeFluxEstimator(OpenLoopFluxEstimator):
         if not w_c > 0.0:
             raise ValueError(f"drift-free estimator: w_c = {w_c!r} rad/s must be > 0")
         self.w_c = w_c
-        self._m_lr = motor.M / motor.L_r
 
     def update(
         self, i_s_ab: complex, u_s_ab: complex, T: float, eps_0: float = 0.0, psi_ref: float = 0.0
@@ -114,11 +126,8 @@ class DriftFreeFluxEstimator(OpenLoopFluxEstimator):
         eps_0: frame angle at the sample, rad. psi_ref: flux reference ψ*, Wb. The
         correction is integrated exactly over T (first-order decay factor e^{−ω_c·T}).
         """
-        rot = cmath.exp(1j * eps_0)
-        i_s_dq = i_s_ab * rot.conjugate()
-        psi_s_oriented_ab = rot * complex(
-            self._sigma * i_s_dq.real + self._m_lr * psi_ref, self._sigma * i_s_dq.imag
-        )
+        psi_s_oriented_ab = self._oriented(i_s_ab, eps_0, psi_ref)
+        self._adapt(psi_s_oriented_ab, i_s_ab, eps_0, T)
         decay = self._decay(T)
         increment = self._rate(i_s_ab, u_s_ab, T)
         # ψ_s ← ψ_s° + e^{−ω_c T}(ψ_s − ψ_s°) + increment (the increment enters undamped:
@@ -152,7 +161,6 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
         if w_c < 0.0:
             raise ValueError(f"interval estimator: w_c = {w_c!r} rad/s must be >= 0")
         self.w_c = w_c
-        self._m_lr = motor.M / motor.L_r
         self._delta = 0j
 
     def update(  # type: ignore[override]
@@ -165,14 +173,14 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
         int_i_ab: ∫ of the applied current over the period (model), A·s. i_end_ab: the
         model's current at the end, A. eps_0, psi_ref: frame angle and ψ* for w_c > 0.
         """
+        corrected = self.w_c > 0.0
+        if corrected:
+            target = self._oriented(i_s_ab, eps_0, psi_ref)
+            self._adapt(target, i_s_ab, eps_0, T)
         delta = i_s_ab - i_end_ab
         increment = T * u_s_ab - self._R_s * (int_i_ab + 0.5 * T * (self._delta + delta))
         self._delta = delta
-        if self.w_c > 0.0:
-            rot = cmath.exp(1j * eps_0)
-            i_s_dq = i_s_ab * rot.conjugate()
-            target = rot * complex(self._sigma * i_s_dq.real + self._m_lr * psi_ref,
-                                   self._sigma * i_s_dq.imag)
+        if corrected:
             decay = cmath.exp(-self.w_c * T).real
             self.psi_s_ab = target + decay * (self.psi_s_ab - target)
         self.psi_s_ab += increment
@@ -237,37 +245,33 @@ class RsAdaptation:
         return min(max(r, 0.5 * self._R_nom), 2.0 * self._R_nom)
 
 
-def oriented_stator_flux(motor_sigma: float, m_lr: float, i_s_ab: complex, eps_0: float,
-                         psi_ref: float) -> complex:
-    """ψ_s° = e^{jε0}·(σ·i_sd + (M/L_r)·ψ* + j·σ·i_sq): the stator flux field orientation
-    implies (the drift-free correction's target), (a, b) frame, Wb."""
-    rot = cmath.exp(1j * eps_0)
-    i_s_dq = i_s_ab * rot.conjugate()
-    return rot * complex(motor_sigma * i_s_dq.real + m_lr * psi_ref, motor_sigma * i_s_dq.imag)
+class _AdaptsRs:
+    """What the two R_s-adaptive estimators add to their base: :class:`RsAdaptation` in the
+    :meth:`OpenLoopFluxEstimator._adapt` hook, before each period's integration."""
 
-
-class RsAdaptiveFluxEstimator(DriftFreeFluxEstimator):
-    """The drift-free estimator with on-line stator-resistance adaptation (issue 14):
-    :class:`RsAdaptation` before each period's update (the Euler design)."""
-
-    def __init__(self, motor: Motor, w_c: float = 5.0, gamma_r: float = 60.0) -> None:
-        super().__init__(motor, w_c)
-        self.adaptation = RsAdaptation(motor.R_s, w_c, gamma_r)
+    adaptation: RsAdaptation
+    _R_s: float
+    psi_s_ab: complex
 
     @property
     def R_s_hat(self) -> float:
         """The adapted stator resistance, Ω."""
         return self._R_s
 
-    def update(
-        self, i_s_ab: complex, u_s_ab: complex, T: float, eps_0: float = 0.0, psi_ref: float = 0.0
-    ) -> complex:
-        psi_s_o = oriented_stator_flux(self._sigma, self._m_lr, i_s_ab, eps_0, psi_ref)
+    def _adapt(self, psi_s_o: complex, i_s_ab: complex, eps_0: float, T: float) -> None:
         self._R_s = self.adaptation.update(self._R_s, self.psi_s_ab, psi_s_o, i_s_ab, eps_0, T)
-        return super().update(i_s_ab, u_s_ab, T, eps_0, psi_ref)
 
 
-class IntervalRsAdaptiveFluxEstimator(IntervalFluxEstimator):
+class RsAdaptiveFluxEstimator(_AdaptsRs, DriftFreeFluxEstimator):
+    """The drift-free estimator with on-line stator-resistance adaptation (issue 14;
+    :class:`RsAdaptation`), the Euler design's."""
+
+    def __init__(self, motor: Motor, w_c: float = 5.0, gamma_r: float = 60.0) -> None:
+        super().__init__(motor, w_c)
+        self.adaptation = RsAdaptation(motor.R_s, w_c, gamma_r)
+
+
+class IntervalRsAdaptiveFluxEstimator(_AdaptsRs, IntervalFluxEstimator):
     """:class:`IntervalFluxEstimator` with the drift-free correction and
     :class:`RsAdaptation` (the sampled-data design's R_s-adaptive estimator)."""
 
@@ -276,16 +280,3 @@ class IntervalRsAdaptiveFluxEstimator(IntervalFluxEstimator):
         if not w_c > 0.0:
             raise ValueError(f"Rs-adaptive estimator: w_c = {w_c!r} rad/s must be > 0")
         self.adaptation = RsAdaptation(motor.R_s, w_c, gamma_r)
-
-    @property
-    def R_s_hat(self) -> float:
-        """The adapted stator resistance, Ω."""
-        return self._R_s
-
-    def update(  # type: ignore[override]
-        self, i_s_ab: complex, u_s_ab: complex, T: float, int_i_ab: complex,
-        i_end_ab: complex, eps_0: float = 0.0, psi_ref: float = 0.0,
-    ) -> complex:
-        psi_s_o = oriented_stator_flux(self._sigma, self._m_lr, i_s_ab, eps_0, psi_ref)
-        self._R_s = self.adaptation.update(self._R_s, self.psi_s_ab, psi_s_o, i_s_ab, eps_0, T)
-        return super().update(i_s_ab, u_s_ab, T, int_i_ab, i_end_ab, eps_0, psi_ref)
