@@ -20,48 +20,33 @@ import argparse
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import can
 import numpy as np
 
+from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from gateway.drive_profile import load_drive_profile
 from gateway.reference import paper_profile
 from gateway.report import read_csv
 from gateway.runner import RunConfig, run_gateway
-from gateway.transport import InProcessChannel
-from plant.device import DriveDevice
-from plant.params import DriveParams
+from gateway.sim import open_emulator
 
 
-def _buses(args: argparse.Namespace, tag: str, transport: str):
-    """(gateway bus, device or None, cleanup)."""
+def _buses(args: argparse.Namespace, transport: str):
+    """(gateway bus, cleanup): the external bus, or the emulator on a new in-process bus
+    (:func:`gateway.sim.open_emulator`, as `hil-gateway sim` starts it)."""
     if args.interface:
         bus = can.Bus(interface=args.interface, channel=args.channel, receive_own_messages=True)
-        return bus, None, bus.shutdown
-    if transport == "virtual":
-        channel = f"bench-loop-{tag}-{time.monotonic_ns()}"
-        bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
-        dev_bus = can.Bus(interface="virtual", channel=channel)
-    else:
-        medium = InProcessChannel("bench")
-        bus, dev_bus = medium.bus(receive_own_messages=True), medium.bus()
-    device = DriveDevice(dev_bus, 1, MotorParams.paper(), DriveParams(mode="ideal"))
-    device.start()
-
-    def cleanup() -> None:
-        device.stop()
-        dev_bus.shutdown()
-        bus.shutdown()
-
-    return bus, device, cleanup
+        return bus, bus.shutdown
+    bus, _label, cleanup = open_emulator(transport, 1, MotorParams.paper(), DriveMode.IDEAL)
+    return bus, cleanup
 
 
 def one_run(args: argparse.Namespace, cfg: RunConfig, tag: str, transport: str
             ) -> tuple[dict, dict]:
-    bus, _device, cleanup = _buses(args, tag, transport)
+    bus, cleanup = _buses(args, transport)
     out = Path(tempfile.mkdtemp(prefix=f"bench-{tag}-"))
     try:
         summary = run_gateway(bus, load_drive_profile(None), paper_profile(),
