@@ -3,7 +3,10 @@ run against it (CLI or in a thread), waiting for cycles, checking the drive ende
 
 from __future__ import annotations
 
+import functools
 import itertools
+import re
+import tempfile
 import threading
 import time
 from dataclasses import replace
@@ -11,6 +14,7 @@ from pathlib import Path
 
 import can
 
+import gateway
 from dbc.cia402 import State
 from dbc.motor import MotorParams
 from gateway.cli import main
@@ -52,8 +56,25 @@ def emulator_factory():
         e.close()
 
 
+@functools.cache
+def _patient_drive_profile() -> Path:
+    """The emulator's drive profile with the drive watching the gateway's heartbeat for 1 s
+    instead of 300 ms (written once per test process)."""
+    text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
+    text, n = re.subn(r"(?m)^heartbeat_timeout_ms = 300\b", "heartbeat_timeout_ms = 1000", text)
+    assert n == 1, "gateway/drives/emulator.toml: heartbeat_timeout_ms = 300 not found"
+    path = Path(tempfile.mkdtemp(prefix="hil-drive-")) / "emulator-1s.toml"
+    path.write_text(text)
+    return path
+
+
 def gateway_run(emu: Emulator, out: Path, *args: str) -> int:
-    return main(["run", "-i", "virtual", "-c", emu.channel, "--out", str(out), *args])
+    """``hil-gateway run`` against ``emu`` in this process. Unless the test names its own
+    ``--drive``, the drive watches the gateway's heartbeat with 1 s instead of the emulator
+    profile's 300 ms, for the reason given in :func:`run_in_thread` (no test using this
+    helper is about that timeout)."""
+    drive = [] if "--drive" in args else ["--drive", str(_patient_drive_profile())]
+    return main(["run", "-i", "virtual", "-c", emu.channel, "--out", str(out), *drive, *args])
 
 
 def assert_disabled(emu: Emulator) -> None:
