@@ -317,6 +317,8 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
     from dbc.modes import DriveMode
     from dbc.signals import SETPOINT_MESSAGE
     from gateway import report
+    from gateway.guard import DivergenceWatch, profile_envelope
+    from gateway.stop import StopReason
 
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     t0 = time.perf_counter()
@@ -325,9 +327,10 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
     signals.on_stop = lambda reason: stop.set()
     # The handlers stay installed until every file is written: a second Ctrl-C (or one
     # that comes while the figures are drawn) must not lose the run's files.
+    watch = DivergenceWatch(profile_envelope(profile, motor, cfg.gains.i_max))
     with signals.installed():
         try:
-            rec = run(profile, motor, cfg, progress, stop)
+            rec = run(profile, motor, cfg, progress, stop, watch)
         except ValueError as exc:  # also a plant scenario's error (ScenarioError)
             raise UserError(f"the simulation could not run: {exc}") from exc
         finally:
@@ -350,6 +353,12 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
             "--no-quantize" if sampled else "continuous time: no bus")
         if stop.is_set():
             summary["stopped_early"] = f"{signals.reason} at t = {sig['t'][-1]:.3f} s"
+        ended = (StopReason.DIVERGED if watch.reason else StopReason.INTERRUPTED
+                 if stop.is_set() else StopReason.END_OF_PROFILE)
+        summary["run"] = {"stop": ended.name,
+                          "stop_reason": watch.reason or summary.get("stopped_early")
+                          or ended.value,
+                          "exit_status": ended.exit_status, "cycles": len(rec)}
         summary["configuration"] = {"command": "simulate", "profile": profile.source,
                                     **cfg.describe()}
         summary["wall_time_s"] = wall
@@ -371,11 +380,14 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
           + (", " + ", ".join(p.name for p in figures) if figures else
              " (install matplotlib for the figures)"))
-    if stop.is_set():
+    if ended is StopReason.DIVERGED:
+        print(f"{PROG}: the loop diverged and the simulation stopped: {watch.reason} (the "
+              "bus loop's divergence envelope, README \"Faults and the shutdown\"); the files "
+              "hold the run up to there", file=sys.stderr)
+    elif stop.is_set():
         print(f"{PROG}: stopped early ({summary['stopped_early']}); the files hold the run so "
               "far", file=sys.stderr)
-        return 130
-    return 0
+    return ended.exit_status
 
 
 # ------------------------------------------------------------------------- run / sim
@@ -799,7 +811,11 @@ def build_parser() -> argparse.ArgumentParser:
         "simulate", help="the closed loop without CAN (continuous or sampled); no bus at all",
         description="Run the closed loop without CAN: continuous time with scipy, or sampled "
                     "exactly as over the bus (zero-order hold, optional one-period SYNC delay, "
-                    "INT16 PDO quantisation). Writes summary.json, signals.csv and the figures.")
+                    "INT16 PDO quantisation). Writes summary.json, signals.csv and the figures. "
+                    "A loop that leaves the divergence envelope of the bus loop (speed, "
+                    "current, flux, voltage or speed error beyond the profile's demand + "
+                    "margin, 3 cycles in a row) is stopped there. Exit status: 0 at the "
+                    "profile's end, 1 diverged, 130 interrupted, 2 bad input.")
     _add_control_options(p)
     from dbc.modes import DriveMode, SetpointFrame
 

@@ -8,6 +8,8 @@
   lost control (e.g. a real-time run that missed too many cycles), whatever the drive says.
 
 Both return None when the cycle is fine, else a one-line reason.
+:class:`DivergenceWatch` turns the envelope into a stop: crossed in ``cycles`` cycles in a
+row (the bus loop and ``hil-gateway simulate`` both use it).
 """
 
 from __future__ import annotations
@@ -16,7 +18,11 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import numpy as np
+
 from gateway.cycle import CycleRow
+from gateway.reference import Profile
+from gateway.reference.demand import MotorLike, demand
 
 
 @dataclass(frozen=True)
@@ -92,3 +98,34 @@ class Envelope:
             if not value <= bound:  # NaN too
                 return f"{what} = {value:.4g} {unit} beyond {bound:.4g} {unit}"
         return None
+
+
+def profile_envelope(profile: Profile, motor: MotorLike, i_limit: float) -> Envelope:
+    """The envelope of what ``profile`` asks of ``motor`` (:func:`demand`; the flux peak from
+    the profile itself) with the controller's current limit ``i_limit``, A."""
+    d = demand(profile, motor)
+    psi_peak = float(np.max(profile.sample(np.linspace(0.0, profile.duration, 2001))["psi_ref"]))
+    return Envelope.from_demand(d.w_peak, d.i_s_peak, psi_peak, d.u_s_peak, i_limit)
+
+
+class DivergenceWatch:
+    """The divergence stop: :meth:`check` each cycle's row; True (and :attr:`reason` says
+    which bound, when and for how long) once the row has been outside ``envelope`` in
+    ``cycles`` cycles in a row."""
+
+    def __init__(self, envelope: Envelope, cycles: int = 3) -> None:
+        if cycles < 1:
+            raise ValueError(f"divergence watch: cycles = {cycles!r} must be >= 1")
+        self.envelope = envelope
+        self.cycles = cycles
+        self.outside = 0  # consecutive cycles outside the envelope
+        self.reason: str | None = None
+
+    def check(self, row: CycleRow, k: int) -> bool:
+        """Whether cycle ``k`` (its row ``row``) ends the run."""
+        why = self.envelope.check(row)
+        self.outside = self.outside + 1 if why else 0
+        if why and self.outside >= self.cycles:
+            self.reason = f"cycle {k} (t = {row.t:.4f} s): {why}, {self.outside} cycles in a row"
+            return True
+        return False

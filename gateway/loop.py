@@ -47,7 +47,7 @@ from dbc.cia402 import SW_FAULT, State
 from dbc.timing import Sampling
 from gateway.control.controller import Controller
 from gateway.cycle import ControlCycle, CycleRow, ReferenceProfile
-from gateway.guard import Envelope, Plausibility
+from gateway.guard import DivergenceWatch, Envelope, Plausibility
 from gateway.process_data import ProcessData
 from gateway.report import Record
 from gateway.stop import StopReason
@@ -153,7 +153,8 @@ class CycleLoop:
         self._misses: deque[int] = deque()  # cycles missed within the last window
         self._miss_window = max(5, round(MISS_WINDOW / cfg.sampling.period))
         self._syncs_sent = 0
-        self._outside = 0  # consecutive cycles outside the envelope
+        self._watch = (DivergenceWatch(cfg.envelope, cfg.envelope_cycles)
+                       if cfg.envelope is not None else None)
         self.stats = LoopStats()
         self._lock = threading.Lock()
         self._done = threading.Event()
@@ -321,13 +322,9 @@ class CycleLoop:
                 self._finish(StopReason.IMPLAUSIBLE, f"cycle {k}: {why}")
                 return
         setpoints, row = self.cycle.step(k, measured)
-        if cfg.envelope is not None:
-            why = cfg.envelope.check(row)
-            self._outside = self._outside + 1 if why else 0
-            if why and self._outside >= cfg.envelope_cycles:
-                self._finish(StopReason.DIVERGED, f"cycle {k} (t = {row.t:.4f} s): {why}, "
-                                                  f"{self._outside} cycles in a row")
-                return
+        if self._watch is not None and self._watch.check(row, k):
+            self._finish(StopReason.DIVERGED, self._watch.reason or "")
+            return
         send = self.bus.send
         for cob_id, _name, data in self.pd.encode(setpoints):
             send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))

@@ -45,11 +45,11 @@ from gateway.control.load_observer import load_config
 from gateway.control.sampled import make_controller
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
-from gateway.guard import Envelope, Plausibility
+from gateway.guard import Envelope, Plausibility, profile_envelope
 from gateway.loop import CycleLoop, LoopConfig, Timing
 from gateway.master import DriveMaster
 from gateway.process_data import ProcessData, process_data
-from gateway.reference import Profile, demand
+from gateway.reference import Profile
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
@@ -284,10 +284,7 @@ def guards(drive: DriveProfile, profile: Profile, motor: MotorParams, cfg: RunCo
         i_peak=drive.current_peak_a or 1.5 * cfg.gains.i_max,
         u_dc_min=drive.dc_link_v[0] if drive.dc_link_v else None,
         u_dc_max=drive.dc_link_v[1] if drive.dc_link_v else None)
-    d = demand(profile, motor)
-    psi = profile.sample(np.linspace(0.0, profile.duration, 2001))["psi_ref"]
-    return plaus, Envelope.from_demand(d.w_peak, d.i_s_peak, float(np.max(psi)), d.u_s_peak,
-                                       cfg.gains.i_max)
+    return plaus, profile_envelope(profile, motor, cfg.gains.i_max)
 
 
 def run_gateway(

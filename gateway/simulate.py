@@ -42,6 +42,7 @@ from gateway.control.sampled import make_controller
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import load_drive_profile
 from gateway.errors import UserError
+from gateway.guard import DivergenceWatch
 from gateway.process_data import process_data
 from gateway.reference import Profile
 from gateway.report import Record
@@ -188,15 +189,19 @@ def emulator_rate() -> float:
 
 
 def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
-        progress: Progress | None = None, stop: threading.Event | None = None) -> Record:
+        progress: Progress | None = None, stop: threading.Event | None = None,
+        watch: DivergenceWatch | None = None) -> Record:
     """Simulate the profile; the record holds one row per period (or record step).
 
     ``stop``: when set, the run ends after the current cycle (continuous time: the current
-    solver step) and the record holds what was simulated so far.
+    solver step) and the record holds what was simulated so far. ``watch``: the divergence
+    guard of the bus loop (:class:`gateway.guard.DivergenceWatch`); when it trips the record
+    ends with the cycle (continuous time: the record step) that tripped it and
+    ``watch.reason`` says why. None (the benchmarks): the run goes on whatever happens.
     """
     if cfg.sampling is None:
-        return run_continuous(profile, motor, cfg, progress, stop)
-    return run_sampled(profile, motor, cfg, progress, stop)
+        return run_continuous(profile, motor, cfg, progress, stop, watch)
+    return run_sampled(profile, motor, cfg, progress, stop, watch)
 
 
 # --------------------------------------------------------------------------- sampled
@@ -229,8 +234,8 @@ def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> D
 
 
 def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
-                progress: Progress | None = None, stop: threading.Event | None = None
-                ) -> Record:
+                progress: Progress | None = None, stop: threading.Event | None = None,
+                watch: DivergenceWatch | None = None) -> Record:
     """The sampled loop, cycle by cycle exactly as on the bus (docs/ARCHITECTURE.md): the
     drive's timing rule (:func:`plant.timing.sync_cycle`) and the gateway's cycle
     (:class:`gateway.cycle.ControlCycle`), with the PDO codec between them."""
@@ -270,6 +275,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
         out = cycle.step(k, measured, truth=Truth(meas.w_m, meas.psi_r_ab, meas.T_e))
         pending.update(link.rpdos(out.setpoints))
         rec.append(out.row)
+        if watch is not None and watch.check(out.row, k):
+            break
         if progress is not None and k % step_progress == 0:
             progress(k / n_cycles)
         if stop is not None and stop.is_set():  # every cycle: a stop acts within one
@@ -281,8 +288,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
 
 
 def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
-                   progress: Progress | None = None, stop: threading.Event | None = None
-                   ) -> Record:
+                   progress: Progress | None = None, stop: threading.Event | None = None,
+                   watch: DivergenceWatch | None = None) -> Record:
     """The paper's continuous-time closed loop, integrated by scipy (LSODA, tight tolerances).
 
     Current-fed law with an ideal current source: state (ω, ψ_ra, ψ_rb, ε0, ω̂); the
@@ -385,10 +392,13 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         psi_s_prev, i_prev = psi_s, i
         psi_hat = psi_r_used(x) * cmath.exp(-1j * eps)
         T_e = pm.J * pm.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
-        rec.append(CycleRow(
+        row = CycleRow(
             t, r.w_ref, r.psi_ref, r.T_L, x[0], abs(psi_r), x[6 if full else 4], abs(psi_hat),
             i.real, i.imag, u.real, u.imag, out.i_sd_ref, out.i_sq_ref, out.u_sd_ref,
             out.u_sq_ref, math.remainder(eps, 2 * math.pi), out.w_0,
             psi_hat.real, psi_hat.imag, T_e, float(out.i_limited), 0.0,
-        ))
+        )
+        rec.append(row)
+        if watch is not None and watch.check(row, j):
+            break  # the rows after the trip are not kept (the solver ran on)
     return rec

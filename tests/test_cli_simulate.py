@@ -40,11 +40,61 @@ def test_simulate_continuous_reproduces_section_6(tmp_path):
     assert abs(summary["estimation_error"]["final"]) < 1e-4
     assert 7.0 < summary["peak_current"] < 10.0
     assert summary["configuration"]["period"] == "continuous"
+    assert summary["run"] == {"stop": "END_OF_PROFILE", "stop_reason": "end of the profile",
+                              "exit_status": 0, "cycles": 2501}
     sig = read_csv(out / "signals.csv")
     assert sig["t"][-1] == pytest.approx(2.5)
     assert np.max(np.abs(sig["w_m"] - sig["w_ref"])) == pytest.approx(summary["speed_error"]["max"])
     pngs = {p.name for p in out.glob("*.png")}
     assert {"fig1_references.png", "fig2_errors.png"} <= pngs
+
+
+def test_a_diverging_simulation_stops_and_exits_1(tmp_path):
+    """The bus loop's divergence guard in `simulate`: a loop that lost the motor (zero speed
+    under load, R_s +10 %, the drift-free estimator: the runaway of docs/robustness.md §4) is
+    stopped with exit 1, the cause named, and the files hold the run up to the trip."""
+    from dbc.motor import MotorParams
+    from gateway.cycle import CycleRow
+    from gateway.guard import profile_envelope
+    from gateway.reference import load_profile
+
+    out = tmp_path / "runaway"
+    profile = ROOT / "gateway" / "profiles" / "zero-speed.toml"
+    p = run_cli("simulate", "--profile", str(profile), "--plant", "rs+10", "--estimator",
+                "drift-free", "--discretisation", "euler", "--out", str(out))
+    assert p.returncode == 1, p.stderr
+    assert "the loop diverged and the simulation stopped: cycle" in p.stderr
+    assert "Traceback" not in p.stderr
+    s = json.loads((out / "summary.json").read_text())
+    run = s["run"]
+    assert run["stop"] == "DIVERGED" and run["exit_status"] == 1
+    assert "3 cycles in a row" in run["stop_reason"]
+    sig = read_csv(out / "signals.csv")
+    n = len(sig["t"])
+    assert run["cycles"] == n and sig["t"][-1] < load_profile(profile).duration - 0.1
+    # the record ends with the trip: its last three rows outside the envelope, the one
+    # before inside (else the watch would have tripped a cycle earlier)
+    env = profile_envelope(load_profile(profile), MotorParams(), 20.0)
+    rows = [CycleRow(**{f: float(sig[f][i]) for f in CycleRow._fields}) for i in range(n)]
+    assert all(env.check(r) for r in rows[-3:]) and env.check(rows[-4]) is None
+    assert run["stop_reason"].startswith(f"cycle {n} ")
+
+
+def test_divergence_watch_needs_the_cycles_in_a_row():
+    from gateway.cycle import CycleRow
+    from gateway.guard import DivergenceWatch, Envelope
+
+    env = Envelope(w_max=10.0, i_max=10.0, psi_max=2.0, u_max=100.0, e_max=5.0)
+    zero = CycleRow(**{f: 0.0 for f in CycleRow._fields})
+    out = zero._replace(w_hat=11.0, w_ref=11.0, w_m=11.0)  # only the speed bound crossed
+    watch = DivergenceWatch(env, cycles=3)
+    seq = [out, out, zero, out, out]
+    assert [watch.check(r, k) for k, r in enumerate(seq, 1)] == [False] * 5
+    assert watch.reason is None and watch.outside == 2
+    assert watch.check(out, 6) and watch.reason.startswith("cycle 6 (t = 0.0000 s): speed "
+                                                           "estimate |ω̂| = 11 rad/s beyond 10")
+    with pytest.raises(ValueError, match="cycles = 0"):
+        DivergenceWatch(env, cycles=0)
 
 
 def test_simulate_sampled_summary_shows_delay(tmp_path):
