@@ -237,12 +237,11 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="current-vector limit of the setpoints, A (%(default)s)")
 
 
-def _design(args: argparse.Namespace, estimator: Any, load: str) -> Any:
+def _design(args: argparse.Namespace, load: str) -> Any:
     """--discretisation, else exact, or euler where only it has what is asked for (the load
-    observer). ``estimator``: every estimator exists in both designs."""
+    observer; every estimator exists in both designs)."""
     from gateway.control.controller import Discretisation
 
-    del estimator
     if args.discretisation is not None:
         return args.discretisation
     if load == "observed":
@@ -291,12 +290,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
               else parse_period(args.period, "--period", emulator_rate()))
     drive = args.drive_mode or args.law.drive_modes[0]
     duration = parse_duration(args.duration, "--duration") if args.duration else None
+    load = _load_mode(args, plant)
     cfg = SimConfig(
         law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=drive,
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
-        discretisation=_design(args, args.estimator, _load_mode(args, plant)),
-        plant=plant, load=_load_mode(args, plant),
+        discretisation=_design(args, load), plant=plant, load=load,
     )
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
@@ -495,7 +494,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
                                        if args.timing is Timing.REALTIME else 5),
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
-        discretisation=_design(args, args.estimator, "known"),
+        discretisation=_design(args, "known"),
     )
 
 
@@ -548,7 +547,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     load = _load_mode(args, plant)
     try:
         cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load,
-                      discretisation=_design(args, cfg.estimator, load))
+                      discretisation=_design(args, load))
         cfg.controller_config()
     except ValueError as exc:
         raise UserError(str(exc)) from exc

@@ -99,7 +99,7 @@ class RunConfig:
                                      ("discretisation", Discretisation, "discretisation"),
                                      ("load", LoadSource, "load mode")):
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
-            euler_only(self.discretisation, self.estimator, self.load)
+            euler_only(self.discretisation, self.load)
             load_config(self.load, self.drive_mode)
         except ValueError as exc:
             raise UserError(str(exc)) from None

@@ -129,7 +129,7 @@ class SimConfig:
                             "voltage, or a sampling --period such as 1ms for the current-loop "
                             "drive")
         try:
-            euler_only(self.discretisation, self.estimator, self.load)
+            euler_only(self.discretisation, self.load)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         if self.load is not LoadSource.KNOWN:

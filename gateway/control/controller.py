@@ -86,11 +86,9 @@ class Discretisation(StrEnum):
 TWO_PI = 2.0 * math.pi
 
 
-def euler_only(discretisation: Discretisation, estimator: EstimatorKind,
-               load: LoadSource) -> None:
-    """The exact design has no load observer: ValueError saying what to choose. (Both designs
-    have every estimator; ``estimator`` is kept for the callers' one signature.)"""
-    del estimator
+def euler_only(discretisation: Discretisation, load: LoadSource) -> None:
+    """The exact design has no load observer: ValueError saying what to choose (both designs
+    have every estimator)."""
     if discretisation is Discretisation.EXACT and load is LoadSource.OBSERVED:
         raise ValueError("--load observed works with the Euler design only "
                          "(docs/robustness.md): add --discretisation euler")
