@@ -9,7 +9,6 @@ import re
 import tempfile
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import can
@@ -59,7 +58,12 @@ def emulator_factory():
 @functools.cache
 def _patient_drive_profile() -> Path:
     """The emulator's drive profile with the drive watching the gateway's heartbeat for 1 s
-    instead of 300 ms (written once per test process)."""
+    instead of 300 ms (written once per test process; the file is what ``--drive`` takes,
+    and :func:`run_in_thread` loads the same one). Why: gateway, emulator and test share one
+    interpreter in these tests, and on a loaded 2-core CI host the heartbeat thread once went
+    unscheduled long enough to trip the drive (EMCY 0x8130) before cycle 1. No test using
+    these helpers is about that timeout (tests/test_device.py and the two-process tests
+    are)."""
     text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
     text, n = re.subn(r"(?m)^heartbeat_timeout_ms = 300\b", "heartbeat_timeout_ms = 1000", text)
     assert n == 1, "gateway/drives/emulator.toml: heartbeat_timeout_ms = 300 not found"
@@ -69,10 +73,8 @@ def _patient_drive_profile() -> Path:
 
 
 def gateway_run(emu: Emulator, out: Path, *args: str) -> int:
-    """``hil-gateway run`` against ``emu`` in this process. Unless the test names its own
-    ``--drive``, the drive watches the gateway's heartbeat with 1 s instead of the emulator
-    profile's 300 ms, for the reason given in :func:`run_in_thread` (no test using this
-    helper is about that timeout)."""
+    """``hil-gateway run`` against ``emu`` in this process, with the drive profile of
+    :func:`_patient_drive_profile` unless the test names its own ``--drive``."""
     drive = [] if "--drive" in args else ["--drive", str(_patient_drive_profile())]
     return main(["run", "-i", "virtual", "-c", emu.channel, "--out", str(out), *drive, *args])
 
@@ -89,15 +91,12 @@ def assert_disabled(emu: Emulator) -> None:
 
 
 def run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals):
-    """A gateway run in a thread of this process, against ``emu``. The drive watches the
-    gateway's heartbeat with 1 s instead of the emulator profile's 300 ms: gateway, emulator
-    and test share one interpreter here, and on a loaded 2-core CI host the heartbeat thread
-    once went unscheduled long enough to trip the drive (EMCY 0x8130) before cycle 1. No test
-    using this helper is about that timeout (tests/test_device.py and the two-process tests
-    are)."""
+    """A gateway run in a thread of this process, against ``emu``, with the drive profile of
+    :func:`_patient_drive_profile`."""
     result: dict = {}
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
-    drive = replace(load_drive_profile(None), heartbeat_timeout_ms=1000)
+    drive = load_drive_profile(str(_patient_drive_profile()))
+    assert drive.heartbeat_timeout_ms == 1000
 
     def target() -> None:
         try:
