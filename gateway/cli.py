@@ -664,6 +664,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     return _gateway_session(args, "run", drive, open_buses)
 
 
+#: `sim`: how long the emulated drive waits for the gateway's heartbeat (0x1016), ms.
+SIM_HEARTBEAT_TIMEOUT_MS = 1000
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
     from gateway.drive_profile import load_drive_profile
@@ -679,7 +683,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return open_emulator(args.transport, node, motor, cfg.drive_mode, plant,
                              profile_load, on_sample=truth)
 
-    return _gateway_session(args, "sim", load_drive_profile(None), open_buses, plant, truth)
+    # The emulator runs in this interpreter: a stall of the process (a loaded host, the
+    # GIL) stops the gateway's heartbeat and the emulator's watch of it together, and the
+    # 300 ms watch of the emulator profile then tripped on busy 2-core hosts before cycle
+    # 1 (EMCY 0x8130). A dead gateway thread is still caught, within a second.
+    drive = load_drive_profile(None)
+    drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
+                                                    SIM_HEARTBEAT_TIMEOUT_MS))
+    return _gateway_session(args, "sim", drive, open_buses, plant, truth)
 
 
 # ---------------------------------------------------------------------------- profile

@@ -111,6 +111,26 @@ def test_sim_runs_150us_like_simulate_bit_for_bit(tmp_path):
         np.testing.assert_array_equal(sa[col], sb[col], err_msg=col)
 
 
+def test_sim_gives_the_emulated_drive_a_one_second_watch_of_the_gateway(tmp_path):
+    """`sim` runs the emulator in the gateway's interpreter: the drive's consumer heartbeat
+    (0x1016 sub 1, written by the gateway over SDO) is 1 s, not the emulator profile's 300 ms,
+    which a stalled process tripped before cycle 1 on busy hosts. Read from the run's bus log."""
+    import can
+
+    out = tmp_path / "sim"
+    assert main(["sim", "--duration", "50ms", "--out", str(out)]) == 0
+    writes = []
+    with can.BLFReader(str(out / "bus.blf")) as log:
+        for msg in log:
+            d = bytes(msg.data)
+            if 0x601 <= msg.arbitration_id <= 0x67F and d[:4] == b"\x23\x16\x10\x01":
+                writes.append(int.from_bytes(d[4:8], "little"))
+    assert writes, "no SDO download to 0x1016 sub 1 in the bus log"
+    # configured as node 0x7F (the gateway) within 1000 ms; the shutdown switches it off (0)
+    assert cli.SIM_HEARTBEAT_TIMEOUT_MS == 1000
+    assert writes[0] == (0x7F << 16) | 1000 and set(writes[1:]) <= {0}, writes
+
+
 def test_sim_summary_uses_the_emulators_full_resolution_truth(tmp_path):
     out = tmp_path / "sim"
     assert main(["sim", "--duration", "0.4s", "--out", str(out)]) == 0
