@@ -16,7 +16,7 @@ import can
 import gateway
 from dbc.cia402 import State
 from dbc.motor import MotorParams
-from gateway.cli import main
+from gateway.cli import SIM_HEARTBEAT_TIMEOUT_MS, main
 from gateway.drive_profile import load_drive_profile
 from gateway.reference import paper_profile
 from gateway.runner import RunConfig, StopSignals, run_gateway
@@ -57,15 +57,17 @@ def emulator_factory():
 
 @functools.cache
 def _patient_drive_profile() -> Path:
-    """The emulator's drive profile with the drive watching the gateway's heartbeat for 1 s
-    instead of 300 ms (written once per test process; the file is what ``--drive`` takes,
-    and :func:`run_in_thread` loads the same one). Why: gateway, emulator and test share one
+    """The emulator's drive profile with the drive watching the gateway's heartbeat for
+    :data:`gateway.cli.SIM_HEARTBEAT_TIMEOUT_MS` (1 s) instead of 300 ms, as `hil-gateway sim`
+    does (written once per test process; the file is what ``--drive`` takes, and
+    :func:`run_in_thread` loads the same one). Why: gateway, emulator and test share one
     interpreter in these tests, and on a loaded 2-core CI host the heartbeat thread once went
     unscheduled long enough to trip the drive (EMCY 0x8130) before cycle 1. No test using
     these helpers is about that timeout (tests/test_device.py and the two-process tests
     are)."""
     text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
-    text, n = re.subn(r"(?m)^heartbeat_timeout_ms = 300\b", "heartbeat_timeout_ms = 1000", text)
+    text, n = re.subn(r"(?m)^heartbeat_timeout_ms = 300\b",
+                      f"heartbeat_timeout_ms = {SIM_HEARTBEAT_TIMEOUT_MS}", text)
     assert n == 1, "gateway/drives/emulator.toml: heartbeat_timeout_ms = 300 not found"
     path = Path(tempfile.mkdtemp(prefix="hil-drive-")) / "emulator-1s.toml"
     path.write_text(text)
@@ -96,7 +98,7 @@ def run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals
     result: dict = {}
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
     drive = load_drive_profile(str(_patient_drive_profile()))
-    assert drive.heartbeat_timeout_ms == 1000
+    assert drive.heartbeat_timeout_ms == SIM_HEARTBEAT_TIMEOUT_MS == 1000
 
     def target() -> None:
         try:
