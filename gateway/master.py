@@ -11,7 +11,8 @@ Sequence (:meth:`DriveMaster.connect` … :meth:`DriveMaster.shutdown`):
    cycle period 0x1006, synchronous window 0x1007, producer heartbeat 0x1017, consumer
    heartbeat 0x1016 (the gateway's own heartbeat), PDO mappings and transmission types
    (every SYNC), RPDO deadline 0x140x.5, mode of operation 0x6060, emulator objects;
-3. NMT OPERATIONAL; the gateway's heartbeat producer starts; the watch is armed;
+3. NMT OPERATIONAL; the gateway's heartbeat producer starts; the watch is armed once the
+   drive's heartbeat reports OPERATIONAL;
 4. CiA 402 enable sequence on 0x6040/0x6041 (shutdown → switch on → enable operation);
 5. shutdown (:meth:`DriveMaster.shutdown`), on every exit path: the power stage off
    through the CiA 402 state machine, confirmed by an SDO read of the statusword; if the
@@ -141,6 +142,7 @@ class DriveMaster:
         self.state = MasterState()
         self.fault = threading.Event()
         self._booted = threading.Event()
+        self._operational = threading.Event()  # an OPERATIONAL heartbeat since start()
         self._heartbeat_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self._watchdog: threading.Thread | None = None
         self._stop_watchdog = threading.Event()
@@ -184,6 +186,8 @@ class DriveMaster:
         self.state.nmt_state = state
         if state is NmtState.INITIALISING:  # the boot-up message
             self._booted.set()
+        elif state is NmtState.OPERATIONAL:
+            self._operational.set()
         if not self._armed or state is NmtState.OPERATIONAL:
             return
         if state is NmtState.INITIALISING:
@@ -433,12 +437,28 @@ class DriveMaster:
     # ------------------------------------------------------------------ operation
 
     def start(self) -> None:
-        """NMT OPERATIONAL and the gateway's heartbeat producer; the watchdog starts."""
+        """NMT OPERATIONAL and the gateway's heartbeat producer; once the drive's heartbeat
+        reports OPERATIONAL, the watch is armed and the watchdog starts.
+
+        The watch waits for that confirmation: a heartbeat the drive sent before it acted on
+        the NMT command (still PRE-OPERATIONAL) may arrive after the command went out, and
+        is not a drive leaving OPERATIONAL. No confirmation within the heartbeat watch time
+        is an error naming the state the drive last reported.
+        """
         hb_period = max(0.01, self.profile.heartbeat_timeout_ms / 3000.0)
         msg = can.Message(arbitration_id=HEARTBEAT_BASE + self.gateway_node,
                           data=[NmtState.OPERATIONAL.heartbeat], is_extended_id=False)
         self._heartbeat_task = self.bus.send_periodic(msg, hb_period)
+        self._operational.clear()
         self.nmt_command(NmtCommand.START)
+        limit = self._watch_limit()
+        if not self._operational.wait(limit):
+            last = self.state.nmt_state
+            raise UserError(
+                f"drive node {self.node_id} did not report OPERATIONAL within {limit:g} s of "
+                f"the NMT start command (its last heartbeat: {last or 'none'}). Check the "
+                "drive's error log (0x1003) and its NMT error behaviour (0x1029), and that "
+                "its heartbeat (0x1017) is on.")
         self.state.last_heartbeat = time.monotonic()
         self._stop_watchdog.clear()
         self._watchdog = threading.Thread(target=self._watch, name="drive-watchdog",
@@ -446,10 +466,15 @@ class DriveMaster:
         self._watchdog.start()
         self._armed = True
 
+    def _watch_limit(self) -> float:
+        """The drive heartbeat consumer time, s: the profile's ``drive_heartbeat_timeout_ms``,
+        at least 3 producer periods."""
+        return max(self.profile.drive_heartbeat_timeout_ms, 3 * self.profile.heartbeat_ms) / 1e3
+
     def _watch(self) -> None:
         """Drive heartbeat consumer: no heartbeat within the profile's
         ``drive_heartbeat_timeout_ms`` (at least 3 producer periods) → fault."""
-        limit = max(self.profile.drive_heartbeat_timeout_ms, 3 * self.profile.heartbeat_ms) / 1e3
+        limit = self._watch_limit()
         while not self._stop_watchdog.wait(limit / 4):
             if time.monotonic() - self.state.last_heartbeat > limit and not self.fault.is_set():
                 self._raise(FaultEvent(time.monotonic(), "heartbeat", None,
