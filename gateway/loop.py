@@ -12,7 +12,9 @@ python-canopen), driven by frames:
   a periodic sender (the kernel's broadcast manager on SocketCAN, a sleep-then-spin thread
   elsewhere); a cycle whose TPDOs are incomplete when the next SYNC appears is *missed*:
   the controller coasts (:meth:`Controller.coast`) and after ``max_missed`` consecutive
-  misses the loop stops.
+  misses the loop stops. A cycle whose setpoints are ready only after the next SYNC was
+  due is *late*: its RPDOs are withheld (:meth:`Controller.withhold`), because the drive
+  would latch them a period late with a frame angle a period old; it holds its setpoints.
 
 Per cycle the loop records the signals and its timing: SYNC period, SYNC → last TPDO, and
 the gateway's reaction time from the last TPDO's arrival to the RPDOs sent.
@@ -114,7 +116,7 @@ class LoopStats:
 
     cycles: int = 0
     missed: int = 0
-    late_rpdo: int = 0
+    late_rpdo: int = 0  #: cycles whose RPDOs were withheld: ready after the next SYNC
     stop: StopReason | None = None
     stop_reason: str = ""
     stop_cycle: int = 0  #: the cycle open when the loop stopped (0: before the first)
@@ -167,6 +169,10 @@ class CycleLoop:
         self._echo = pd.pdo("sync_counter") if "sync_counter" in pd.roles else None
         self._stale = False
         self._frames: dict[str, bytes] = {}
+        self._missed_names: set[str] = set()  # the TPDOs a missed cycle lacked
+        self._late_names: set[str] = set()  # those of the previous cycle, if it was missed
+        self._echo_seen = False  # this cycle's counter echo has arrived
+        self._suspects: set[str] = set()  # frames that may be the previous cycle's
         self._tpdo_time = 0.0
         self._k = 0  # cycles opened (SYNCs seen)
         self._k_done = 0  # cycles completed
@@ -228,23 +234,32 @@ class CycleLoop:
             return
         if self._k > self._k_done and self._k_done < self.cfg.n_cycles:
             self._miss()
+        late, self._missed_names = self._missed_names, set()
         self._k += 1
         self._sync_prev, self._sync_time = self._sync_time, timestamp
         self._frames.clear()
         self._stale = False
+        # The missed cycle's TPDOs that did not come may still come, first in this window:
+        # until the counter echo of this cycle arrives, such a frame is suspect (see
+        # _on_tpdo). Without an echo there is nothing to tell them by.
+        self._late_names = late if self._echo is not None else set()
+        self._echo_seen = False
+        self._suspects.clear()
 
     def _miss(self) -> None:
         """Cycle self._k had no complete TPDO set: coast and count (lock held)."""
         k = self._k
         self.stats.missed += 1
         self._consecutive_missed += 1
+        self._missed_names = set(self._expected) - set(self._frames)
         self._k_done = k
         self.ctl.coast()
         misses, window = self._misses, self._miss_window
         misses.append(k)
         while misses[0] <= k - window:
             misses.popleft()
-        missing = sorted(set(self._expected) - set(self._frames)) or ["none (late)"]
+        missing = sorted(set(self._expected) - set(self._frames) | self._suspects) or [
+            "none (late)"]
         if self._consecutive_missed >= self.cfg.max_missed:
             self._finish(StopReason.DRIVE_LOST,
                          f"{self._consecutive_missed} consecutive cycles without the drive's "
@@ -285,8 +300,26 @@ class CycleLoop:
                 # the answer to an earlier SYNC, arriving in this cycle: not ours
                 self.stats.tpdo_events[f"{pdo.name} stale"] += 1
                 return
-            self._frames[pdo.name] = bytes(data)
-            if len(self._frames) < len(self._expected):
+            name = pdo.name
+            if pdo is self._echo:
+                self._echo_seen = True
+            elif name in self._late_names and not self._echo_seen:
+                # A TPDO the missed cycle lacked, before this cycle's echo: the drive answers
+                # SYNCs in order, so it is the missed cycle's if this cycle's comes after
+                # it. The cycle waits for a second one, or for one after the echo, and
+                # never mixes the samples of two SYNCs (a voltage of the interval before
+                # with the currents of this one threw the flux estimate off, at 10 ms).
+                if name in self._suspects:
+                    self._suspects.discard(name)  # the second: the first was late
+                    self.stats.tpdo_events[f"{name} late"] += 1
+                elif name not in self._frames:
+                    self._suspects.add(name)
+            else:
+                if name in self._suspects:
+                    self.stats.tpdo_events[f"{name} late"] += 1
+                self._suspects.discard(name)
+            self._frames[name] = bytes(data)
+            if len(self._frames) < len(self._expected) or self._suspects:
                 return
             self._tpdo_time = timestamp
             try:
@@ -325,17 +358,23 @@ class CycleLoop:
         if self._watch is not None and self._watch.check(row, k):
             self._finish(StopReason.DIVERGED, self._watch.reason or "")
             return
-        send = self.bus.send
-        for cob_id, _name, data in self.pd.encode(setpoints):
-            send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
-            self.recent.append((time.time(), "tx", cob_id, data.hex()))
+        if cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T:
+            # Ready after the next SYNC was due: sent now, the RPDOs would act one period
+            # late (from the SYNC after next) with a frame angle one period old, or not at
+            # all. Withheld instead: the drive holds its setpoints, and the controller's
+            # model of what the drive applies says so.
+            self.ctl.withhold()
+            self.stats.late_rpdo += 1
+        else:
+            send = self.bus.send
+            for cob_id, _name, data in self.pd.encode(setpoints):
+                send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+                self.recent.append((time.time(), "tx", cob_id, data.hex()))
         t_sent = time.perf_counter()
         self._k_done = k
         self.stats.last_good_cycle = k
         self._consecutive_missed = 0
         self.stats.cycles += 1
-        if cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T:
-            self.stats.late_rpdo += 1  # the next SYNC was due before the RPDOs went out
         self.record.append(LoopRow(
             *row, float(sw), float(measured.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
