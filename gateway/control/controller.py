@@ -222,6 +222,7 @@ class Controller:
         # the commands in flight (the drive holds zero before it receives anything).
         self._in_flight: deque[tuple[float, float]] = deque([(0.0, 0.0)] * self._delay)
         self._last = (0.0, 0.0)  # (ω0, dω̂/dt) of the last step, for coast()
+        self._held: tuple[float, float] | None = None  # the drive's command, for withhold()
         # issue 14: the load torque estimated instead of known (None: known)
         c = self.config
         self.load_observer = (LoadObserver(motor, self._T, c.load_bandwidth, c.load_speed_gain,
@@ -255,6 +256,7 @@ class Controller:
             if self._delay:
                 self._in_flight.append((0.0, 0.0))  # placeholder, replaced below
                 applied = self._in_flight.popleft()
+                self._held = applied
             out = current_fed(
                 refs, self.w_hat, psi_r_dq.real, psi_r_dq.imag, self.motor, self._gains, applied
             )
@@ -283,6 +285,14 @@ class Controller:
         self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0
         self._last = (w_0, dw_hat)
         return cmd
+
+    def withhold(self) -> None:
+        """The command of the last :meth:`step` was not sent (ready only after the SYNC it
+        was for): with a delay, the currents in flight are the drive's present ones, which
+        it holds (the frame angle of the next command puts the frame back on time)."""
+        if self._delay and self._held is not None:
+            self._in_flight[-1] = self._held
+        self._held = None
 
     def coast(self) -> None:
         """A period without measurements (a missed cycle on the bus).

@@ -126,6 +126,8 @@ class SampledController:
         self._w_prev = w_hat  # ω̂ at t_{k−1}
         self._i_prev_ab = 0j  # measured current at t_{k−1}
         self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
+        #: the command before the last step's (what the drive holds if that one is withheld)
+        self._base: Interval | None = None
 
     # ------------------------------------------------------------------ the model
 
@@ -291,6 +293,7 @@ class SampledController:
         u_sq = m.R_s * i_sq + w_0 * (m.sigma * i_sd + k_r * r.psi_ref)
         new = Interval(complex(i_sd, i_sq), complex(u_sd, u_sq), eps_app, w_0)
         to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        self._base = hist[-1]
         hist.append(new)
         hist.popleft()
         self._psi_prev = psi_k
@@ -355,6 +358,21 @@ class SampledController:
             i_sq = math.copysign(q_max, i_sq)
         return i_sd, i_sq, limited
 
+    def _held(self, c: Interval) -> Interval:
+        """The interval after ``c`` when no new command arrives: the drive holds ``c``'s
+        setpoints and keeps turning their frame at its ω0."""
+        return Interval(c.i_dq, c.u_dq, wrap_angle(c.eps + self._T * c.w_0), c.w_0)
+
+    def withhold(self) -> None:
+        """The command of the last :meth:`step` was not sent (it was ready only after the
+        SYNC it was for: a late RPDO would be applied one period late, with a frame angle
+        one period old). The drive holds the previous command instead, turning on, and the
+        model of what it applies says so. Call once, right after the step."""
+        if self._base is None:
+            raise RuntimeError("withhold() follows a step(), once")
+        self._hist[-1] = self._held(self._base)
+        self._base = None
+
     def coast(self) -> None:
         """A cycle without measurements: the drive keeps the last setpoints, turning on.
 
@@ -373,10 +391,9 @@ class SampledController:
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
         self._i_prev_ab = i_end_ab
-        last = hist[-1]
-        hist.append(Interval(last.i_dq, last.u_dq, wrap_angle(last.eps + T * last.w_0),
-                             last.w_0))
+        hist.append(self._held(hist[-1]))
         hist.popleft()
+        self._base = None
         self._psi_prev = psi_k
         self._w_prev = w_k
         self.w_hat = w_k
@@ -544,6 +561,7 @@ class FullOrderSampledController(SampledController):
         u = m.sigma * (free - target) / gain
         new = Interval(target, u, eps_app, w_0, complex(i_sd0, i_sq0), complex(i_sd1, i_sq1))
         to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
+        self._base = hist[-1]
         hist.append(new)
         hist.popleft()
         self._psi_prev = psi_k
@@ -557,6 +575,11 @@ class FullOrderSampledController(SampledController):
             w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
         )
 
+    def _held(self, c: Interval) -> Interval:
+        """As the current-fed design's; the held current reference is the interval's end."""
+        return Interval(c.i_dq, c.u_dq, wrap_angle(c.eps + self._T * c.w_0), c.w_0,
+                        c.i_ref1, c.i_ref1)
+
     def coast(self) -> None:
         """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
         T = self._T
@@ -569,10 +592,9 @@ class FullOrderSampledController(SampledController):
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot = cmath.exp(1j * eps_k)
         self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
-        last = hist[-1]
-        hist.append(Interval(last.i_dq, last.u_dq, wrap_angle(last.eps + T * last.w_0),
-                             last.w_0, last.i_ref1, last.i_ref1))
+        hist.append(self._held(hist[-1]))
         hist.popleft()
+        self._base = None
         self._psi_prev, self._i_prev, self._w_prev = psi_k, i_k, w_k
         self._i_prev_ab = i_k * rot
         self.w_hat = w_k
