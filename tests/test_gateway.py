@@ -105,9 +105,10 @@ def test_bus_log_replays_and_decodes_like_the_csv(emulator, tmp_path):
 #: Real time is paced by the host's clock, so its load decides how many cycles are missed or
 #: answered late (BENCHMARKS.md). This test is about pacing and the timing report, so it keeps
 #: what load does to control small: a 2 ms period (twice the slack per cycle) and a drive frame
-#: that turns slowly (30 rad/s: a late RPDO's frame angle is off by ≤ 0.06 rad). At 1 ms the
-#: paper scenario's 200 rad/s field weakening diverged once in CI with 6 % missed cycles and
-#: 10 % late RPDOs (the divergence guard stopped it with exit 1, as it should); with two CPU
+#: that turns slowly (30 rad/s). At 1 ms the paper scenario's 200 rad/s field weakening
+#: diverged once in CI with 6 % missed cycles and 10 % late RPDOs (the divergence guard
+#: stopped it with exit 1, as it should; that was before late setpoints were withheld and the
+#: late TPDOs of a missed cycle kept out of the next, tests/test_faults.py); with two CPU
 #: hogs on both cores even this profile diverged at 1 ms (25 % missed, 40 % late) and passed
 #: 4 of 4 at 2 ms. Control through missed cycles is tested deterministically in
 #: test_sampled.py; one-process 1 ms figures are in BENCHMARKS.md.
