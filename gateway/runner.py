@@ -287,6 +287,27 @@ def guards(drive: DriveProfile, profile: Profile, motor: MotorParams, cfg: RunCo
     return plaus, profile_envelope(profile, motor, cfg.gains.i_max)
 
 
+def _untold_load(cfg: RunConfig, pd: Any, profile: Any, duration: float) -> str:
+    """The note for a run that tells the controller the profile's load torque on a drive that
+    cannot apply it (no T_L role in its process data: no emulated dynamometer), or "".
+
+    The laws then feed forward a torque the shaft may not carry. Issue 14 asks for "not
+    told" as the default against a real drive; the load observer is not robust enough for
+    that yet (docs/robustness.md), so the run goes on, and says so.
+    """
+    if cfg.load is not LoadSource.KNOWN or "T_L" in pd.roles:
+        return ""
+    n = max(1, round(duration / 1e-3))
+    peak = max(abs(profile.at(duration * j / n).T_L) for j in range(n + 1))
+    if peak == 0.0:
+        return ""
+    return (f"the controller is told the profile's load torque (up to {peak:g} N·m), which "
+            "this drive cannot apply (its process data has no T_L): the shaft must carry "
+            "that load, else the laws feed forward a torque that is not there. Use a profile "
+            "whose [load] is what the shaft carries, or --load observed (estimated; its "
+            "limits are in docs/robustness.md)")
+
+
 def run_gateway(
     bus: can.BusABC,
     drive: DriveProfile,
@@ -314,6 +335,9 @@ def run_gateway(
                         f"drive profile's ({pd.setpoint_frame}, {drive.source})")
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / cfg.period)
+    load_note = _untold_load(cfg, pd, profile, duration)
+    if load_note:
+        log.warning("%s", load_note)
     plausibility, envelope = guards(drive, profile, motor, cfg)
     loop_cfg = LoopConfig(n_cycles=n_cycles, sampling=cfg.sampling, timing=cfg.timing,
                           max_missed=cfg.max_missed, max_miss_rate=cfg.max_miss_rate,
@@ -323,6 +347,8 @@ def run_gateway(
     configuration = _configuration(cfg, drive, profile, node_id, bus_label)
     recorder = BusRecorder(out / cfg.bus_log)
     master = DriveMaster(bus, drive, node_id, gateway_node)
+    if load_note:
+        master.notes.append(load_note)
     loop: CycleLoop | None = None
     stats = None
     error: BaseException | None = None

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 
 import pytest
 
@@ -32,6 +33,7 @@ def test_foreign_drive_runs_the_quick_profile_like_the_emulator(foreign, tmp_pat
     # no 0x1019, 0x1007, 0x1016 on this drive: not written, and said so
     notes = " ".join(s["configuration_notes"])
     assert "0x1019" in notes and "0x1007" in notes and "0x1016" in notes
+    assert "load torque" not in notes  # its T_L signal (a dynamometer) applies the load
     assert drive.state != 0x0237 and drive.nmt == "PRE-OPERATIONAL"  # shut down
     assert s["shutdown"]["safe"]
     # the emulator on the same reference profile, ideal current source like this drive
@@ -74,3 +76,29 @@ def test_foreign_drive_runs_the_paper_scenario_sensorless(foreign, tmp_path):
     assert rc == 0 and s["run"]["cycles"] == 2500, s["run"]
     # truth at this drive's 1/16 rad/s: the sensorless loop tracks to that resolution
     assert s["speed_error"]["rms"] < 0.05 and abs(s["speed_error"]["final"]) < 0.07
+
+
+def test_a_load_the_drive_cannot_apply_is_named(foreign, tmp_path, caplog):
+    """A drive profile without the T_L signal (no dynamometer the gateway can drive) while
+    the controller is told the profile's load (the default): the run says so, in the summary's
+    configuration notes and on stderr, with the two ways out."""
+    def without_load_signal(node: int):
+        _, channel, profile = foreign(node)
+        text = profile.read_text()
+        new = re.sub(r'(?m)^(T_L = .*|load = "RX3")\n', "", text)
+        assert new != text
+        profile.write_text(new)
+        return channel, profile
+
+    channel, profile = without_load_signal(42)
+    rc, s = _run(channel, profile, tmp_path / "x")
+    notes = " ".join(s["configuration_notes"])
+    assert "told the profile's load torque (up to 2 N·m)" in notes, notes
+    assert "--load observed" in notes
+    assert "cannot apply" in caplog.text  # the warning (stderr)
+    assert s["run"]["cycles"] > 0
+    # over a duration in which the profile has no load yet (it starts at 350 ms): no note
+    # (another drive: this one's motor still turns)
+    channel, profile = without_load_signal(42)
+    rc, s = _run(channel, profile, tmp_path / "y", "--duration", "0.3s")
+    assert rc == 0 and "load torque" not in " ".join(s["configuration_notes"])
