@@ -117,6 +117,9 @@ class LoopStats:
     cycles: int = 0
     missed: int = 0
     late_rpdo: int = 0  #: cycles whose RPDOs were withheld: ready after the next SYNC
+    #: cycles whose RPDOs went out in time by the clock but reached the bus after the next
+    #: SYNC (seen in the bus's own echo: the host held the gateway between two frames)
+    rpdo_after_sync: int = 0
     stop: StopReason | None = None
     stop_reason: str = ""
     stop_cycle: int = 0  #: the cycle open when the loop stopped (0: before the first)
@@ -188,6 +191,10 @@ class CycleLoop:
         for cob_id in self._ids:
             subscribe(cob_id, self._on_tpdo)
         subscribe(SYNC_ID, self._on_own_sync if own_echo else self._on_foreign_sync)
+        self._unechoed: set[int] = set()  # RPDOs of the last cycle sent, not yet echoed
+        if own_echo:
+            for p in pd.rpdos:
+                subscribe(p.cob_id, self._on_own_rpdo)
 
     # ------------------------------------------------------------------- frames in
 
@@ -216,6 +223,11 @@ class CycleLoop:
                 return
             self._open_locked(timestamp)
 
+    def _on_own_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """The bus's echo of an RPDO the gateway sent: it is on the bus now."""
+        with self._lock:
+            self._unechoed.discard(can_id)
+
     def _on_foreign_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Without own echo the gateway never receives its SYNC: any SYNC is another's."""
         with self._lock:
@@ -232,6 +244,15 @@ class CycleLoop:
         (unless the master saw a fault, which is then the cause)."""
         if self._drive_faulted():
             return
+        if self._unechoed:
+            # The last cycle's RPDOs were sent before this SYNC was due, but some reached the
+            # bus after it: the drive latched the others alone, and latches these at the
+            # next SYNC. Its setpoints over the coming interval are mostly the ones it held:
+            # the controller's model is told so (no step since that cycle's).
+            self._unechoed.clear()
+            self.stats.rpdo_after_sync += 1
+            if self._k_done == self._k:
+                self.ctl.withhold()
         if self._k > self._k_done and self._k_done < self.cfg.n_cycles:
             self._miss()
         late, self._missed_names = self._missed_names, set()
@@ -367,7 +388,10 @@ class CycleLoop:
             self.stats.late_rpdo += 1
         else:
             send = self.bus.send
-            for cob_id, _name, data in self.pd.encode(setpoints):
+            frames = self.pd.encode(setpoints)
+            if self.own_echo and cfg.timing is Timing.REALTIME:
+                self._unechoed = {cob_id for cob_id, _, _ in frames}
+            for cob_id, _name, data in frames:
                 send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
                 self.recent.append((time.time(), "tx", cob_id, data.hex()))
         t_sent = time.perf_counter()

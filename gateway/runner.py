@@ -467,6 +467,7 @@ def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
         "cycles": stats.cycles if stats else 0,
         "missed_cycles": stats.missed if stats else 0,
         "late_rpdo": stats.late_rpdo if stats else 0,
+        "rpdo_after_sync": stats.rpdo_after_sync if stats else 0,
         "last_good_cycle": stats.last_good_cycle if stats else 0,
         "tpdo_events": dict(stats.tpdo_events) if stats else {},
         "stop_cycle": stats.stop_cycle if stats else 0,
@@ -533,9 +534,10 @@ def timing_stats(sig: dict[str, np.ndarray], period: float, realtime: bool) -> d
 def timing_table(summary: dict[str, Any]) -> str:
     """A few lines on the run's timing and outcome."""
     run = summary["run"]
+    split = run.get("rpdo_after_sync", 0)
     lines = [f"cycles {run['cycles']}, missed {run['missed_cycles']}, late RPDO "
-             f"{run['late_rpdo']}, stopped: {run['stop_reason']}, wall time "
-             f"{run['wall_time_s']:.2f} s"]
+             f"{run['late_rpdo']}{f' (+{split} after the SYNC)' if split else ''}, stopped: "
+             f"{run['stop_reason']}, wall time {run['wall_time_s']:.2f} s"]
     t = summary.get("timing", {})
     for key, label in (("sync_period", "SYNC period"), ("sync_jitter", "SYNC jitter"),
                        ("sync_to_tpdo", "SYNC → TPDO"), ("reaction", "TPDO → RPDO")):

@@ -506,3 +506,47 @@ def test_tpdos_of_a_missed_cycle_arriving_late_are_not_mixed_into_the_next(emula
     assert np.max(np.abs(u - u_drive)) < 0.05, k[np.argmax(np.abs(u - u_drive))]
     psi_hat = sig["psi_r_mod_hat"][k > 120]
     assert np.max(np.abs(psi_hat - 1.16)) < 0.05
+
+
+def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(emulator,
+                                                                               tmp_path):
+    """Real time, 2 ms: the host holds the gateway between its two RPDOs of one cycle, so
+    RPDO2 reaches the bus after the next SYNC (RPDO1 before it). The bus's own echo shows
+    it: counted (``run.rpdo_after_sync``) and the controller told the drive held its
+    setpoints (a withhold after the step; a wrong call would stop the run with
+    CONTROL_ERROR)."""
+    from gw_support import MOTOR, _patient_drive_profile
+
+    from dbc.timing import Sampling
+    from gateway.reference import paper_profile
+    from gateway.runner import run_gateway
+
+    emu = emulator()
+    bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
+    real_send = bus.send
+    held: list[can.Message] = []
+    n_rpdo2 = [0]
+
+    def send(msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == 0x301:
+            n_rpdo2[0] += 1
+            if n_rpdo2[0] == 300:
+                held.append(msg)  # until the next SYNC has gone out
+                return
+        real_send(msg, timeout)
+        if msg.arbitration_id == 0x080 and held:
+            real_send(held.pop())
+
+    bus.send = send
+    drive = load_drive_profile(str(_patient_drive_profile()))
+    cfg = RunConfig(timing="realtime", sampling=Sampling(2e-3, 1), duration=1.2,
+                    max_missed=1000, max_miss_rate=1.0)
+    try:
+        s = run_gateway(bus, drive, paper_profile(), MOTOR, cfg, tmp_path,
+                        signals=StopSignals())
+    finally:
+        bus.shutdown()
+    assert not held and n_rpdo2[0] > 300
+    assert s["run"]["stop"] == "END_OF_PROFILE", s["run"]["stop_reason"]
+    assert s["run"]["rpdo_after_sync"] >= 1
+    assert_disabled(emu)
