@@ -108,6 +108,11 @@ def profile_envelope(profile: Profile, motor: MotorLike, i_limit: float) -> Enve
     return Envelope.from_demand(d.w_peak, d.i_s_peak, psi_peak, d.u_s_peak, i_limit)
 
 
+#: A speed this far from ω* in the first recorded cycle (rad/s) means the motor was turning
+#: before the run: the divergence reason then says so.
+START_SPEED = 5.0
+
+
 class DivergenceWatch:
     """The divergence stop: :meth:`check` each cycle's row; True (and :attr:`reason` says
     which bound, when and for how long) once the row has been outside ``envelope`` in
@@ -120,12 +125,19 @@ class DivergenceWatch:
         self.cycles = cycles
         self.outside = 0  # consecutive cycles outside the envelope
         self.reason: str | None = None
+        self._start: tuple[float, float] | None = None  # (ω, ω*) of the first row with truth
 
     def check(self, row: CycleRow, k: int) -> bool:
         """Whether cycle ``k`` (its row ``row``) ends the run."""
+        if self._start is None and math.isfinite(row.w_m):
+            self._start = (row.w_m, row.w_ref)
         why = self.envelope.check(row)
         self.outside = self.outside + 1 if why else 0
         if why and self.outside >= self.cycles:
             self.reason = f"cycle {k} (t = {row.t:.4f} s): {why}, {self.outside} cycles in a row"
+            if self._start is not None and abs(self._start[0] - self._start[1]) > START_SPEED:
+                self.reason += (f"; the motor was already turning at {self._start[0]:.4g} rad/s "
+                                "when the run started (the controller starts its estimates "
+                                "from rest): let it come to a stop first")
             return True
         return False

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import random
+import re
 import threading
 import time
 from pathlib import Path
@@ -407,6 +408,20 @@ def test_a_second_run_after_a_fault_starts_from_a_motor_at_rest(emulator, tmp_pa
     assert gateway_run(emu, tmp_path / "r2", "--duration", "0.5s") == 0
     s = _summary(tmp_path / "r2")
     assert s["run"]["stop"] == "END_OF_PROFILE" and s["speed_error"]["max"] < 0.5
+
+
+def test_a_run_on_a_motor_still_turning_says_so(emulator, tmp_path, capsys):
+    """The quick profile ends at 100 rad/s and the model keeps that speed (no friction): a
+    new run from rest diverges at once, and its reason says the motor was turning."""
+    emu = emulator()
+    assert gateway_run(emu, tmp_path / "r1", "--reference", "profiles/quick.toml") == 0
+    capsys.readouterr()
+    assert gateway_run(emu, tmp_path / "r2", "--reference", "profiles/quick.toml") == 1
+    reason = _summary(tmp_path / "r2")["run"]["stop_reason"]
+    m = re.search(r"the motor was already turning at ([\d.]+) rad/s", reason)
+    assert m and abs(float(m[1]) - 100.0) < 1.0, reason
+    assert "already turning" in capsys.readouterr().err
+    assert_disabled(emu)
 
 
 def test_a_drive_slow_to_act_on_nmt_start_is_not_a_fault(emulator, tmp_path, monkeypatch):
