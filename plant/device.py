@@ -22,7 +22,8 @@ This module composes them and runs the cycle.
   (2) advances the simulation by exactly the cycle period 0x1006, (3) samples and sends
   TPDO1..3 (those valid, every n-th SYNC for transmission type n), (4) with RPDO apply = at
   the next SYNC (default, CiA 301 synchronous) makes the received data active. The
-  simulation advances only on SYNC: lockstep, deterministic.
+  simulation advances only on SYNC: lockstep, deterministic. A frame received (eps_0,
+  w_0) restarts the (d, q) frame; references received alone act in the running frame.
 * Safe reactions, each with an EMCY (0x80+n: code, error register 0x1001, 5 zero bytes), a
   0x1003 entry, 0x603F and the CiA 402 Fault state (power stage off; the model lets the
   currents decay): master heartbeat lost (0x1016, wall clock) 0x8130; RPDO deadline
@@ -252,6 +253,7 @@ class DriveDevice:
         self._params_dirty = False
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
+        self._frame_fresh = False  # eps_0 or w_0 received since the last latch
         self._limit = False
         self._off_since: float | None = None  # monotonic time the power stage went off
         self.emcy.reset()
@@ -304,7 +306,7 @@ class DriveDevice:
         if index == self._k["T_L"][0]:
             self._tl_fresh = True
         else:
-            self._sp_fresh = True
+            self._sp_fresh = self._frame_fresh = True
 
     # ---- CiA 402 ----------------------------------------------------------------------------
     def _controlword(self, cw: int) -> None:
@@ -352,7 +354,7 @@ class DriveDevice:
             self._off_since = time.monotonic()
         self._drive.enable(False)
         self._clear_setpoints()  # re-enabling needs fresh setpoints
-        self._sp_fresh = False
+        self._sp_fresh = self._frame_fresh = False
         self.emcy.error(code)
 
     def _internal_error(self, where: str) -> None:
@@ -389,6 +391,7 @@ class DriveDevice:
             return
         self._cw_fresh |= r.controlword
         self._sp_fresh |= r.setpoints
+        self._frame_fresh |= r.frame
         self._tl_fresh |= r.load
 
     def _latch(self) -> None:
@@ -405,7 +408,11 @@ class DriveDevice:
             rpdo1 = {"eps_0": v[k["eps_0"]] * f["eps_0"], "w_0": v[k["w_0"]] * f["w_0"]}
             rpdo2 = {n: v[k[n]] * f[n] for n in self.pdo.frame_names}
             sp = setpoints_from_rpdos(rpdo1, rpdo2)
-            self._drive.set_setpoints(sp)
+            if self._frame_fresh:
+                self._drive.set_setpoints(sp)
+            else:  # references alone (their RPDO came a SYNC after the frame's): frame runs on
+                self._drive.set_references(sp)
+            self._frame_fresh = False
             if (self._sm.power and self._drive.params.mode is not DriveMode.VOLTAGE
                     and abs(sp.i_s_ref) > self._drive.params.i_trip):
                 self._fault(Emcy.OVERCURRENT)

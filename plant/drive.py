@@ -267,6 +267,18 @@ class Drive:
         self._sp = sp
         self._n_app = None
 
+    def set_references(self, sp: Setpoints) -> None:
+        """Make ``sp``'s current and voltage references active in the running (d, q) frame:
+        new values without a new frame (an RPDO with the references alone). The frame keeps
+        turning from where it is; ``sp``'s eps_0 and w_0 (which described an earlier
+        interval's start) are not used. In another frame, or with none running yet, it is
+        :meth:`set_setpoints`."""
+        if (sp.frame is not SetpointFrame.DQ or self._sp.frame is not SetpointFrame.DQ
+                or self._n_app is None):
+            self.set_setpoints(sp)
+            return
+        self._sp = replace(self._sp, i_s_ref=sp.i_s_ref, u_s_ref=sp.u_s_ref)
+
     def enable(self, on: bool) -> None:
         """Power stage on/off. Switching on clears an over-current trip."""
         if on and not self._enabled:

@@ -43,6 +43,7 @@ class Rpdo:
     last: int | None = None  #: cycles completed when last received
     controlword: bool = False  #: maps the controlword
     setpoints: bool = False  #: maps eps_0, w_0 or a current/voltage reference
+    frame: bool = False  #: maps eps_0 or w_0 (the (d, q) frame)
     load: bool = False  #: maps T_L
 
 
@@ -100,7 +101,8 @@ class PdoRuntime:
             self.rpdos[cfg.cob_id] = Rpdo(
                 cfg, message_codec(f"RPDO{cfg.number}", cfg.cob_id, cfg.names),
                 timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
-                setpoints=bool(names & SETPOINT_SIGNALS), load=bool(names & set(LOAD)))
+                setpoints=bool(names & SETPOINT_SIGNALS),
+                frame=bool(names & {"eps_0", "w_0"}), load=bool(names & set(LOAD)))
         self.frame_names = SETPOINTS[setpoint_frame_of(mapped)]
         for comm in odm.TPDO_COMM:
             cfg = self._store.pdo(comm)

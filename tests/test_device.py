@@ -583,3 +583,36 @@ def test_random_frames_never_crash_or_corrupt(fuzz_rig, frames):
     assert t["statusword"] & 0x6F == 0x27
     assert rig.dev.account()["internal_errors"] == 0
     rig.node.nmt.state = "PRE-OPERATIONAL"
+
+
+def test_references_alone_keep_the_running_frame(ideal_rig):
+    """RPDO1 carries the frame (eps_0 at the interval's start, w_0), RPDO2 the references.
+    When RPDO2 comes a SYNC after its RPDO1 (the master was held between the two frames),
+    the drive latches it alone: new references in the frame that is turning, not a frame
+    restarted from the eps_0 of an interval already past."""
+    import cmath
+    import itertools
+
+    rig = ideal_rig
+    rig.enable()
+    rig.nmt("OPERATIONAL")
+    T = rig.read(0x1006, None) * 1e-6
+    w_0 = 300.0
+    rig.sync()
+    rig.setpoints(i_dq=2.0, eps_0=0.5, w_0=w_0)  # latched at the next SYNC
+    rig.sync()
+
+    def i_ab() -> complex:
+        t1 = rig.sync()["TPDO1"]
+        return complex(t1["i_sa"], t1["i_sb"])
+
+    before = [i_ab() for _ in range(3)]
+    rig.send("RPDO2", {"i_sd_ref": 3.0, "i_sq_ref": 0.0, "u_sd_ref": 0.0, "u_sq_ref": 0.0})
+    after = [i_ab() for _ in range(3)]  # RPDO2 latched after the first of these samples
+    angles = [cmath.phase(i) for i in before + after]
+    steps = [(b - a) % (2 * math.pi) for a, b in itertools.pairwise(angles)]
+    assert steps == pytest.approx([w_0 * T] * 5, abs=0.01), steps  # no jump back
+    assert abs(after[0]) == pytest.approx(2.0, abs=0.01)
+    assert abs(after[-1]) == pytest.approx(3.0, abs=0.01)
+    # the first sample is at eps_0 + w_0·T after the latch (ideal drive: the current at t_k)
+    assert (angles[0] - (0.5 + w_0 * T)) % (2 * math.pi) == pytest.approx(0.0, abs=0.01)
