@@ -3,9 +3,11 @@ run against it (CLI or in a thread), waiting for cycles, checking the drive ende
 
 from __future__ import annotations
 
+import atexit
 import functools
 import itertools
 import re
+import shutil
 import tempfile
 import threading
 import time
@@ -69,7 +71,9 @@ def _patient_drive_profile() -> Path:
     text, n = re.subn(r"(?m)^heartbeat_timeout_ms = 300\b",
                       f"heartbeat_timeout_ms = {SIM_HEARTBEAT_TIMEOUT_MS}", text)
     assert n == 1, "gateway/drives/emulator.toml: heartbeat_timeout_ms = 300 not found"
-    path = Path(tempfile.mkdtemp(prefix="hil-drive-")) / "emulator-1s.toml"
+    folder = Path(tempfile.mkdtemp(prefix="hil-drive-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)  # when the test process ends
+    path = folder / "emulator-1s.toml"
     path.write_text(text)
     return path
 
