@@ -77,11 +77,13 @@ SPIN_MARGIN = 0.0003
 
 #: A bus cycle's record: the cycle's columns (:class:`gateway.cycle.CycleRow`) and the
 #: bus's: statusword and SYNC-counter echo of the drive; SYNC period, SYNC → last TPDO and
-#: last TPDO → RPDOs sent (reaction), s; missed cycles so far.
+#: last TPDO → RPDOs sent (reaction), s; missed cycles so far; 1.0 when this cycle's
+#: setpoints were withheld (ready after the next SYNC was due: not sent).
 LoopRow = NamedTuple("LoopRow", [*((name, float) for name in CycleRow._fields),
                                  ("statusword", float), ("sync_counter", float),
                                  ("sync_period", float), ("sync_to_tpdo", float),
-                                 ("reaction", float), ("missed", float)])
+                                 ("reaction", float), ("missed", float),
+                                 ("withheld", float)])
 
 
 @dataclass(frozen=True)
@@ -379,7 +381,8 @@ class CycleLoop:
         if self._watch is not None and self._watch.check(row, k):
             self._finish(StopReason.DIVERGED, self._watch.reason or "")
             return
-        if cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T:
+        withheld = cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T
+        if withheld:
             # Ready after the next SYNC was due: sent now, the RPDOs would act one period
             # late (from the SYNC after next) with a frame angle one period old, or not at
             # all. Withheld instead: the drive holds its setpoints, and the controller's
@@ -402,7 +405,7 @@ class CycleLoop:
         self.record.append(LoopRow(
             *row, float(sw), float(measured.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
-            t_sent - t_arrival, float(self.stats.missed),
+            t_sent - t_arrival, float(self.stats.missed), float(withheld),
         ))
         self._progress_at = time.monotonic()
         if k >= cfg.n_cycles:

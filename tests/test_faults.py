@@ -564,4 +564,8 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     assert not held and n_rpdo2[0] > 300
     assert s["run"]["stop"] == "END_OF_PROFILE", s["run"]["stop_reason"]
     assert s["run"]["rpdo_after_sync"] >= 1
+    # the rows say which cycles' setpoints were withheld (late by the clock), as many as counted
+    withheld = read_csv(tmp_path / "signals.csv")["withheld"]
+    assert set(np.unique(withheld)) <= {0.0, 1.0}
+    assert int(withheld.sum()) == s["run"]["late_rpdo"]
     assert_disabled(emu)
