@@ -281,8 +281,7 @@ class CycleLoop:
         misses.append(k)
         while misses[0] <= k - window:
             misses.popleft()
-        missing = sorted(set(self._expected) - set(self._frames) | self._suspects) or [
-            "none (late)"]
+        missing = sorted(self._missed_names | self._suspects) or ["none (late)"]
         if self._consecutive_missed >= self.cfg.max_missed:
             self._finish(StopReason.DRIVE_LOST,
                          f"{self._consecutive_missed} consecutive cycles without the drive's "

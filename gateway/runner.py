@@ -50,6 +50,7 @@ from gateway.loop import CycleLoop, LoopConfig, Timing
 from gateway.master import DriveMaster
 from gateway.process_data import ProcessData, process_data
 from gateway.reference import Profile
+from gateway.reference.demand import sample_times
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
@@ -297,8 +298,8 @@ def _untold_load(cfg: RunConfig, pd: Any, profile: Any, duration: float) -> str:
     """
     if cfg.load is not LoadSource.KNOWN or "T_L" in pd.roles:
         return ""
-    n = max(1, round(duration / 1e-3))
-    peak = max(abs(profile.at(duration * j / n).T_L) for j in range(n + 1))
+    t = sample_times(profile)  # every transition resolved, bounded for long profiles
+    peak = float(np.max(np.abs(profile.sample(np.append(t[t < duration], duration))["T_L"])))
     if peak == 0.0:
         return ""
     return (f"the controller is told the profile's load torque (up to {peak:g} N·m), which "

@@ -360,8 +360,9 @@ class SampledController:
 
     def _held(self, c: Interval) -> Interval:
         """The interval after ``c`` when no new command arrives: the drive holds ``c``'s
-        setpoints and keeps turning their frame at its ω0."""
-        return Interval(c.i_dq, c.u_dq, wrap_angle(c.eps + self._T * c.w_0), c.w_0)
+        setpoints and keeps turning their frame at its ω0 (full-order law: the current
+        reference held at the one ``c`` ended with)."""
+        return replace(c, eps=wrap_angle(c.eps + self._T * c.w_0), i_ref0=c.i_ref1)
 
     def withhold(self) -> None:
         """The command of the last :meth:`step` was not sent (it was ready only after the
@@ -574,11 +575,6 @@ class FullOrderSampledController(SampledController):
             i_s_ab_ref=target * to_ab, u_s_ab_ref=u * to_ab,
             w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
         )
-
-    def _held(self, c: Interval) -> Interval:
-        """As the current-fed design's; the held current reference is the interval's end."""
-        return Interval(c.i_dq, c.u_dq, wrap_angle(c.eps + self._T * c.w_0), c.w_0,
-                        c.i_ref1, c.i_ref1)
 
     def coast(self) -> None:
         """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
