@@ -824,7 +824,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "INT16 PDO quantisation). Writes summary.json, signals.csv and the figures. "
                     "A loop that leaves the divergence envelope of the bus loop (speed, "
                     "current, flux, voltage or speed error beyond the profile's demand + "
-                    "margin, 3 cycles in a row) is stopped there. Exit status: 0 at the "
+                    "margin, or field orientation lost, 3 cycles in a row) is stopped there. "
+                    "Exit status: 0 at the "
                     "profile's end, 1 diverged, 130 interrupted, 2 bad input.")
     _add_control_options(p)
     from dbc.modes import DriveMode, SetpointFrame

@@ -259,7 +259,9 @@ def test_plausibility_and_envelope_checks():
 
 def test_divergence_stops_the_run(emulator, tmp_path):
     """A controller that believes R_s three times too large integrates a wrong flux: the
-    open-loop estimate leaves the envelope and the run stops, exit 1."""
+    open-loop estimate leaves the envelope (since session 8 the orientation check sees it
+    first: the estimate turns away from the frame during the magnetisation) and the run
+    stops, exit 1."""
     emu = emulator()
     motor = tmp_path / "wrong-motor.toml"
     motor.write_text("R_s = 15.9\n")
@@ -267,7 +269,8 @@ def test_divergence_stops_the_run(emulator, tmp_path):
     rc = gateway_run(emu, out, "--motor", str(motor))
     s = _summary(out)
     assert rc == 1 and s["run"]["stop"] == "DIVERGED", s["run"]
-    assert "beyond" in s["run"]["stop_reason"]
+    reason = s["run"]["stop_reason"]
+    assert "field orientation lost" in reason or "beyond" in reason, reason
     assert_disabled(emu)
 
 
@@ -569,3 +572,93 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     assert set(np.unique(withheld)) <= {0.0, 1.0}
     assert int(withheld.sum()) == s["run"]["late_rpdo"]
     assert_disabled(emu)
+
+
+def _row(**kw):
+    base = {f: 0.0 for f in CycleRow._fields}
+    base.update(w_m=math.nan, psi_r_mod=math.nan, T_e=math.nan, psi_ref=1.16,
+                psi_rd_hat=1.16, psi_r_mod_hat=1.16)
+    base.update(kw)
+    return CycleRow(**base)
+
+
+def test_orientation_guard_names_a_turned_or_collapsed_flux_estimate():
+    env = Envelope.from_demand(w_peak=200.0, i_peak=8.2, psi_peak=1.16, u_peak=209.0)
+    assert env.check(_row()) is None
+    # 60° off, a large but recoverable error of the drift-free estimator: inside
+    c, s = math.cos(math.radians(60.0)), math.sin(math.radians(60.0))
+    assert env.check(_row(psi_rd_hat=1.16 * c, psi_rq_hat=1.16 * s)) is None
+    why = env.check(_row(psi_rd_hat=-0.2, psi_rq_hat=1.0, psi_r_mod_hat=math.hypot(0.2, 1.0),
+                         T_L=0.5))
+    assert why.startswith("field orientation lost: the flux estimate is 1.02 Wb at +101° "), why
+    assert "load torque the laws are not told (the profile's T_L is 0.5 N·m)" in why
+    why = env.check(_row(psi_rd_hat=0.2, psi_r_mod_hat=0.2))  # collapsed, on the d axis
+    assert why.startswith("field orientation lost: the flux estimate is 0.2 Wb at +0° "), why
+    # early in the magnetisation (ψ* below a quarter of the peak) the angle means nothing
+    assert env.check(_row(psi_ref=0.2, psi_rd_hat=-0.001, psi_rq_hat=0.001,
+                          psi_r_mod_hat=0.0014)) is None
+
+
+def test_a_flux_estimate_that_stays_low_stops_the_run_after_half_a_second():
+    """The slow loss (an untold load in field weakening): the estimate stays on the d axis
+    but fades. 0.4·ψ* is inside the per-cycle bounds; held for 0.5 s it is a stop, and a
+    deficit that recovers in between starts the clock again."""
+    from gateway.guard import DivergenceWatch
+
+    env = Envelope.from_demand(w_peak=200.0, i_peak=8.2, psi_peak=1.16, u_peak=209.0)
+    low = _row(psi_ref=0.5, psi_rd_hat=0.2, psi_r_mod_hat=0.2, T_L=0.5)
+    assert env.check(low) is None and env.flux_deficit(low)
+    watch = DivergenceWatch(env)
+    rows = [low._replace(t=0.01 * k) for k in range(40)]  # 0 … 0.39 s low
+    rows.append(_row(psi_ref=0.5, psi_rd_hat=0.5, psi_r_mod_hat=0.5, t=0.40))  # recovered
+    rows += [low._replace(t=0.41 + 0.01 * k) for k in range(60)]  # low again from 0.41 s
+    stop = next(k for k, r in enumerate(rows) if watch.check(r, k + 1))
+    assert rows[stop].t == pytest.approx(0.91), stop
+    assert watch.reason.startswith("cycle 92 (t = 0.9100 s): flux estimate below 0.5·ψ* "
+                                   "since t = 0.4100 s (|ψ̂_r| = 0.2 Wb, ψ* = 0.5 Wb)"), \
+        watch.reason
+    assert "the profile's T_L is 0.5 N·m" in watch.reason
+
+
+def test_a_motor_lost_to_an_untold_load_is_stopped_without_a_speed_sensor():
+    """The shipped untold-load scenario: the rated torque on the shaft from 1.2 s that the
+    controller is not told. The speed estimate keeps reading about ω* while the motor stalls
+    and turns backwards; without the emulator's truth (a real drive) only the orientation
+    check can see it, and it does — after the true speed error passes 20 rad/s, while
+    |ω̂ − ω*| is still inside its bound. 1 N·m untold is lost more slowly, in field
+    weakening, and is stopped by the sustained flux deficit."""
+    from sim_support import sim_config
+
+    from dbc.motor import MotorParams
+    from gateway.guard import DivergenceWatch, profile_envelope
+    from gateway.reference import paper_profile
+    from gateway.simulate import run
+    from plant.scenario import parse_scenario, resolve_scenario
+
+    prof = paper_profile()
+    env = profile_envelope(prof, MotorParams(), 20.0)
+    shipped = resolve_scenario("untold-load")
+    text = (Path(__file__).parents[1] / "plant" / "scenarios" / "untold-load.toml").read_text()
+    assert "value = 5.8" in text
+    one = parse_scenario(text.replace("value = 5.8", "value = 1.0"), "untold 1 N·m")
+    for scenario, first, window in ((shipped, "field orientation lost", (1.2, 1.6)),
+                                    (one, "flux estimate below 0.5·ψ*", (1.8, 2.5))):
+        rec = run(prof, MotorParams(), sim_config(plant=scenario, estimator="rs-adaptive"))
+        sig = rec.arrays()
+        watch = DivergenceWatch(env)
+        stop = None
+        for k in range(len(sig["t"])):
+            row = CycleRow(**{f: float(sig[f][k]) for f in CycleRow._fields})
+            blind = row._replace(w_m=math.nan, psi_r_mod=math.nan, T_e=math.nan)
+            if watch.check(blind, k + 1):
+                stop = k
+                break
+        assert stop is not None, "the guard never fired"
+        assert first in watch.reason, watch.reason
+        e = sig["w_m"] - sig["w_ref"]
+        assert window[0] < sig["t"][stop] < window[1]
+        assert abs(e[stop]) > 20.0  # the motor is lost by then
+        # the speed estimate cannot tell
+        assert abs(sig["w_hat"][stop] - sig["w_ref"][stop]) < env.e_max
+        # what the guard protects against: left alone, the motor ends far from ω*
+        assert abs(e[-1]) > 80.0
