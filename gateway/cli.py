@@ -221,11 +221,14 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "(d, q) drives only")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML, SI units; template: "
                    "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
-    p.add_argument("--load", choices=("known", "observed"),
+    p.add_argument("--load", choices=("known", "observed", "untold"),
                    help="the load torque for the laws: known (the profile's T_L, the paper, "
-                        "docs/paper.md §E6) or observed (estimated by the load observer, issue 14; "
-                        "current-fed law; exact plants only so far, see BENCHMARKS.md); "
-                        "default: the plant scenario's [load].known, else known")
+                        "docs/paper.md §E6), observed (estimated by the load observer, issue "
+                        "14; current-fed law; exact plants only so far, see BENCHMARKS.md) or "
+                        "untold (the laws assume none: T_L = 0); default: the plant "
+                        "scenario's [load].known, else known where the drive applies the "
+                        "profile's load (the emulator, a drive profile with a T_L signal) and "
+                        "untold where it cannot")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
@@ -249,13 +252,24 @@ def _design(args: argparse.Namespace, load: str) -> Any:
     return Discretisation.EXACT
 
 
-def _load_mode(args: argparse.Namespace, plant: Any) -> str:
-    """--load, else the scenario's [load].known, else known. "Not told" would be the right
-    default against a real drive, but the load observer diverges with a 10 mA offset, 5 mA
-    of noise or R_s/R_r errors (docs/robustness.md): it stays opt-in until it is robust."""
+def _load_mode(args: argparse.Namespace, plant: Any, drive: Any = None) -> str:
+    """--load; else the scenario's [load].known (told, else observed); else told where the
+    drive applies the profile's load — the emulator, or a drive profile that maps a T_L
+    signal (a dynamometer the gateway commands) — and untold where it cannot (issue 14: "not
+    told against a real drive"; the laws then assume no load rather than feed forward one
+    the shaft may not carry). Not told does not mean observed: the load observer runs away
+    with a 10 mA offset or R_s +10 % even unloaded (docs/robustness.md §2), so it stays
+    opt-in."""
     if args.load:
         return args.load
-    return "known" if plant is None or plant.known(True) else "observed"
+    if plant is not None and not plant.known(True):
+        return "observed"
+    if drive is not None:
+        from gateway.process_data import process_data
+
+        if "T_L" not in process_data(drive).roles:
+            return "untold"
+    return "known"
 
 
 def _gains(args: argparse.Namespace):
@@ -544,7 +558,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     cfg = _run_config(args, drive)
-    load = _load_mode(args, plant)
+    load = _load_mode(args, plant, drive)
     try:
         cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load,
                       discretisation=_design(args, load))

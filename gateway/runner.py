@@ -288,25 +288,28 @@ def guards(drive: DriveProfile, profile: Profile, motor: MotorParams, cfg: RunCo
     return plaus, profile_envelope(profile, motor, cfg.gains.i_max)
 
 
-def _untold_load(cfg: RunConfig, pd: Any, profile: Any, duration: float) -> str:
-    """The note for a run that tells the controller the profile's load torque on a drive that
-    cannot apply it (no T_L role in its process data: no emulated dynamometer), or "".
-
-    The laws then feed forward a torque the shaft may not carry. Issue 14 asks for "not
-    told" as the default against a real drive; the load observer is not robust enough for
-    that yet (docs/robustness.md), so the run goes on, and says so.
-    """
-    if cfg.load is not LoadSource.KNOWN or "T_L" in pd.roles:
+def _load_note(cfg: RunConfig, pd: Any, profile: Any, duration: float) -> str:
+    """The note for a run on a drive that cannot apply the profile's load torque (no T_L role
+    in its process data: no dynamometer the gateway commands) while the profile has one, or
+    "". By default such a run does not tell the laws that load (``untold``, issue 14); told
+    anyway (``--load known``), the laws feed forward a torque the shaft may not carry."""
+    if cfg.load is LoadSource.OBSERVED or "T_L" in pd.roles:
         return ""
     t = sample_times(profile)  # every transition resolved, bounded for long profiles
     peak = float(np.max(np.abs(profile.sample(np.append(t[t < duration], duration))["T_L"])))
     if peak == 0.0:
         return ""
+    if cfg.load is LoadSource.UNTOLD:
+        return (f"the profile's load torque (up to {peak:g} N·m) is not told to the "
+                "controller: this drive cannot apply it (its process data has no T_L), so the "
+                "laws assume no load (--load untold, the default here). If the shaft carries "
+                "that load some other way, use --load known; a larger load than the laws "
+                "tolerate untold is stopped by the orientation guard (docs/robustness.md §2)")
     return (f"the controller is told the profile's load torque (up to {peak:g} N·m), which "
             "this drive cannot apply (its process data has no T_L): the shaft must carry "
             "that load, else the laws feed forward a torque that is not there. Use a profile "
-            "whose [load] is what the shaft carries, or --load observed (estimated; its "
-            "limits are in docs/robustness.md)")
+            "whose [load] is what the shaft carries, --load untold (the default for this "
+            "drive), or --load observed (estimated; its limits are in docs/robustness.md)")
 
 
 def run_gateway(
@@ -336,7 +339,7 @@ def run_gateway(
                         f"drive profile's ({pd.setpoint_frame}, {drive.source})")
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / cfg.period)
-    load_note = _untold_load(cfg, pd, profile, duration)
+    load_note = _load_note(cfg, pd, profile, duration)
     if load_note:
         log.warning("%s", load_note)
     plausibility, envelope = guards(drive, profile, motor, cfg)

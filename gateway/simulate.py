@@ -35,6 +35,7 @@ from gateway.control.controller import (
     LoadSource,
     as_enum,
     euler_only,
+    untold,
 )
 from gateway.control.laws import Gains, current_fed, full_order
 from gateway.control.load_observer import load_config
@@ -68,7 +69,8 @@ class SimConfig:
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
     discretisation: sampled runs only: "exact" (the sampled-data design,
         docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
-    load: "known" (the paper) or "observed": the controller's T_L (issue 14).
+    load: "known" (the paper), "observed" or "untold" (T_L = 0): the controller's T_L
+        (issue 14).
     plant: how the plant differs from the controller's model (issue 14,
         :mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
         motor factors and the load only.
@@ -132,7 +134,7 @@ class SimConfig:
             euler_only(self.discretisation, self.load)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        if self.load is not LoadSource.KNOWN:
+        if self.load is LoadSource.OBSERVED:
             if self.sampling is None:
                 raise UserError("the load observer is discrete-time: with the load observed "
                                 "(--load observed, or a plant scenario with [load].known = "
@@ -323,14 +325,16 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         return complex(x[1], x[2])
 
     def law(t: float, x: np.ndarray):
-        r = profile.at(t)
+        r = profile.at(t)  # the plant's load is the profile's; the laws' may be untold
+        told = untold(r) if cfg.load is LoadSource.UNTOLD else r
         to_dq = cmath.exp(-1j * x[5 if full else 3])
         w_hat = x[6 if full else 4]
         psi_dq = psi_r_used(x) * to_dq
         if full:
             i_dq = complex(x[3], x[4]) * to_dq
-            return r, full_order(r, w_hat, psi_dq.real, psi_dq.imag, i_dq.real, i_dq.imag, m, g)
-        return r, current_fed(r, w_hat, psi_dq.real, psi_dq.imag, m, g)
+            return r, full_order(told, w_hat, psi_dq.real, psi_dq.imag, i_dq.real, i_dq.imag,
+                                 m, g)
+        return r, current_fed(told, w_hat, psi_dq.real, psi_dq.imag, m, g)
 
     def rhs(t: float, x: np.ndarray) -> list[float]:
         r, out = law(t, x)

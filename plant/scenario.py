@@ -46,12 +46,12 @@ Load (the dynamometer of the emulator):
 The extra torque T_x(t) is always added, evaluated within the period. Whether the controller
 is *told* the load is ``known``: when true the law gets the profile's T_L and dT_L/dt (the
 paper's case, docs/paper.md §E6; the extra torque is never told); when false it uses the load-torque
-observer of :mod:`gateway.control.load_observer`. Default: told (``--load`` overrides). The
-issue's default "not told against a real drive" is not applied: the observer runs away with
-realistic sensor and resistance errors even without a load, and a load the laws are told as
-zero is tolerated only up to about half the rated torque (docs/robustness.md §2); against a
-real drive the run names a profile load no dynamometer applies, and the orientation guard of
-:mod:`gateway.guard` stops a motor lost to an untold one.
+observer of :mod:`gateway.control.load_observer`. Default (``--load`` overrides): told where
+the drive applies the profile's load (the emulator; ``hil-gateway run`` with a drive profile
+that maps a T_L signal), not told (``--load untold``: the laws assume no load) where it cannot.
+"Not told" does not mean observed: the observer runs away with realistic sensor and
+resistance errors even without a load (docs/robustness.md §2), and the orientation guard of
+:mod:`gateway.guard` stops a motor lost to a load the laws are not told.
 
 Sensors: phases a and b are measured, i_c = −i_a − i_b, and mapped to the (a, b) frame of (1)
 by the amplitude-invariant Clarke transform; a phase-a offset o_a therefore appears as

@@ -86,6 +86,39 @@ def test_the_controller_does_not_see_the_profile_load_when_observed():
     assert not np.array_equal(a["i_sq_ref"], b["i_sq_ref"])  # but a different controller
 
 
+@pytest.mark.parametrize("kw", [
+    {"discretisation": "exact"},
+    {"discretisation": "euler"},
+    {"law": "full-order", "drive": "voltage", "discretisation": "exact"},
+    {"period": None},
+])
+def test_untold_load_gives_the_laws_no_load(kw):
+    """--load untold: the laws run as if the profile had no load (same outputs as the
+    load-free profile told), in both designs and in continuous time, while the record
+    keeps the profile's T_L and the plant still carries it when the scenario says so."""
+    from dataclasses import replace
+
+    from gateway.reference import Signal
+    from plant.scenario import parse_scenario
+
+    prof = paper_profile()
+    free = replace(prof, load=Signal(0.0))
+    none = parse_scenario('[load]\ntorque = "none"\n', "no load on the shaft")
+    if kw.get("period", 1) is None:  # continuous time takes the load from the profile
+        a = run(prof, MOTOR, sim_config(load="untold", duration=0.6, **kw)).arrays()
+        b = run(free, MOTOR, sim_config(duration=0.6, **kw)).arrays()
+        assert not np.array_equal(a["w_m"], b["w_m"])  # the plant carried the load
+        e = a["w_m"] - a["w_ref"]
+        assert np.abs(e[a["t"] < 0.5]).max() < 0.02  # until the load steps in, equal
+        np.testing.assert_allclose(a["i_sq_ref"][a["t"] < 0.5], b["i_sq_ref"][b["t"] < 0.5])
+        return
+    a = run(prof, MOTOR, sim_config(load="untold", plant=none, duration=0.8, **kw)).arrays()
+    b = run(free, MOTOR, sim_config(duration=0.8, **kw)).arrays()
+    assert a["T_L"].max() == pytest.approx(5.8) and b["T_L"].max() == 0.0
+    for col in ("w_m", "w_hat", "i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref", "eps_0"):
+        np.testing.assert_array_equal(a[col], b[col], err_msg=col)
+
+
 def test_full_order_with_observed_load_is_refused():
     with pytest.raises(UserError, match="not found stable"):
         sim_config(law="full-order", drive="voltage", load="observed")
@@ -95,8 +128,9 @@ def test_full_order_with_observed_load_is_refused():
 
 
 def test_cli_load_default_from_the_scenario(tmp_path, capsys):
-    """--load: from the scenario's [load].known, else known (also against a real drive:
-    the observer is not robust to plant errors yet)."""
+    """--load: from the scenario's [load].known, else known (simulate: the plant is the
+    emulator's; a real drive without a dynamometer defaults to untold, see
+    tests/test_foreign_drive.py)."""
     out = tmp_path / "u"
     assert main(["simulate", "--plant", "unknown-load", "--duration", "0.6s",
                  "--out", str(out)]) == 0

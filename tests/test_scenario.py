@@ -268,4 +268,3 @@ def test_device_applies_the_scenario_to_its_motor_and_sensors():
         assert dev.drive.params.i_offset_ab == pytest.approx(complex(0.01, 0.01 / 3 ** 0.5))
     finally:
         bus.shutdown()
-

@@ -31,7 +31,7 @@ from gateway.control.estimator import (
     RsAdaptiveFluxEstimator,
 )
 from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
-from gateway.control.load_observer import LoadObserver
+from gateway.control.load_observer import LoadObserver, RefsWithLoad
 
 
 class Law(StrEnum):
@@ -69,10 +69,19 @@ class EstimatorKind(StrEnum):
 
 class LoadSource(StrEnum):
     """KNOWN: the laws get the profile's T_L, dT_L/dt (the paper); OBSERVED: T̂_L, dT̂_L/dt of
-    :class:`gateway.control.load_observer.LoadObserver` instead (docs/robustness.md)."""
+    :class:`gateway.control.load_observer.LoadObserver` instead; UNTOLD: neither, the laws
+    assume no load (T_L = dT_L/dt = 0) — what a drive that cannot apply the profile's load
+    gets by default (docs/robustness.md §2)."""
 
     KNOWN = "known"
     OBSERVED = "observed"
+    UNTOLD = "untold"
+
+
+def untold(refs: Refs) -> RefsWithLoad:
+    """``refs`` with T_L = dT_L/dt = 0: what the laws get when they are not told the load."""
+    return RefsWithLoad(refs.w_ref, refs.dw_ref, refs.ddw_ref, refs.psi_ref, refs.dpsi_ref,
+                        refs.ddpsi_ref, 0.0, 0.0)
 
 
 class Discretisation(StrEnum):
@@ -228,6 +237,7 @@ class Controller:
         self.load_observer = (LoadObserver(motor, self._T, c.load_bandwidth, c.load_speed_gain,
                                            c.load_current_rise)
                               if c.load is LoadSource.OBSERVED else None)
+        self._untold = c.load is LoadSource.UNTOLD
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
@@ -243,6 +253,8 @@ class Controller:
             )
         if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt
             refs = self.load_observer.refs(refs, sample.i_s_ab, sample.u_s_ab, eps_0)
+        elif self._untold:
+            refs = untold(refs)
         to_dq = cmath.exp(-1j * eps_0)
         psi_r_dq = psi_r_ab * to_dq
         if self._full:

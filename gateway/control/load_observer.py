@@ -258,9 +258,9 @@ def tuning(drive_mode: str) -> tuple[float, float, float]:
 
 
 def load_config(load: str, drive: str) -> dict[str, float]:
-    """ControllerConfig's load-observer fields for the drive mode ({} when the load is
-    known); ValueError for a drive mode the observer has no tuning for."""
-    if load == "known":
+    """ControllerConfig's load-observer fields for the drive mode ({} when the load is not
+    observed); ValueError for a drive mode the observer has no tuning for."""
+    if load != "observed":
         return {}
     p, k_s, rho = tuning(drive)
     return {"load_bandwidth": p, "load_speed_gain": k_s, "load_current_rise": rho}

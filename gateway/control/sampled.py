@@ -50,7 +50,9 @@ from gateway.control.controller import (
     EstimatorKind,
     FluxSource,
     Law,
+    LoadSource,
     Sample,
+    untold,
     wrap_angle,
 )
 from gateway.control.estimator import IntervalFluxEstimator, IntervalRsAdaptiveFluxEstimator
@@ -597,14 +599,23 @@ class FullOrderSampledController(SampledController):
         self.eps_0 = eps_k
 
 
+def _untold_at(refs_at: Callable[[float], Refs]) -> Callable[[float], Refs]:
+    """``refs_at`` with the load removed (:func:`untold`)."""
+    return lambda t: untold(refs_at(t))
+
+
 def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
                     eps_0: float = 0.0, w_hat: float = 0.0):
     """The controller ``config.discretisation`` names: the Euler :class:`Controller` or the
     sampled-data design. Both have ``step(refs, sample) -> Command`` and ``coast()``.
 
     The sampled-data full-order law models a voltage-fed drive with (d, q) setpoints; with a
-    current-loop drive or (a, b) setpoints the full-order law runs the Euler design.
+    current-loop drive or (a, b) setpoints the full-order law runs the Euler design. With
+    ``config.load`` UNTOLD the sampled-data design's references lose their load here; the
+    Euler design drops it in its step.
     """
+    if config.load is LoadSource.UNTOLD:  # the laws assume no load, whatever the profile's
+        refs_at = _untold_at(refs_at)
     if config.discretisation is Discretisation.EXACT:
         if config.law is Law.CURRENT_FED:
             return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)

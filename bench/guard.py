@@ -1,0 +1,170 @@
+"""The divergence guard without a speed sensor (issue 14): how often it stops a run that was
+under control, how early it stops one that was not, and what it does with a load the laws
+are not told.
+
+    .venv/bin/python bench/guard.py               # both tables
+    .venv/bin/python bench/guard.py --markdown    # Markdown for BENCHMARKS.md
+
+Every run is simulated (sampled 1 ms, delay 1, (d, q), ideal drive) with no guard, and the
+guard of ``gateway/guard.py`` (:class:`DivergenceWatch` on the profile's envelope) is then
+replayed on the record *blind*: the truth columns (ω, |ψ_r|, T_e) removed, as from a real
+drive that reports no speed. Table 1 counts, over the robustness cases (both designs; the
+open-loop, drift-free and rs-adaptive estimators and the true flux; the paper, zero-speed
+and slow-reversal profiles; nine plants), the runs that stayed within 20 rad/s of ω* and
+were stopped anyway (false stops, by which check), and the runaways (max |ω − ω*| > 50 rad/s)
+that were not stopped. Table 2 replays the untold loads: the rated and smaller torques
+added from 1.2 s (the paper profile, scenario ``untold-load`` and variants) and a step from
+0.5 s on the paper profile without its load. Nothing is fixed in advance: every figure is
+computed when the script runs (about a minute on one core).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.robustness import RUNAWAY, sim_config  # noqa: E402
+from dbc.motor import MotorParams  # noqa: E402
+from gateway.cycle import CycleRow  # noqa: E402
+from gateway.guard import DivergenceWatch, profile_envelope  # noqa: E402
+from gateway.reference import Signal, load_profile, paper_profile  # noqa: E402
+from gateway.simulate import run  # noqa: E402
+from plant.scenario import parse_scenario, resolve_scenario  # noqa: E402
+
+BOUNDED = 20.0  # rad/s: a run under control stays within this of ω*
+MOTOR = MotorParams()
+PLANTS = ("nominal", "rs+10", "rs-10", "offset10mA-rs+10", "offset10mA-rs-10", "rr+20",
+          "rr-20", "real-drive", "noise5mA")
+CONTROLLERS = {"open-loop": {"estimator": "open-loop"},
+               "drift-free": {"estimator": "drift-free"},
+               "rs-adaptive": {"estimator": "rs-adaptive"},
+               "true flux": {"flux": "true"}}
+UNTOLD = (ROOT / "plant" / "scenarios" / "untold-load.toml").read_text()
+
+
+def blind_stop(sig: dict[str, np.ndarray], profile) -> tuple[int | None, str]:
+    """The cycle index at which the guard stops the record without its truth, and why."""
+    watch = DivergenceWatch(profile_envelope(profile, MOTOR, 20.0))
+    for k in range(len(sig["t"])):
+        row = CycleRow(**{f: float(sig[f][k]) for f in CycleRow._fields})
+        if watch.check(row._replace(w_m=math.nan, psi_r_mod=math.nan, T_e=math.nan), k + 1):
+            return k, watch.reason or ""
+    return None, ""
+
+
+def check_name(reason: str) -> str:
+    """The guard's check that fired, from its reason."""
+    if "field orientation lost" in reason:
+        return "orientation"
+    if "flux estimate below" in reason:
+        return "flux deficit"
+    return reason.split(": ", 1)[1].split(" = ")[0] if ": " in reason else reason
+
+
+def simulate(profile, plant, **kw) -> dict[str, np.ndarray]:
+    return run(profile, MOTOR, sim_config(plant=plant, **kw)).arrays()
+
+
+def cases_table(markdown: bool) -> str:
+    profiles = {"paper": paper_profile(),
+                "zero-speed": load_profile(ROOT / "gateway" / "profiles" / "zero-speed.toml"),
+                "slow-reversal": load_profile(ROOT / "gateway" / "profiles" /
+                                              "slow-reversal.toml")}
+    counts: Counter[tuple[str, str]] = Counter()
+    false_stops: list[str] = []
+    missed: list[str] = []
+    early = []  # runaways: how long before |ω − ω*| > 20 rad/s the guard stopped them
+    for disc in ("exact", "euler"):
+        for pname, prof in profiles.items():
+            for plant in PLANTS:
+                for cname, kw in CONTROLLERS.items():
+                    sig = simulate(prof, resolve_scenario(plant), discretisation=disc, **kw)
+                    e = np.abs(sig["w_m"] - sig["w_ref"])
+                    worst = float(e.max()) if np.isfinite(e).all() else math.inf
+                    k, why = blind_stop(sig, prof)
+                    kind = ("bounded" if worst <= BOUNDED else
+                            "runaway" if worst > RUNAWAY else "in between")
+                    counts[(kind, "stopped" if k is not None else "ran on")] += 1
+                    label = f"{disc}, {pname}, {plant}, {cname} (max {worst:.3g} rad/s)"
+                    if kind == "bounded" and k is not None:
+                        false_stops.append(f"{label}: {check_name(why)} at "
+                                           f"{sig['t'][k]:.3f} s")
+                    if kind == "runaway":
+                        if k is None:
+                            missed.append(label)
+                        else:
+                            t20 = sig["t"][np.argmax(e > BOUNDED)]
+                            early.append(t20 - sig["t"][k])
+    rows = [("within 20 rad/s of ω*", "bounded"), ("20–50 rad/s", "in between"),
+            ("runaway (> 50 rad/s)", "runaway")]
+    lines = ["| runs | stopped by the guard, blind | ran to the end |", "|---|---|---|"]
+    for title, kind in rows:
+        lines.append(f"| {title} | {counts[(kind, 'stopped')]} | {counts[(kind, 'ran on')]} |")
+    text = "\n".join(lines if markdown else [ln.replace("|", " ") for ln in lines])
+    n = sum(counts.values())
+    text += (f"\n\n{n} runs. Stopped although within 20 rad/s: "
+             + ("; ".join(false_stops) if false_stops else "none"))
+    text += "\nRunaways not stopped: " + ("; ".join(missed) if missed else "none")
+    if early:
+        text += (f"\nRunaways stopped: median {np.median(early) * 1e3:.0f} ms before the "
+                 f"speed error passed {BOUNDED:g} rad/s (positive: before; range "
+                 f"{min(early) * 1e3:.0f} … {max(early) * 1e3:.0f} ms)")
+    return text
+
+
+def untold_table(markdown: bool) -> str:
+    paper = paper_profile()
+    free = replace(paper, load=Signal(0.0))
+    cases = []
+    for extra in (1.0, 2.0, 3.0, 5.8):
+        text = UNTOLD.replace("value = 5.8", f"value = {extra:g}")
+        cases.append((f"{extra:g} N·m from 1.2 s", paper,
+                      parse_scenario(text, f"untold {extra:g} N·m")))
+    for extra in (3.0, 5.8):
+        text = (f"[load]\ntorque = \"none\"\nsteps = [{{ t = 0.5, value = {extra:g}, "
+                "ramp = 0.01 }]\n")
+        cases.append((f"{extra:g} N·m from 0.5 s, no told load", free,
+                      parse_scenario(text, f"untold step {extra:g}")))
+    head = ("| untold load | design | max \\|ω − ω*\\| | stopped at | by | ω − ω* then | "
+            "max \\|ω̂ − ω*\\| until then |")
+    lines = [head, "|---|---|---|---|---|---|---|"]
+    for title, prof, plant in cases:
+        for disc in ("exact", "euler"):
+            sig = simulate(prof, plant, discretisation=disc, estimator="rs-adaptive")
+            e = sig["w_m"] - sig["w_ref"]
+            k, why = blind_stop(sig, prof)
+            if k is None:
+                lines.append(f"| {title} | {disc} | {np.abs(e).max():.3g} | not stopped | "
+                             "| | |")
+                continue
+            eh = np.abs(sig["w_hat"] - sig["w_ref"])[:k + 1].max()
+            lines.append(f"| {title} | {disc} | {np.abs(e).max():.3g} | {sig['t'][k]:.3f} s "
+                         f"| {check_name(why)} | {e[k]:.3g} | {eh:.3g} |")
+    return "\n".join(lines if markdown else [ln.replace("|", " ") for ln in lines])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--markdown", action="store_true", help="Markdown tables")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    print("\nThe guard, blind, on the robustness cases\n")
+    print(cases_table(args.markdown), flush=True)
+    print("\nLoads the laws are not told (rs-adaptive estimator; rad/s)\n")
+    print(untold_table(args.markdown))
+    print(f"\n({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
