@@ -229,6 +229,10 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "scenario's [load].known, else known where the drive applies the "
                         "profile's load (the emulator, a drive profile with a T_L signal) and "
                         "untold where it cannot")
+    p.add_argument("--identify", action="store_true",
+                   help="identify R_s and R_r from the standstill magnetisation (before the "
+                        "speed reference moves) and use them from then on; summary.json "
+                        "says what was found (docs/robustness.md §5; sampled runs)")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
@@ -309,7 +313,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=drive,
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
-        discretisation=_design(args, load), plant=plant, load=load,
+        discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
     )
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
@@ -374,6 +378,8 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
                           "exit_status": ended.exit_status, "cycles": len(rec)}
         summary["configuration"] = {"command": "simulate", "profile": profile.source,
                                     **cfg.describe()}
+        if rec.identification is not None:
+            summary["identification"] = rec.identification
         summary["wall_time_s"] = wall
         report.write_summary(out / "summary.json", summary)
         rec.write_csv(out / "signals.csv")
@@ -561,7 +567,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     load = _load_mode(args, plant, drive)
     try:
         cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load,
-                      discretisation=_design(args, load))
+                      discretisation=_design(args, load), identify=args.identify)
         cfg.controller_config()
     except ValueError as exc:
         raise UserError(str(exc)) from exc

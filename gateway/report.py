@@ -62,6 +62,8 @@ class Record:
         self.row_type = row_type
         self.columns: tuple[str, ...] = tuple(fields)
         self._rows: list[tuple[float, ...]] = []
+        #: what the controller identified during the run (``--identify``), for summary.json
+        self.identification: dict[str, object] | None = None
 
     def append(self, row: tuple) -> None:
         """Add one row; a row of another type (other columns) raises TypeError."""

@@ -90,6 +90,7 @@ class RunConfig:
     discretisation: Discretisation = Discretisation.EXACT
     plant_scenario: dict[str, Any] | None = None
     load: LoadSource = LoadSource.KNOWN
+    identify: bool = False
 
     def __post_init__(self) -> None:
         try:
@@ -118,7 +119,8 @@ class RunConfig:
         return ControllerConfig(law=self.law, flux=self.flux, estimator=self.estimator,
                                 sampling=self.sampling, gains=self.gains,
                                 discretisation=self.discretisation, current_lag=current_lag,
-                                load=self.load, **load_config(self.load, self.drive_mode))
+                                load=self.load, **load_config(self.load, self.drive_mode),
+                                identify=self.identify)
 
 
 class BusRecorder(can.Listener):
@@ -487,6 +489,8 @@ def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
     summary["faults"] = [{"time": f.time, "kind": f.kind, "code": f.code, "text": f.text,
                           "reason": f.reason.name} for f in master.state.faults]
     summary["configuration"] = configuration
+    if loop is not None and loop.ctl.commissioning is not None:
+        summary["identification"] = loop.ctl.commissioning.describe()
     if recorder.error:
         write_errors.append(recorder.error + f" ({recorder.dropped} frames not logged)")
     _write_summary_noting(out, summary, write_errors)

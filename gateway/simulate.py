@@ -71,6 +71,8 @@ class SimConfig:
         docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
     load: "known" (the paper), "observed" or "untold" (T_L = 0): the controller's T_L
         (issue 14).
+    identify: R_s and R_r identified during the standstill magnetisation (sampled runs;
+        :mod:`gateway.control.commissioning`).
     plant: how the plant differs from the controller's model (issue 14,
         :mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
         motor factors and the load only.
@@ -93,6 +95,7 @@ class SimConfig:
     discretisation: Discretisation = Discretisation.EXACT
     plant: PlantScenario = field(default_factory=PlantScenario)
     load: LoadSource = LoadSource.KNOWN
+    identify: bool = False
 
     @classmethod
     def from_words(cls, period: float | None = 1e-3, delay: int = 1,
@@ -134,6 +137,9 @@ class SimConfig:
             euler_only(self.discretisation, self.load)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+        if self.identify and self.sampling is None:
+            raise UserError("--identify runs in the sampled controller: choose a sampling "
+                            "--period such as 1ms")
         if self.load is LoadSource.OBSERVED:
             if self.sampling is None:
                 raise UserError("the load observer is discrete-time: with the load observed "
@@ -157,6 +163,7 @@ class SimConfig:
             discretisation=self.discretisation,
             current_lag=current_lag(self.drive_mode, self.drive_params),
             load=self.load, **load_config(self.load, self.drive_mode),
+            identify=self.identify,
         )
 
     def describe(self) -> dict[str, Any]:
@@ -283,6 +290,8 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
             progress(k / n_cycles)
         if stop is not None and stop.is_set():  # every cycle: a stop acts within one
             break
+    if ctl.commissioning is not None:
+        rec.identification = ctl.commissioning.describe()
     return rec
 
 

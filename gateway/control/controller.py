@@ -20,11 +20,12 @@ from __future__ import annotations
 import cmath
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 from dbc.modes import DriveMode
 from dbc.timing import Sampling
+from gateway.control.commissioning import Commissioning
 from gateway.control.estimator import (
     DriftFreeFluxEstimator,
     OpenLoopFluxEstimator,
@@ -131,6 +132,8 @@ class ControllerConfig:
         "observed" (issue 14: T̂_L, dT̂_L/dt of :class:`LoadObserver` instead).
     load_bandwidth, load_speed_gain, load_current_rise: the load observer's tuning
         (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).
+    identify: identify R_s and R_r during the standstill magnetisation and use them from the
+        first sample the speed reference moves (:mod:`gateway.control.commissioning`).
     """
 
     law: Law = Law.CURRENT_FED
@@ -145,6 +148,7 @@ class ControllerConfig:
     load_bandwidth: float = 300.0
     load_speed_gain: float = 300.0
     load_current_rise: float = 0.0
+    identify: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "law", as_enum(Law, self.law, "law"))
@@ -238,6 +242,7 @@ class Controller:
                                            c.load_current_rise)
                               if c.load is LoadSource.OBSERVED else None)
         self._untold = c.load is LoadSource.UNTOLD
+        self.commissioning = Commissioning(motor, self._T) if c.identify else None
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
@@ -251,6 +256,13 @@ class Controller:
             psi_r_ab = self.estimator.update(
                 sample.i_s_ab, sample.u_s_ab, T, eps_0, refs.psi_ref
             )
+        if self.commissioning is not None:
+            found = self.commissioning.step(refs, sample.i_s_ab, sample.u_s_ab)
+            if found is not None and found.accepted:
+                self.motor = replace(self.motor, R_s=found.R_s, R_r=found.R_r)
+                if not self._true_flux:
+                    psi_r_ab = self.commissioning.flux()
+                    self.estimator.identified(found.R_s, psi_r_ab, sample.i_s_ab)
         if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt
             refs = self.load_observer.refs(refs, sample.i_s_ab, sample.u_s_ab, eps_0)
         elif self._untold:

@@ -64,6 +64,12 @@ class OpenLoopFluxEstimator:
         self.psi_s_ab = 0j
         self._i_prev = None
 
+    def identified(self, R_s: float, psi_r_ab: complex, i_s_ab: complex) -> None:
+        """After a standstill identification (:mod:`gateway.control.commissioning`): the
+        identified R_s (Ω) from now on, and the rotor flux at this sample (Wb, (a, b))."""
+        self._R_s = R_s
+        self.psi_s_ab = self._sigma * i_s_ab + self._m_lr * psi_r_ab
+
     def _rate(self, i_s_ab: complex, u_s_ab: complex, T: float) -> complex:
         """∫(u_s − R_s·i_s)dt over the last period, Wb (trapezoidal current integral)."""
         i_prev = i_s_ab if self._i_prev is None else self._i_prev

@@ -42,6 +42,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from dbc.modes import SetpointFrame
+from gateway.control.commissioning import Commissioning
 from gateway.control.controller import (
     Command,
     Controller,
@@ -130,6 +131,27 @@ class SampledController:
         self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
         #: the command before the last step's (what the drive holds if that one is withheld)
         self._base: Interval | None = None
+        self.commissioning = (Commissioning(motor, self._T) if config.identify else None)
+
+    def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
+        """The standstill identification (``config.identify``): at the sample that ends it,
+        the identified R_s and R_r from now on, and the flux the voltage model gives with
+        them (returned instead of the estimate ``psi_hat_ab``)."""
+        c = self.commissioning
+        if c is None:
+            return psi_hat_ab
+        found = c.step(refs, sample.i_s_ab, sample.u_s_ab)
+        if found is None or not found.accepted:
+            return psi_hat_ab
+        self._set_motor(replace(self.motor, R_s=found.R_s, R_r=found.R_r))
+        psi = c.flux()
+        self.estimator.identified(found.R_s, psi, sample.i_s_ab)
+        return psi
+
+    def _set_motor(self, motor) -> None:
+        """The controller's motor from now on (the cached products too)."""
+        self.motor = motor
+        self._aM = motor.alpha * motor.M
 
     # ------------------------------------------------------------------ the model
 
@@ -259,6 +281,7 @@ class SampledController:
         int_i_ab, i_end_ab = self._current(prev, terms)
         psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
                                            i_end_ab, eps_k, refs.psi_ref)
+        psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
         if self._true_flux:
             if sample.psi_r_ab is None:
                 raise ValueError("flux='true' needs the true rotor flux in the sample")
@@ -444,6 +467,10 @@ class FullOrderSampledController(SampledController):
         self._c1 = m.R_s / m.sigma + m.beta * self._aM
         self._i_prev = 0j  # measured current at t_{k−1}, frame at t_{k−1}
 
+    def _set_motor(self, motor) -> None:
+        super()._set_motor(motor)
+        self._c1 = motor.R_s / motor.sigma + motor.beta * self._aM
+
     # ------------------------------------------------------------------ the model
 
     def _matrix(self, w_0: float, w_m: float) -> Mat2:
@@ -525,6 +552,7 @@ class FullOrderSampledController(SampledController):
         int_i_ab = T / 6.0 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
         psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
                                            rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
+        psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
         if self._true_flux:
             if sample.psi_r_ab is None:
                 raise ValueError("flux='true' needs the true rotor flux in the sample")
