@@ -6,7 +6,7 @@ Python API (sampled 1 ms, one period of SYNC delay, (d, q) setpoints, INT16 PDOs
     .venv/bin/python bench/robustness.py --markdown       # Markdown for README/BENCHMARKS.md
     .venv/bin/python bench/robustness.py --only paper     # one block: paper, zero-speed,
                                                           #   slow-reversal, exact,
-                                                          #   full-order, load
+                                                          #   full-order, load, identify
 
 Columns are speed errors ω − ω* in rad/s: RMS over the run, max |·|, and the final value
 (last sample). "runaway" marks max |ω − ω*| > 50 rad/s. The PNG (``--png``, default
@@ -102,6 +102,16 @@ def blocks() -> dict[str, list[Case]]:
                          row=f"rs-adaptive, ideal drive, {s}")
                     for s in ("offset10mA", "noise5mA", "rs+10", "rr+20", "real-drive")
                     for load in ("known", "observed")]
+    # the standstill identification of R_s and R_r (--identify, docs/robustness.md §5)
+    ident = [("paper", s) for s in ("nominal", "rs+10", "rs-10", "offset10mA-rs+10",
+                                     "offset10mA-rs-10", "rr+20", "rr-20", "real-drive")]
+    ident += [(p, s) for p in ("zero-speed", "slow-reversal")
+              for s in ("rs+10", "rs-10", "rr+20", "rr-20")]
+    out["identify"] = [Case("identify", prof, s, f"{est}{' + identify' if on else ''}",
+                            {"discretisation": "exact", "estimator": est, "load": "known",
+                             "identify": on}, row=f"{prof}, {s}")
+                       for prof, s in ident
+                       for est in ("drift-free", "rs-adaptive") for on in (False, True)]
     return out
 
 
@@ -173,6 +183,8 @@ TITLES = {
              "current-fed law, ideal drive",
     "full-order": "paper scenario, full-order law, voltage drive",
     "load": "paper scenario, load applied within the period, known or observed",
+    "identify": "R_s and R_r identified at standstill (--identify), sampled-data design, "
+                "load known",
 }
 
 
@@ -195,7 +207,10 @@ def plot(all_cases: dict[str, list[Case]], path: Path) -> None:
                 continue  # before (drift-free, dotted) and after (solid)
             if b == "paper" and c.scenario not in PAPER_PLOT:
                 continue
-            after = "rs-adaptive" in c.controller or "observed" in c.controller
+            if b == "identify" and not c.controller.startswith("drift-free"):
+                continue  # before and after the identification, one estimator
+            after = ("identify" in c.controller if b == "identify" else
+                     "rs-adaptive" in c.controller or "observed" in c.controller)
             ax.semilogy(c.t, np.abs(c.e) + 1e-4, lw=0.8 if after else 0.6,
                         ls="-" if after else ":", color=f"C{k // 2 % 10}",
                         label=f"{c.row or c.scenario}, {c.controller}")

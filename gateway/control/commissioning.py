@@ -172,15 +172,15 @@ class StandstillIdentifier:
         if abs(self.flux(R_s)) < self.PSI_MIN:
             reason = (f"the flux rose to {abs(self.flux(R_s)):.3g} Wb only (at least "
                       f"{self.PSI_MIN:g} Wb needed)")
+        elif not fit <= self.FIT_MAX:
+            reason = (f"the two flux models do not agree (relative residual {fit:.2g} > "
+                      f"{self.FIT_MAX:g}): the voltages the drive reports are not the ones it "
+                      "applies at standstill (dead time?), or the rotor moved")
         elif k in (0, self.POINTS - 1):
             reason = (f"α at the edge of the search ({f:.3g} × the controller's): the motor "
                       "is not the one the controller was given")
         elif not 0.5 * m.R_s <= R_s <= 2.0 * m.R_s:
             reason = f"R_s = {R_s:.3g} Ω is not within 0.5…2 × the controller's {m.R_s:g} Ω"
-        elif not fit <= self.FIT_MAX:
-            reason = (f"the two flux models do not agree (relative residual {fit:.2g} > "
-                      f"{self.FIT_MAX:g}): the voltages the drive reports are not the ones it "
-                      "applies at standstill (dead time?)")
         return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason)
 
 
