@@ -525,7 +525,7 @@ def _print_run(kind: str, summary: dict[str, Any], out: Path, profile: Any) -> N
     if "speed_error" in summary:
         print(report.summary_table(summary))
     elif summary.get("identification"):  # no truth from the drive: no table, but this
-        print(report.identification_line(summary["identification"]).strip())
+        print(report.identification_line(summary["identification"]))
     print(timing_table(summary))
     print(f"wrote {out}/ (summary.json, signals.csv, {summary['run']['bus_log']}"
           + (", figures" if (out / "fig2_errors.png").exists() else "") + ")")

@@ -239,7 +239,9 @@ def summary_table(summary: Mapping[str, Any]) -> str:
              f"peak voltage {summary['peak_voltage']:.3g} V")
     if "truth" in summary:
         text += f"\ntruth (ω, |ψr|): {summary['truth']}"
-    text += identification_line(summary.get("identification"))
+    ident = identification_line(summary.get("identification"))
+    if ident:
+        text += "\n" + ident
     q = summary.get("quantisation")
     if q and q.get("applied"):
         sig = q["signals"]
@@ -258,10 +260,10 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
     if not ident:
         return ""
     if ident.get("accepted"):
-        return (f"\nidentified at standstill ({ident['samples']} samples): R_s "
+        return (f"identified at standstill ({ident['samples']} samples): R_s "
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s), "
                 "used from the end of the magnetisation")
-    return f"\nstandstill identification not applied: {ident.get('reason', '')}"
+    return f"standstill identification not applied: {ident.get('reason', '')}"
 
 
 #: The bus signals the loop uses, by message (the setpoint message depends on the frame).

@@ -169,8 +169,9 @@ class StandstillIdentifier:
         alpha = f * self._alpha0
         fit = float(max(J[k], 0.0) / self._s_aa) if self._s_aa > 0.0 else math.nan
         reason = ""
-        if abs(self.flux(R_s)) < self.PSI_MIN:
-            reason = (f"the flux rose to {abs(self.flux(R_s)):.3g} Wb only (at least "
+        psi_end = abs(self.flux(R_s))
+        if psi_end < self.PSI_MIN:
+            reason = (f"the flux rose to {psi_end:.3g} Wb only (at least "
                       f"{self.PSI_MIN:g} Wb needed)")
         elif not fit <= self.FIT_MAX:
             reason = (f"the two flux models do not agree (relative residual {fit:.2g} > "
