@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import IntEnum
 
 from dbc.modes import RpdoApply, SetpointFrame
 
@@ -39,6 +40,27 @@ class Sampling:
     def t_apply(self, t: float) -> float:
         """Start of the interval the setpoints computed at ``t`` act on, s."""
         return t + self.delay * self.period
+
+
+class TimeBase(IntEnum):
+    """The emulated drive's time base for its supervision (0x2205).
+
+    WALL: the heartbeat consumer (0x1016) counts wall-clock time, as a real device's does.
+    SYNC: lockstep — the simulation advances only on SYNC, so the consumer counts simulated
+    time (SYNC periods since the master's last heartbeat, checked at each SYNC): the same
+    run gives the same result whatever the host's load. The wall clock is then only a
+    backstop for a master that stopped altogether (no heartbeat and no SYNC for
+    :data:`LOCKSTEP_BACKSTOP_S`, or the consumer time if longer).
+    """
+
+    WALL = 0
+    SYNC = 1
+
+
+#: Lockstep: how long a master may be silent on the wall clock (no heartbeat, no SYNC)
+#: before the emulated drive trips, and how long the gateway waits for a drive that answers
+#: nothing, s. Only a process that stopped altogether is this silent; a stalled host is not.
+LOCKSTEP_BACKSTOP_S = 2.0
 
 
 #: Bounds of the cycle period T, s: 0x1006 allows 100 µs to 1 s; above 100 ms the frame

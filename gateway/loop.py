@@ -44,9 +44,9 @@ from typing import Any, NamedTuple
 
 import can
 
-from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, sync_counter
+from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, NmtState, sync_counter
 from dbc.cia402 import SW_FAULT, State
-from dbc.timing import Sampling
+from dbc.timing import LOCKSTEP_BACKSTOP_S, Sampling
 from gateway.control.controller import Controller
 from gateway.cycle import ControlCycle, CycleRow, ReferenceProfile
 from gateway.guard import DivergenceWatch, Envelope, Plausibility
@@ -67,6 +67,10 @@ class Timing(StrEnum):
 
 #: The missed-cycle rate limit looks at windows of this length, s.
 MISS_WINDOW = 0.1
+#: Real time without a SYNC counter: SYNCs received beyond those the producer can have sent
+#: before the gateway calls them foreign (the kernel's timer and the echo's timestamp may
+#: disagree by a period either way).
+FOREIGN_SYNC_SLACK = 2
 #: Frames kept for the summary of a stop.
 RECENT_FRAMES = 24
 
@@ -95,18 +99,23 @@ class LoopConfig:
     lockstep, how long to wait for a cycle's TPDOs, s; sync_counter: SYNC carries the
     counter (0x1019); plausibility, envelope: the guards (None: not checked); the
     envelope stops the loop when crossed in ``envelope_cycles`` cycles in a row (one
-    coasting cycle's current step is not a loss of control)."""
+    coasting cycle's current step is not a loss of control). heartbeat_cob_id,
+    heartbeat_every: in lockstep the gateway's heartbeat also goes out before every n-th
+    SYNC, so that a drive supervising it in simulated time (the emulator's SYNC time base)
+    sees it at the same cycles whatever the host's load (0: not sent by the loop)."""
 
     n_cycles: int
     sampling: Sampling = field(default_factory=Sampling)
     timing: Timing = Timing.LOCKSTEP
     max_missed: int = 5
     max_miss_rate: float = 0.2
-    tpdo_timeout: float = 1.0
+    tpdo_timeout: float = LOCKSTEP_BACKSTOP_S
     sync_counter: bool = True
     plausibility: Plausibility | None = None
     envelope: Envelope | None = None
     envelope_cycles: int = 3
+    heartbeat_cob_id: int = 0
+    heartbeat_every: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "timing", Timing(self.timing))
@@ -189,6 +198,10 @@ class CycleLoop:
             raise ValueError(f"the drive's setpoints are in the {pd.setpoint_frame} frame, "
                              f"not {cfg.sampling.setpoint_frame}")
         self._sync_task: Any = None
+        self._heartbeat = can.Message(arbitration_id=cfg.heartbeat_cob_id,
+                                      data=[NmtState.OPERATIONAL.heartbeat],
+                                      is_extended_id=False)
+        self._producer_start = time.time()  # real time: when the SYNC producer started
         self._sync_thread: threading.Thread | None = None
         for cob_id in self._ids:
             subscribe(cob_id, self._on_tpdo)
@@ -211,19 +224,42 @@ class CycleLoop:
             if self._done.is_set():
                 return
             k = self._k + 1
-            if self.cfg.sync_counter:
-                ours = len(data) == 1 and data[0] == sync_counter(k)
-            elif self.cfg.timing is Timing.LOCKSTEP:
-                ours = self._syncs_sent >= k
-            else:  # no counter, SYNC on a schedule: ours cannot come within half a period
-                ours = not len(data) and not timestamp - self._sync_time < 0.5 * self._T
-            if not ours:
+            why = self._foreign_sync(k, bytes(data))
+            if why:
                 self._finish(StopReason.FOREIGN_SYNC,
                              f"a SYNC the gateway did not send (data {bytes(data).hex() or '-'}"
-                             f", expected the SYNC of cycle {k}): another SYNC producer on the "
-                             "bus; there must be one")
+                             f", expected the SYNC of cycle {k}; {why}): another SYNC "
+                             "producer on the bus; there must be one")
                 return
             self._open_locked(timestamp)
+
+    def _foreign_sync(self, k: int, data: bytes) -> str:
+        """Why the SYNC received as the ``k``-th is not the gateway's, or '' when it is ours.
+
+        With a counter (0x1019), by the counter. Without one, by count, never by the time
+        between two SYNCs (a loaded host delays one and sends the next on time): in lockstep
+        the gateway has sent k SYNCs by then; in real time the producer has sent at most
+        one per period since it started (the kernel's schedule, or the SYNC thread's own
+        count), so a k beyond that, by more than :data:`FOREIGN_SYNC_SLACK`, is another
+        producer's."""
+        if self.cfg.sync_counter:
+            want = sync_counter(k)
+            if len(data) == 1 and data[0] == want:
+                return ""
+            return f"by the SYNC counter: ours would carry {want}"
+        if data:
+            return "by its data: the gateway's SYNC carries no counter"
+        if self.cfg.timing is Timing.LOCKSTEP:
+            sent = self._syncs_sent
+        elif self._sync_thread is not None:
+            sent = self._syncs_sent + FOREIGN_SYNC_SLACK
+        else:  # the kernel's broadcast manager: one per period from its start
+            sent = (math.floor((time.time() - self._producer_start) / self._T) + 1
+                    + FOREIGN_SYNC_SLACK)
+        if k <= sent:
+            return ""
+        return (f"by count: {k} SYNCs received where the gateway sent at most {sent} "
+                f"in {time.time() - self._producer_start:.3f} s")
 
     def _on_own_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """The bus's echo of an RPDO the gateway sent: it is on the bus now."""
@@ -426,6 +462,9 @@ class CycleLoop:
         if self._drive_faulted():
             return
         msg = self._sync_message(k)
+        every = self.cfg.heartbeat_every
+        if every and (k - 1) % every == 0:
+            self.bus.send(self._heartbeat)
         self._syncs_sent = k
         if not self.own_echo:
             self._open_locked(time.time())
@@ -467,7 +506,14 @@ class CycleLoop:
                     self._send_sync(1)
             else:
                 self._start_sync_producer()
+            last_wake = time.monotonic()
             while not self._done.wait(0.05):
+                now = time.monotonic()
+                if now - last_wake > 0.5 * self.cfg.tpdo_timeout:
+                    # this process was held up (a loaded host): the drive's answers may wait
+                    # in the receive queue; the stall is not the drive's
+                    self._progress_at = max(self._progress_at, now)
+                last_wake = now
                 if self.fault.is_set():  # no cycle running to notice it (e.g. no TPDOs)
                     with self._lock:
                         self._drive_faulted()
@@ -508,6 +554,7 @@ class CycleLoop:
             msgs = [self._sync_message(k) for k in range(1, SYNC_OVERFLOW + 1)]
             if not self.cfg.sync_counter:
                 msgs = msgs[:1]
+            self._producer_start = time.time()
             self._sync_task = self.bus.send_periodic(msgs, T)
             log.info("SYNC every %g s by the kernel's broadcast manager", T)
             return
@@ -516,6 +563,7 @@ class CycleLoop:
         # manager no Python thread keeps time, and a short interval only adds switching —
         # measured under User-Mode Linux it made the loop miss most cycles.)
         sys.setswitchinterval(1e-4)
+        self._producer_start = time.time()
         self._sync_thread = threading.Thread(target=self._sync_thread_main, name="sync",
                                              daemon=True)
         self._sync_thread.start()
@@ -545,6 +593,7 @@ class CycleLoop:
                 time.sleep(0)
             if self._stop.is_set():
                 break
+            self._syncs_sent = k
             if not self.own_echo:
                 self._open_cycle(time.time())
             try:

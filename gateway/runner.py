@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import signal
 import threading
 import time
@@ -23,11 +24,11 @@ from typing import Any
 import can
 import numpy as np
 
-from dbc.cia301 import SYNC_OVERFLOW
+from dbc.cia301 import HEARTBEAT_BASE, SYNC_OVERFLOW
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
 from dbc.signals import SETPOINTS
-from dbc.timing import Sampling, internal_rate
+from dbc.timing import Sampling, TimeBase, internal_rate
 from gateway import report
 from gateway.buslog import LOG_SUFFIXES, write_frame
 from gateway.control.controller import (
@@ -367,16 +368,25 @@ def run_gateway(
                 else drive.mode_current)
         emulator: dict[str, int | float] = {}
         if drive.emulator:
+            # lockstep: the emulator supervises the gateway's heartbeat in simulated time
+            time_base = TimeBase.SYNC if cfg.timing is Timing.LOCKSTEP else TimeBase.WALL
             emulator = {"Emulator model": cfg.drive_mode.emulator_model,
                         "RPDO apply": int(cfg.sampling.apply),
+                        "Time base": int(time_base),
                         "f_pwm": round(internal_rate(_eds_default(master, "f_pwm"), cfg.period))}
         elif cfg.sampling.delay != 1:
             raise UserError("--delay 0 (RPDOs applied on receipt) is an emulator option; a "
                             "CiA 402 drive applies synchronous RPDOs at the next SYNC (--delay 1)")
         counter = master.configure(cfg.period, pd, drive.remap, mode, emulator,
                                    sync_overflow=SYNC_OVERFLOW)
+        lockstep = cfg.timing is Timing.LOCKSTEP
         loop_cfg = replace(loop_cfg, sync_counter=counter)
-        master.start()
+        if lockstep:  # the gateway's heartbeat in the loop's time too (LoopConfig)
+            loop_cfg = replace(loop_cfg, heartbeat_cob_id=HEARTBEAT_BASE + master.gateway_node,
+                               heartbeat_every=max(1, math.floor(
+                                   master.heartbeat_period / cfg.period + 1e-9)))
+        master.start(lockstep=lockstep, alive_ids=[p.cob_id for p in pd.tpdos] if lockstep
+                     else ())
         master.enable()
         # the exact design models what the drive applies: for the emulator's PI current loop
         # its response time (1/bandwidth, from its EDS); a real drive is taken as ideal

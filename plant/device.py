@@ -26,7 +26,8 @@ This module composes them and runs the cycle.
   w_0) restarts the (d, q) frame; references received alone act in the running frame.
 * Safe reactions, each with an EMCY (0x80+n: code, error register 0x1001, 5 zero bytes), a
   0x1003 entry, 0x603F and the CiA 402 Fault state (power stage off; the model lets the
-  currents decay): master heartbeat lost (0x1016, wall clock) 0x8130; RPDO deadline
+  currents decay): master heartbeat lost (0x1016; wall clock, or simulated time in
+  lockstep: 0x2205 time base, :mod:`plant.nmt`) 0x8130; RPDO deadline
   (0x14xx sub 5 event timer, counted in SYNC periods of simulated time) 0x8250; RPDO of
   wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310; over-speed
   (|ω| beyond w_max, 0x2201 sub 9, power stage on) 0x8400; a non-finite model state or
@@ -476,6 +477,8 @@ class DriveDevice:
         if can_id == NMT_ID:
             nmt.on_command(data)
         elif state is NmtState.OPERATIONAL and can_id == self.pdo.sync_id:
+            if len(data) <= 1:
+                nmt.on_sync(self.pdo.period)
             self._on_sync(data)
         elif state is NmtState.OPERATIONAL and can_id in self.pdo.rpdos:
             self._on_rpdo(self.pdo.rpdos[can_id], data)

@@ -9,8 +9,13 @@ node id << 16 | time in ms) watches another node's heartbeat.
 
 This emulator: the state is a :class:`dbc.cia301.NmtState`; the device's
 reactions to the commands are callbacks (the PDO runtime, the resets); the consumer is
-armed by the first heartbeat received after (re)configuration and, on its timeout (wall
-clock), calls ``heartbeat_lost``. Time is ``time.monotonic()``.
+armed by the first heartbeat received after (re)configuration and, on its timeout, calls
+``heartbeat_lost``. Its time is the device's time base (0x2205, :class:`dbc.timing.TimeBase`):
+the wall clock (``time.monotonic()``), as a real device's; or, in lockstep, the simulated
+time that SYNCs advance (:meth:`NmtSlave.on_sync`), checked at each SYNC, so that a run
+gives the same result on an idle and on a loaded host. Then the wall clock is only a
+backstop for a master that stopped altogether: no heartbeat and no SYNC for
+:data:`dbc.timing.LOCKSTEP_BACKSTOP_S` (or the consumer time if longer).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from collections.abc import Callable
 from typing import Any
 
 from dbc.cia301 import HEARTBEAT_BASE, NmtCommand, NmtState
+from dbc.timing import LOCKSTEP_BACKSTOP_S, TimeBase
 from plant import od as odm
 
 log = logging.getLogger(__name__)
@@ -59,7 +65,18 @@ class NmtSlave:
         self._hb_period = 0.0
         self._hb_next = 0.0
         self.hb_consumer: tuple[int, float] | None = None  #: (COB-ID, timeout s)
-        self._hb_deadline: float | None = None
+        self._hb_deadline: float | None = None  # wall clock (the backstop in lockstep)
+        self._sim = 0.0  # simulated time: SYNC periods seen, s
+        self._hb_sim: float | None = None  # simulated time of the last consumed heartbeat
+
+    @property
+    def time_base(self) -> TimeBase:
+        """0x2205: the consumer's time (wall clock unless the master set SYNC)."""
+        return TimeBase(self._values.get((odm.TIME_BASE, 0), 0))
+
+    def _wall_limit(self, timeout: float) -> float:
+        return (timeout if self.time_base is TimeBase.WALL
+                else max(timeout, LOCKSTEP_BACKSTOP_S))
 
     def boot(self) -> None:
         """Boot-up message, then PRE-OPERATIONAL (CiA 301)."""
@@ -75,7 +92,7 @@ class NmtSlave:
         entry = self._values[(0x1016, 1)]
         node, ms = (entry >> 16) & 0xFF, entry & 0xFFFF
         self.hb_consumer = (HEARTBEAT_BASE + node, ms / 1000.0) if node and ms else None
-        self._hb_deadline = None  # armed by the next heartbeat received
+        self._hb_deadline = self._hb_sim = None  # armed by the next heartbeat received
         self._wake.set()
 
     def on_command(self, data: bytes) -> None:
@@ -103,10 +120,27 @@ class NmtSlave:
             self.boot()
 
     def on_heartbeat(self) -> None:
-        """The consumed heartbeat arrived: (re)arm its deadline."""
+        """The consumed heartbeat arrived: (re)arm its deadlines."""
         assert self.hb_consumer is not None
-        self._hb_deadline = time.monotonic() + self.hb_consumer[1]
+        self._hb_deadline = time.monotonic() + self._wall_limit(self.hb_consumer[1])
+        self._hb_sim = self._sim
         self._wake.set()
+
+    def on_sync(self, period: float) -> None:
+        """A SYNC (before the cycle it opens): in SYNC time base the simulated time advances
+        by ``period``; the master's heartbeat is lost when none came within the consumer
+        time of simulated time, and the SYNC itself keeps the wall-clock backstop off."""
+        if self.time_base is TimeBase.WALL:
+            return
+        self._sim += period
+        if self._hb_sim is None or self.hb_consumer is None:
+            return
+        timeout = self.hb_consumer[1]
+        if self._sim - self._hb_sim > timeout * (1 + 1e-9):
+            self._hb_deadline = self._hb_sim = None
+            self._heartbeat_lost()
+        else:
+            self._hb_deadline = time.monotonic() + self._wall_limit(timeout)
 
     def timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""

@@ -53,6 +53,7 @@ DRIVE = 0x2201  #: u_dc, i_trip, current_loop_bw, i_offset_a/b, i_gain_error, i_
 MODEL = 0x2202  #: 0 ideal current source, 1 PI current loop
 RPDO_APPLY = 0x2203  #: 0 at the next SYNC (delay 1), 1 on receipt (delay 0)
 SEED = 0x2204
+TIME_BASE = 0x2205  #: dbc.timing.TimeBase: 0 wall clock, 1 SYNC (lockstep)
 ACCOUNT = 0x2300
 ACCOUNT_CLEAR = 0x2301
 MOTOR_SUBS = ("J", "R_s", "R_r", "L_s", "L_r", "M")
@@ -70,6 +71,7 @@ REAL32_LIMITS: dict[Key, tuple[float, float]] = {
 }
 #: Written only in PRE-OPERATIONAL (emulator parameters and communication setup).
 PREOP_ONLY = frozenset({0x1005, 0x1006, 0x1014, 0x1019, MOTOR, DRIVE, MODEL, RPDO_APPLY, SEED,
+                        TIME_BASE,
                         0x6060, *range(0x1400, 0x1403), *range(0x1600, 0x1603),
                         *range(0x1800, 0x1803), *range(0x1A00, 0x1A03)})
 #: Whose change requires rebuilding the drive model.

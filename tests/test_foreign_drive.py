@@ -8,6 +8,8 @@ from __future__ import annotations
 import itertools
 import json
 import re
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -119,3 +121,88 @@ def test_a_load_the_drive_cannot_apply_is_named(foreign, tmp_path, caplog):
     channel, profile = without_load_signal(42)
     rc, s = _run(channel, profile, tmp_path / "y", "--duration", "0.3s")
     assert rc == 0 and "load torque" not in " ".join(s["configuration_notes"])
+
+
+# ------------------------------------------------- the foreign-SYNC rule without a counter
+
+
+@pytest.mark.timing
+def test_sync_jitter_without_a_counter_is_not_a_foreign_sync(foreign, tmp_path, monkeypatch):
+    """Real time against a drive without 0x1019 (no SYNC counter): every 7th SYNC held up
+    by 0.8 of a period, so the next comes 0.2 of a period after it, as a loaded host does.
+    That is jitter, not another producer: the count of SYNCs says so."""
+    from gateway.loop import CycleLoop
+
+    real = CycleLoop._sync_message
+    period = 0.004
+    held = []
+
+    def jittered(self, k):
+        if self._sync_thread is not None and k % 7 == 0:
+            held.append(k)
+            time.sleep(0.8 * period)
+        return real(self, k)
+
+    monkeypatch.setattr(CycleLoop, "_sync_message", jittered)
+    _drive, channel, profile = foreign(42)
+    rc, s = _run(channel, profile, tmp_path / "run", "--timing", "realtime", "--period", "4ms",
+                 "--duration", "0.5s", "--max-miss-rate", "1")
+    assert len(held) > 10
+    assert s["run"]["stop"] != "FOREIGN_SYNC", s["run"]
+    assert rc == 0, s["run"]
+
+
+@pytest.mark.timing
+def test_another_sync_producer_without_a_counter_is_named_by_count(foreign, tmp_path):
+    """A second producer sending SYNC at the same rate: stopped as FOREIGN_SYNC, and the
+    message says the count is the evidence."""
+    import can
+
+    _drive, channel, profile = foreign(42)
+    stop = threading.Event()
+
+    def other_producer():
+        with can.Bus(interface="virtual", channel=channel) as bus:
+            while not stop.wait(0.004):
+                bus.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+
+    th = threading.Thread(target=other_producer, daemon=True)
+    th.start()
+    try:
+        rc, s = _run(channel, profile, tmp_path / "run", "--timing", "realtime", "--period",
+                     "4ms", "--duration", "2s", "--max-miss-rate", "1")
+    finally:
+        stop.set()
+        th.join(5)
+    assert rc == 1
+    assert s["run"]["stop"] == "FOREIGN_SYNC", s["run"]
+    assert "by count" in s["run"]["stop_reason"]
+
+
+def test_foreign_sync_rule_by_counter_data_and_count():
+    """The rule alone: with a counter by the counter; without one, a SYNC with data is
+    another's, and the k-th SYNC is ours while the producer can have sent k."""
+    from types import SimpleNamespace
+
+    from gateway.loop import FOREIGN_SYNC_SLACK, CycleLoop, LoopConfig, Timing
+
+    def loop(**kw):
+        cfg = LoopConfig(n_cycles=10, timing=kw.pop("timing", Timing.REALTIME),
+                         sync_counter=kw.pop("counter", False))
+        state = {"_T": 1e-3, "_syncs_sent": 0, "_sync_thread": None,
+                 "_producer_start": time.time(), **kw}
+        return SimpleNamespace(cfg=cfg, **state)
+
+    rule = CycleLoop._foreign_sync
+    with_counter = loop(counter=True)
+    assert rule(with_counter, 3, b"\x03") == ""
+    assert "by the SYNC counter" in rule(with_counter, 3, b"\x07")
+    assert "by its data" in rule(loop(), 1, b"\x01")
+    thread = loop(_sync_thread=object(), _syncs_sent=5)
+    assert rule(thread, 5 + FOREIGN_SYNC_SLACK, b"") == ""
+    assert "by count" in rule(thread, 6 + FOREIGN_SYNC_SLACK, b"")
+    kernel = loop(_producer_start=time.time() - 0.0105)  # 11 SYNCs by now at most
+    assert rule(kernel, 11, b"") == ""
+    assert "by count" in rule(kernel, 40, b"")
+    lockstep = loop(timing=Timing.LOCKSTEP, _syncs_sent=4)
+    assert rule(lockstep, 4, b"") == "" and "by count" in rule(lockstep, 5, b"")

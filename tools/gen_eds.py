@@ -213,6 +213,8 @@ def _objects() -> list[Obj]:
     var(0x2203, "RPDO apply", UNSIGNED8, "rw", "0", high="1",
         desc="0 at the next SYNC (delay 1), 1 on receipt (delay 0)")
     var(0x2204, "Noise seed", UNSIGNED32, "rw", str(d.seed))
+    var(0x2205, "Time base", UNSIGNED8, "rw", "0", high="1",
+        desc="supervision time: 0 wall clock, 1 SYNC (lockstep: simulated time)")
     rec(0x2300, "Account", RECORD, {
         0: Var("Highest sub-index supported", UNSIGNED8, "ro", "3"),
         1: Var("cycles", UNSIGNED32, "ro", "0", desc="SYNC cycles simulated"),
