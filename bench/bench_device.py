@@ -1,14 +1,22 @@
 """Lockstep throughput of the emulated drive alone on python-can's virtual bus.
 
 Run: .venv/bin/python bench/bench_device.py [--cycles 3000] [--repeats 5] [--mode current-loop]
-     [--profile]
+     [--profile] [--quick] [--json [FILE]]
 
 A minimal master (raw python-can, no python-canopen in the loop) configures the device by
 SDO, enables it, starts it, then repeats: send SYNC, wait for the last TPDO (TPDO3), send
 RPDO1..3. Cycle period 1 ms (0x1006), current loop at f_pwm = 10 kHz (10 internal steps per
 cycle). Prints the median cycles/s over the repeats and the ratio to real time
 (target ≥ 5000 cycles/s, i.e. ≥ 5× real time). ``--profile`` adds one run with cProfile
-around the device's per-SYNC path (it runs in the device's receiver thread).
+around the device's per-SYNC path (it runs in the device's receiver thread). ``--quick``:
+500 cycles x 2.
+
+A run that fails (no TPDO3 within 1 s, an SDO abort, cycles missing or a fault in the
+device's account) is a failed measurement: ``FAILED: <reason>`` in place of its figure,
+exit status 1 (bench/_common.py); so is a missed target. ``--json`` keys: ``mode``,
+``cycles``, ``repeats``, ``virtual_cycles_per_s`` and ``inprocess_cycles_per_s`` (medians),
+``virtual_cycles_per_s_runs``, ``inprocess_cycles_per_s_runs``, ``target_cycles_per_s``,
+``failed`` (with ``warm-up`` and ``profile``, null, when those runs fail).
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ import struct
 import time
 
 import can
+from _common import Figures, RunError, add_json_option, failed_text, the_run
 
 from dbc import load_codec
 from gateway.transport import InProcessChannel
@@ -90,7 +99,12 @@ class Master:
 
 def one_run(cycles: int, mode: str, profile: bool = False, transport: str = "virtual"
             ) -> float:
-    """Cycles per second of one fresh device."""
+    """Cycles per second of one fresh device; RunError when the run fails."""
+    with the_run():
+        return _one_run(cycles, mode, profile, transport)
+
+
+def _one_run(cycles: int, mode: str, profile: bool, transport: str) -> float:
     if transport == "virtual":
         channel = f"bench-device-{time.monotonic_ns()}"
         mbus = can.Bus(interface="virtual", channel=channel)
@@ -117,7 +131,8 @@ def one_run(cycles: int, mode: str, profile: bool = False, transport: str = "vir
         m.nmt(0x01)
         elapsed = m.run(cycles)
         acc = dev.account()
-        assert acc["cycles"] == cycles and acc["fault_count"] == 0, acc
+        if acc["cycles"] != cycles or acc["fault_count"] != 0:
+            raise RunError(f"the device's account after {cycles} cycles: {acc}")
     finally:
         dev.stop()
         mbus.shutdown()
@@ -127,28 +142,56 @@ def one_run(cycles: int, mode: str, profile: bool = False, transport: str = "vir
     return cycles / elapsed
 
 
+def rates(cycles: int, mode: str, transport: str, repeats: int) -> list[float]:
+    out = []
+    for r in range(repeats):
+        with the_run(f"run {r + 1} of {repeats}"):
+            out.append(one_run(cycles, mode, transport=transport))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--cycles", type=int, default=3000)
-    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--cycles", type=int, help="cycles per run (3000; --quick 500)")
+    p.add_argument("--repeats", type=int, help="runs per transport (5; --quick 2)")
+    p.add_argument("--quick", action="store_true", help="500 cycles x 2 (unless given)")
     p.add_argument("--mode", default="current-loop", choices=("ideal", "current-loop",
                                                               "voltage"))
     p.add_argument("--profile", action="store_true")
+    add_json_option(p)
     args = p.parse_args(argv)
-    one_run(200, args.mode)  # warm-up
+    cycles = args.cycles if args.cycles is not None else 500 if args.quick else 3000
+    repeats = args.repeats if args.repeats is not None else 2 if args.quick else 5
+    fig = Figures(mode=args.mode, cycles=cycles, repeats=repeats, target_cycles_per_s=TARGET)
+    try:
+        one_run(200, args.mode)  # warm-up
+    except RunError as exc:
+        fig.fail("warm-up", str(exc))
+        print(f"bench_device: warm-up run of 200 cycles: {failed_text(str(exc))}")
     ok = True
     for transport in ("virtual", "inprocess"):  # interleaved repeats: same machine load
-        rates = [one_run(args.cycles, args.mode, transport=transport)
-                 for _ in range(args.repeats)]
-        med = statistics.median(rates)
+        name = f"{transport}_cycles_per_s"
+        runs = fig.measure(f"{name}_runs", rates, cycles, args.mode, transport, repeats)
+        head = (f"bench_device [{transport}]: mode {args.mode}, 1 ms cycle, f_pwm 10 kHz, "
+                f"{cycles} cycles x {repeats}:")
+        if runs is None:
+            fig.fail(name, fig.failed[f"{name}_runs"])
+            print(f"{head} {failed_text(fig.failed[name])}")
+            continue
+        med = fig.put(name, statistics.median(runs))
         ok = ok and (med >= TARGET or transport != "virtual")
-        print(f"bench_device [{transport}]: mode {args.mode}, 1 ms cycle, f_pwm 10 kHz, "
-              f"{args.cycles} cycles x {args.repeats}: median {med:.0f} cycles/s (min "
-              f"{min(rates):.0f}, max {max(rates):.0f}) = {med / 1000:.1f}x real time; target "
-              f"{TARGET:.0f}: {'met' if med >= TARGET else 'MISSED'}")
+        print(f"{head} median {med:.0f} cycles/s (min {min(runs):.0f}, max {max(runs):.0f}) = "
+              f"{med / 1000:.1f}x real time; target {TARGET:.0f}: "
+              f"{'met' if med >= TARGET else 'MISSED'}")
     if args.profile:
-        one_run(args.cycles, args.mode, profile=True)
-    return 0 if ok else 1
+        try:
+            one_run(cycles, args.mode, profile=True)
+        except RunError as exc:
+            fig.fail("profile", str(exc))
+            print(f"bench_device: profiled run: {failed_text(str(exc))}")
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status(ok)
 
 
 if __name__ == "__main__":

@@ -42,6 +42,15 @@ inverse-Γ ones (L_σ = L_s − M²/L_r, L_M = M²/L_r, R_R = R_r·(M/L_r)²) an
 Not the same: the control laws (rates, bandwidths, observer) differ, as named above; the
 work per simulated second is what is compared, both sides holding the same operating
 point (each run checks it at the end).
+
+A run that fails (an exception from either simulator, the operating point lost) is a failed
+measurement for its side: ``FAILED: <reason>`` in its row, the other sides go on, exit
+status 1 (bench/_common.py). motulator not installed is not a failure (ours only).
+``--json [FILE]`` keys: ``python``, ``t_sim_s``, ``repeats``, ``motulator`` (its version or
+null), ``motulator_note`` (why not, or ""), ``ours_x_real_time`` (median sim s / wall s),
+``ours_x_real_time_runs``; per motulator configuration ``<c>`` (``motulator_250us_ZOH``,
+``motulator_125us_PWM``) ``<c>_x_real_time``, ``<c>_x_real_time_runs``, ``<c>_ours_over_it``,
+``<c>_points_per_sim_s``; and ``failed``.
 """
 
 from __future__ import annotations
@@ -55,6 +64,7 @@ import textwrap
 import time
 from typing import Any
 
+from _common import Figures, RunError, add_json_option, failed_text, the_run
 from bench_plant import operating_point, run_once
 
 from dbc.motor import MotorParams
@@ -129,22 +139,23 @@ def run_motulator(t_sim: float, T_s: float, carrier: bool) -> tuple[float, float
     """(wall s, simulated s, solver points stored) for one motulator run over t_sim."""
     import numpy as np
 
-    sim, expect = build_motulator(T_s, carrier)
-    t0 = time.perf_counter()
-    sim.simulate(t_stop=t_sim)
-    wall = time.perf_counter() - t0
-    mdl = sim.mdl
-    t_done = float(mdl.t0)  # its loop runs while t0 <= t_stop: slightly past t_sim
-    i_end = complex(mdl.machine.i_ss)
-    w_end = float(np.real(mdl.mechanics.state.w_M))
-    if t_done < 0.99 * t_sim or abs(abs(i_end) - expect["i_abs"]) > 0.05 * expect["i_abs"] or (
-        abs(w_end - expect["w_m"]) > 0.05 * abs(expect["w_m"])
-    ):
-        raise SystemExit(
-            f"bench: motulator lost the operating point (t = {t_done:.4f} s, "
+    with the_run("motulator"):
+        sim, expect = build_motulator(T_s, carrier)
+        t0 = time.perf_counter()
+        sim.simulate(t_stop=t_sim)
+        wall = time.perf_counter() - t0
+        mdl = sim.mdl
+        t_done = float(mdl.t0)  # its loop runs while t0 <= t_stop: slightly past t_sim
+        i_end = complex(mdl.machine.i_ss)
+        w_end = float(np.real(mdl.mechanics.state.w_M))
+        points = len(mdl.sol_t)
+    if not (t_done >= 0.99 * t_sim and abs(abs(i_end) - expect["i_abs"]) <= 0.05 * expect["i_abs"]
+            and abs(w_end - expect["w_m"]) <= 0.05 * abs(expect["w_m"])):
+        raise RunError(
+            f"motulator lost the operating point (t = {t_done:.4f} s, "
             f"|i_s| = {abs(i_end):.3f} A, w_m = {w_end:.2f} rad/s)"
         )
-    return wall, t_done, len(mdl.sol_t)
+    return wall, t_done, points
 
 
 # ---- main ----------------------------------------------------------------------------------
@@ -172,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="motulator: only this sampling period, s (default: both configs)")
     ap.add_argument("--carrier", action="store_true",
                     help="motulator: with --T-s, carrier comparison instead of its default ZOH")
+    add_json_option(ap)
     args = ap.parse_args(argv)
     t_sim, repeats = (0.1, 3) if args.quick else (0.5, 5)
     t_sim = args.t_sim if args.t_sim is not None else t_sim
@@ -195,11 +207,14 @@ def main(argv: list[str] | None = None) -> int:
         mver = None
 
     wrap = textwrap.TextWrapper(width=100, subsequent_indent="  ").fill
+    python = sys.version.split()[0]
     print(f"{t_sim:g} s simulated per run, median of {repeats} runs per side, the sides "
-          f"run alternately (Python {sys.version.split()[0]})")
+          f"run alternately (Python {python})")
     print(wrap("operating point (both): paper's 0.6 kW motor, i_dq = 4+2j A, frame 100 rad/s, "
                "load balancing, u_dc = 560 V, started in steady state, checked at the end"))
     print(wrap(OURS_WHAT.format(f=args.f_pwm / 1e3, h=1e6 / args.f_pwm, T=args.T * 1e3)))
+    fig = Figures(python=python, t_sim_s=t_sim, repeats=repeats, motulator=mver,
+                  motulator_note="" if mver else why)
     if mver is None:
         print(f"motulator: {why} for the side-by-side comparison (ours only below)")
         configs = []
@@ -214,28 +229,75 @@ def main(argv: list[str] | None = None) -> int:
     def label(T_s: float, carrier: bool) -> str:
         return f"motulator {T_s * 1e6:g}us {'PWM' if carrier else 'ZOH'}"
 
-    run_ours(min(t_sim, 0.01), args.T, args.f_pwm)  # warm-up
-    for T_s, carrier in configs:
-        run_motulator(min(t_sim, 0.01), T_s, carrier)
+    def key(c: tuple[float, bool]) -> str:
+        return label(*c).replace(" ", "_")
+
+    def fail(side: str, why: str) -> None:
+        """The side (``ours`` or a configuration's key) failed: its figures with it."""
+        names = [f"{side}_x_real_time", f"{side}_x_real_time_runs"]
+        if side != "ours":
+            names += [f"{side}_ours_over_it", f"{side}_points_per_sim_s"]
+        fig.fail(names, why)
+
+    def warm_up(side: str, fn, *a) -> bool:
+        try:
+            fn(*a)
+        except RunError as exc:
+            fail(side, f"warm-up: {exc}")
+            return False
+        return True
+
+    ours_ok = warm_up("ours", run_ours, min(t_sim, 0.01), args.T, args.f_pwm)
+    theirs: dict[tuple[float, bool], list[float]] = {
+        c: [] for c in configs if warm_up(key(c), run_motulator, min(t_sim, 0.01), *c)}
     ours: list[float] = []
-    theirs: dict[tuple[float, bool], list[float]] = {c: [] for c in configs}
     points: dict[tuple[float, bool], int] = {}
-    for _ in range(repeats):
-        wall, sim_t = run_ours(t_sim, args.T, args.f_pwm)
-        ours.append(sim_t / wall)
-        for c in configs:
-            wall, sim_t, points[c] = run_motulator(t_sim, *c)
+    for r in range(repeats):
+        if ours_ok:
+            try:
+                wall, sim_t = run_ours(t_sim, args.T, args.f_pwm)
+                ours.append(sim_t / wall)
+            except RunError as exc:
+                fail("ours", f"run {r + 1} of {repeats}: {exc}")
+                ours_ok = False
+        for c in list(theirs):
+            try:
+                wall, sim_t, points[c] = run_motulator(t_sim, *c)
+            except RunError as exc:
+                fail(key(c), f"run {r + 1} of {repeats}: {exc}")
+                del theirs[c]
+                continue
             theirs[c].append(sim_t / wall)
 
-    m_ours = statistics.median(ours)
+    m_ours = statistics.median(ours) if ours_ok else None
     print(f"{'side':<24}{'sim s/wall s (median)':>22}{'min':>8}{'max':>8}"
           f"{'ours/it':>9}{'points/sim s':>14}")
-    print(f"{'ours':<24}{m_ours:>22.3f}{min(ours):>8.3f}{max(ours):>8.3f}{'':>9}{'':>14}")
-    for c, xs in theirs.items():
+    if m_ours is None:
+        print(f"{'ours':<24}  {failed_text(fig.failed['ours_x_real_time'])}")
+    else:
+        fig.put("ours_x_real_time", m_ours)
+        fig.put("ours_x_real_time_runs", ours)
+        print(f"{'ours':<24}{m_ours:>22.3f}{min(ours):>8.3f}{max(ours):>8.3f}{'':>9}{'':>14}")
+    for c in configs:
+        k = key(c)
+        if c not in theirs:
+            print(f"{label(*c):<24}  {failed_text(fig.failed[f'{k}_x_real_time'])}")
+            continue
+        xs = theirs[c]
         m = statistics.median(xs)
+        fig.put(f"{k}_x_real_time", m)
+        fig.put(f"{k}_x_real_time_runs", xs)
+        if m_ours is None:
+            fig.fail(f"{k}_ours_over_it", f"ours: {fig.failed['ours_x_real_time']}")
+        else:
+            fig.put(f"{k}_ours_over_it", m_ours / m)
+        fig.put(f"{k}_points_per_sim_s", points[c] / t_sim)
+        ratio = "" if m_ours is None else f"{m_ours / m:>8.1f}x"
         print(f"{label(*c):<24}{m:>22.3f}{min(xs):>8.3f}{max(xs):>8.3f}"
-              f"{m_ours / m:>8.1f}x{points[c] / t_sim:>14.0f}")
-    return 0
+              f"{ratio:>9}{points[c] / t_sim:>14.0f}")
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status()
 
 
 if __name__ == "__main__":

@@ -8,6 +8,12 @@ frame at 100 rad/s, rated-ish load, voltage feedforward) in periods of T = 1 ms 
 f_pwm = 10 kHz. Printed: the median over the runs of simulated s per wall s (the ratio to
 real time) and µs per internal step. Target: >= 10x real time with the current loop, i.e.
 <= 10 µs per internal step in CPython. ``--check`` exits with status 1 below the target.
+
+A mode whose run fails (an exception from the drive model, the operating point lost) is a
+failed measurement: ``FAILED: <reason>`` in its row, exit status 1 (bench/_common.py).
+``--json [FILE]`` keys: ``python``, ``t_sim_s``, ``repeats``, per mode ``<mode>_x_real_time``
+and ``<mode>_us_per_step`` (modes ``ideal``, ``current-loop``, ``voltage``), ``target_met``
+(null when the current loop failed), ``failed``.
 """
 
 from __future__ import annotations
@@ -17,6 +23,8 @@ import cmath
 import statistics
 import sys
 import time
+
+from _common import Figures, RunError, add_json_option, the_run
 
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
@@ -39,23 +47,31 @@ def operating_point(motor: MotorParams) -> tuple[MotorState, Setpoints, float]:
 
 
 def run_once(mode: str, T: float, f_pwm: float, t_sim: float) -> float:
-    """Wall seconds to simulate t_sim seconds in periods of T."""
+    """Wall seconds to simulate t_sim seconds in periods of T; RunError when the drive
+    model raises or loses the operating point."""
     motor = MotorParams()
     state, sp, T_L = operating_point(motor)
-    drive = Drive(motor, DriveParams(mode=mode, f_pwm=f_pwm), state)  # type: ignore[arg-type]
-    drive.enable(True)
     n = round(t_sim / T)
     w_0 = sp.w_0
-    t0 = time.perf_counter()
-    for k in range(n):
-        drive.set_setpoints(Setpoints("dq", sp.i_s_ref, sp.u_s_ref, w_0 * k * T, w_0))
-        drive.advance(T, T_L)
-    wall = time.perf_counter() - t0
+    with the_run():
+        drive = Drive(motor, DriveParams(mode=mode, f_pwm=f_pwm), state)  # type: ignore[arg-type]
+        drive.enable(True)
+        t0 = time.perf_counter()
+        for k in range(n):
+            drive.set_setpoints(Setpoints("dq", sp.i_s_ref, sp.u_s_ref, w_0 * k * T, w_0))
+            drive.advance(T, T_L)
+        wall = time.perf_counter() - t0
+        i_s_ab = drive.state.i_s_ab
     # sanity: the operating point was held (a broken drive would be meaningless to time)
-    i_dq = drive.state.i_s_ab * cmath.exp(-1j * w_0 * n * T)
-    if abs(i_dq - sp.i_s_ref) > 0.05 * abs(sp.i_s_ref) and mode != "voltage":
-        raise SystemExit(f"bench: {mode}: the drive lost the operating point (i_dq = {i_dq})")
+    i_dq = i_s_ab * cmath.exp(-1j * w_0 * n * T)
+    if not abs(i_dq - sp.i_s_ref) <= 0.05 * abs(sp.i_s_ref) and mode != "voltage":
+        raise RunError(f"{mode}: the drive lost the operating point (i_dq = {i_dq:.4g})")
     return wall
+
+
+def median_wall(mode: str, T: float, f_pwm: float, t_sim: float, repeats: int) -> float:
+    run_once(mode, T, f_pwm, min(t_sim, 0.01))  # warm-up
+    return statistics.median(run_once(mode, T, f_pwm, t_sim) for _ in range(repeats))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,25 +80,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--T", type=float, default=1e-3, help="period per advance(), s")
     ap.add_argument("--f-pwm", type=float, default=10e3, help="internal rate, Hz")
     ap.add_argument("--check", action="store_true", help="exit 1 below the target")
+    add_json_option(ap)
     args = ap.parse_args(argv)
     t_sim, repeats = (0.05, 3) if args.quick else (0.2, 7)
     steps = round(t_sim * args.f_pwm)
+    python = sys.version.split()[0]
     print(f"plant.drive.Drive: T = {args.T * 1e3:g} ms, f_pwm = {args.f_pwm / 1e3:g} kHz, "
-          f"{t_sim:g} s simulated per run, median of {repeats} runs "
-          f"(Python {sys.version.split()[0]})")
+          f"{t_sim:g} s simulated per run, median of {repeats} runs (Python {python})")
     print(f"{'mode':<14}{'sim s / wall s':>16}{'us / step':>12}{'x real time':>13}")
-    ratios: dict[str, float] = {}
+    fig = Figures(python=python, t_sim_s=t_sim, repeats=repeats)
+
+    def measure(mode: str) -> dict[str, float]:
+        wall = median_wall(mode, args.T, args.f_pwm, t_sim, repeats)
+        return {f"{mode}_x_real_time": t_sim / wall, f"{mode}_us_per_step": wall / steps * 1e6}
+
     for mode in DriveMode:
-        run_once(mode, args.T, args.f_pwm, min(t_sim, 0.01))  # warm-up
-        walls = [run_once(mode, args.T, args.f_pwm, t_sim) for _ in range(repeats)]
-        wall = statistics.median(walls)
-        ratios[mode] = t_sim / wall
-        print(f"{mode:<14}{t_sim / wall:>16.1f}{wall / steps * 1e6:>12.2f}{t_sim / wall:>12.1f}x")
-    ok = ratios["current-loop"] >= TARGET_X_REAL_TIME
+        ratio_key, step_key = f"{mode}_x_real_time", f"{mode}_us_per_step"
+        if fig.measure_all([ratio_key, step_key], measure, mode) is None:
+            print(f"{mode:<14}{fig.show(ratio_key)}")
+            continue
+        ratio, us = fig.values[ratio_key], fig.values[step_key]
+        print(f"{mode:<14}{ratio:>16.1f}{us:>12.2f}{ratio:>12.1f}x")
+    ratio = fig.values["current-loop_x_real_time"]
+    ok = ratio is not None and ratio >= TARGET_X_REAL_TIME
+    fig.put("target_met", None if ratio is None else ok)
     print(f"target: >= {TARGET_X_REAL_TIME:g}x real time with the current loop "
           f"(<= {1e6 / (TARGET_X_REAL_TIME * args.f_pwm):g} us per internal step): "
-          f"{'met' if ok else 'NOT met'}")
-    return 0 if ok or not args.check else 1
+          f"{'not measured' if ratio is None else 'met' if ok else 'NOT met'}")
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status(ok or not args.check)
 
 
 if __name__ == "__main__":

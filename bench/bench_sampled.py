@@ -11,6 +11,13 @@ The simulations are deterministic: the figures do not depend on the machine.
 
 `--markdown` prints the README's results table instead (both designs, every metric).
 `--quick`: only the 1 ms rows.
+
+A simulation that fails (an exception from the run) is a failed measurement: ``FAILED:
+<reason>`` in place of its figures, the other configurations go on, exit status 1
+(bench/_common.py). ``--json [FILE]`` keys: ``"<configuration> [euler]"`` and
+``"<configuration> [exact]"`` (the continuous-time rows: ``[exact]`` only), each
+``{"rms", "max", "final"}`` of the speed error in rad/s or null; ``targets``
+(configuration -> target); ``failed``.
 """
 
 from __future__ import annotations
@@ -20,6 +27,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
+
+from _common import Figures, add_json_option, failed_text, the_run
 
 from dbc.motor import MotorParams
 from gateway import report
@@ -73,8 +82,20 @@ CONTINUOUS: tuple[Case, ...] = (
 
 
 def simulate(case: Case, discretisation: str) -> dict[str, Any]:
-    cfg = sim_config(**case.kw, discretisation=discretisation)
-    return report.metrics(run(paper_profile(), MotorParams.paper(), cfg).arrays())
+    """The run's metrics; RunError when it fails."""
+    with the_run():
+        cfg = sim_config(**case.kw, discretisation=discretisation)
+        return report.metrics(run(paper_profile(), MotorParams.paper(), cfg).arrays())
+
+
+def measure(fig: Figures, case: Case, discretisation: str) -> dict[str, Any] | None:
+    """The metrics of one configuration and design (None when its run failed); the speed
+    error's RMS, max and final as the figure ``"<label> [<design>]"``."""
+    name = f"{case.label} [{discretisation}]"
+    m = fig.measure(name, simulate, case, discretisation)
+    if m is not None:
+        fig.put(name, {k: m["speed_error"][k] for k in ("rms", "max", "final")})
+    return m
 
 
 def _g(x: float) -> str:
@@ -86,44 +107,61 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markdown", action="store_true",
                     help="print the README's results table (both designs, every metric)")
     ap.add_argument("--quick", action="store_true", help="only the 1 ms configurations")
+    add_json_option(ap)
     args = ap.parse_args(argv)
     cases = [c for c in CASES if c.quick or not args.quick]
     conts = [] if args.quick else list(CONTINUOUS)
+    fig = Figures(targets={c.label: c.target for c in (*cases, *conts)})
     t0 = time.perf_counter()
     results = []
     for case in cases:
-        results.append((case, simulate(case, "euler"), simulate(case, "exact")))
-    cont = [(case, simulate(case, "exact")) for case in conts]
+        results.append((case, measure(fig, case, "euler"), measure(fig, case, "exact")))
+    cont = [(case, measure(fig, case, "exact")) for case in conts]
     if args.markdown:
-        print(markdown(results, cont))
-        return 0
-    print("paper scenario, speed error ω − ω* in rad/s: euler (forward Euler) | exact "
-          "(sampled-data design)")
+        print(markdown(results, cont, fig))
+    else:
+        print(table(results, cont, fig))
+        print(f"({time.perf_counter() - t0:.1f} s)")
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status()
+
+
+def table(results, cont, fig: Figures) -> str:
+    lines = ["paper scenario, speed error ω − ω* in rad/s: euler (forward Euler) | exact "
+             "(sampled-data design)"]
     head = (f"{'configuration':58s} {'target RMS':>18s} | {'RMS':>8s} {'max':>8s} "
             f"{'final':>9s} | {'RMS':>8s} {'max':>8s} {'final':>9s}")
-    print(head)
-    print("-" * len(head))
-    for case, old, new in results:
-        o, n = old["speed_error"], new["speed_error"]
-        print(f"{case.label:58s} {case.target:>18s} | {o['rms']:8.3g} {o['max']:8.3g} "
-              f"{o['final']:9.2g} | {n['rms']:8.3g} {n['max']:8.3g} {n['final']:9.2g}")
-    for case, m in cont:
+    lines += [head, "-" * len(head)]
+
+    def cells(case: Case, design: str, m: dict[str, Any] | None) -> str:
+        if m is None:
+            return f"{failed_text(fig.failed[f'{case.label} [{design}]']):>27s}"
         e = m["speed_error"]
-        print(f"{case.label:58s} {case.target:>18s} | {'(the same: no sampling)':>27s} | "
-              f"{e['rms']:8.3g} {e['max']:8.3g} {e['final']:9.2g}")
-    print(f"({time.perf_counter() - t0:.1f} s)")
-    return 0
+        return f"{e['rms']:8.3g} {e['max']:8.3g} {e['final']:9.2g}"
+
+    for case, old, new in results:
+        lines.append(f"{case.label:58s} {case.target:>18s} | {cells(case, 'euler', old)} | "
+                     f"{cells(case, 'exact', new)}")
+    for case, m in cont:
+        lines.append(f"{case.label:58s} {case.target:>18s} | "
+                     f"{'(the same: no sampling)':>27s} | {cells(case, 'exact', m)}")
+    return "\n".join(lines)
 
 
-def markdown(results, cont) -> str:
-    """The README's results table: one row per configuration and design."""
+def markdown(results, cont, fig: Figures | None = None) -> str:
+    """The README's results table: one row per configuration and design (a failed run:
+    FAILED and its reason in the row)."""
     lines = [
         "| configuration | design | speed error max | RMS | final | flux error max | "
         "estimation error max | peak i | peak u |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
 
-    def row(label: str, design: str, m: dict[str, Any]) -> str:
+    def row(label: str, design: str, m: dict[str, Any] | None, key: str = "exact") -> str:
+        if m is None:
+            why = fig.failed.get(f"{label} [{key}]", "") if fig is not None else ""
+            return f"| {label} | {design} | {failed_text(why)} |" + " |" * 6
         s, f, e = m["speed_error"], m["flux_error"], m["estimation_error"]
         return (f"| {label} | {design} | {_g(s['max'])} | {_g(s['rms'])} | "
                 f"{s['final']:.2g} | {_g(f['max'])} | {_g(e['max'])} | "
@@ -132,7 +170,7 @@ def markdown(results, cont) -> str:
     for case, m in cont:
         lines.append(row(case.label, "—", m))
     for case, old, new in results:
-        lines.append(row(case.label, "euler", old))
+        lines.append(row(case.label, "euler", old, "euler"))
         lines.append(row(case.label, "**exact**", new))
     return "\n".join(lines)
 

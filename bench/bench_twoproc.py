@@ -20,6 +20,14 @@ drive's RPDO deadline (0x1400.5) and heartbeat consumer (0x1016) off and the gat
 watch on the drive's heartbeat at 5 s: where the two processes cannot keep up with 1 ms
 (the UML sandbox: one CPU) the drive otherwise trips (EMCY 0x8250 or 0x8130) and ends the
 run within seconds, and the figures would describe only that.
+
+A run that does not complete (`hil-plant` that does not start, `hil-gateway` without a
+summary.json, a timeout, or a stop reason other than the end of the profile, e.g. the drive
+tripped) is a failed measurement: ``FAILED: <reason>`` (the real-time figures up to the stop
+are still printed), the other measurements go on, exit status 1 (bench/_common.py).
+``--json [FILE]`` (one line on stdout, or FILE): ``where``, ``deadlines``, ``realtime``
+({"run", "timing", "plant"}) or null (then ``realtime_until_stop``: the same up to the stop,
+where the run got that far), ``lockstep_cycles_per_s`` (the runs) or null, ``failed``.
 """
 
 from __future__ import annotations
@@ -35,6 +43,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _common import Figures, RunError, add_json_option, failed_text, require_completed, the_run
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -73,7 +83,7 @@ class Plant:
         while not self.out.read_text().strip():
             if self.p.poll() is not None or time.monotonic() > deadline:
                 self.stop()
-                raise SystemExit(f"hil-plant did not start: {self.err.read_text()[-2000:]}")
+                raise RunError(f"hil-plant did not start: {_tail(self.err)}")
             time.sleep(0.05)
 
     def stop(self) -> str:
@@ -89,45 +99,37 @@ class Plant:
         return lines[-1] if len(lines) > 1 else ""
 
 
+def _tail(path: Path, lines: int = 3) -> str:
+    """The last lines of a log, on one line."""
+    try:
+        text = path.read_text(errors="replace").strip().splitlines()[-lines:]
+    except OSError as exc:
+        return f"({path}: {exc.strerror or exc})"
+    return " | ".join(text) or f"(nothing in {path.name})"
+
+
 def gateway(channel: str, out: Path, logdir: Path, *args: str, timeout: float) -> dict:
+    """The run's summary.json, however the run ended; RunError without one."""
     cmd = [*_cmd("hil-gateway", "gateway"), "run", "-i", "socketcan", "-c", channel,
            "--out", str(out), *args]
-    with open(logdir / "gateway.out", "wb") as fo, open(logdir / "gateway.err", "wb") as fe:
-        p = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=fo, stderr=fe, cwd=REPO,
-                           timeout=timeout, check=False)
-    if not (out / "summary.json").exists():
-        raise SystemExit(f"hil-gateway failed ({p.returncode}): "
-                         f"{(logdir / 'gateway.err').read_text()[-2000:]}")
-    if p.returncode != 0:  # e.g. the drive tripped: the figures up to then still count
-        print(f"hil-gateway exit {p.returncode}: "
-              f"{(logdir / 'gateway.err').read_text().strip().splitlines()[-1:]}")
-    return json.loads((out / "summary.json").read_text())
+    with the_run("hil-gateway"):
+        with open(logdir / "gateway.out", "wb") as fo, open(logdir / "gateway.err", "wb") as fe:
+            p = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=fo, stderr=fe, cwd=REPO,
+                               timeout=timeout, check=False)
+        if not (out / "summary.json").exists():
+            raise RunError(f"exit {p.returncode}, no summary.json: "
+                           f"{_tail(logdir / 'gateway.err')}")
+        if p.returncode != 0:
+            print(f"hil-gateway exit {p.returncode}: {_tail(logdir / 'gateway.err', 1)}")
+        return json.loads((out / "summary.json").read_text())
 
 
 def us(x: float) -> str:
     return f"{x * 1e6:.0f} µs"
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("-c", "--channel", default="vcan0")
-    ap.add_argument("--seconds", type=float, default=60.0, help="real-time run length (60)")
-    ap.add_argument("--period", default="1ms")
-    ap.add_argument("--repeats", type=int, default=3, help="lockstep runs (3; 0: none)")
-    ap.add_argument("--quick", action="store_true", help="10 s of real time, 1 lockstep run")
-    ap.add_argument("--out", type=Path, help="keep the run directories here")
-    ap.add_argument("--json", type=Path, help="write the figures here as JSON")
-    ap.add_argument("--no-deadlines", action="store_true",
-                    help="real-time run with the drive's deadlines off (see above)")
-    args = ap.parse_args()
-    if args.quick:
-        args.seconds, args.repeats = 10.0, 1
-    root = args.out or Path(tempfile.mkdtemp(prefix="bench-twoproc-"))
-    root.mkdir(parents=True, exist_ok=True)
-    print(f"two processes on socketcan:{args.channel}; {where()}; runs under {root}")
-    result: dict = {"where": where(), "deadlines": not args.no_deadlines}
-
-    # ------------------------------------------------------------------ real time
+def realtime(args: argparse.Namespace, root: Path) -> tuple[dict, str]:
+    """(summary, the emulator's account line) of the real-time run, however it ended."""
     d = root / "realtime"
     d.mkdir(exist_ok=True)
     extra: list[str] = []
@@ -140,15 +142,19 @@ def main() -> int:
             drive = drive.replace(old, new)
         (d / "drive.toml").write_text(drive)
         extra = ["--drive", str(d / "drive.toml")]
-    pl = Plant(args.channel, d)
-    try:
-        s = gateway(args.channel, d / "run", d, "--timing", "realtime", "--period", args.period,
-                    "--duration", f"{args.seconds:g}s", "--max-missed", "1000000", *extra,
-                    timeout=args.seconds * 3 + 300)
-    finally:
-        account = pl.stop()
-    r, t = s["run"], s["timing"]
-    result["realtime"] = {"run": r, "timing": t, "plant": account}
+    with the_run():
+        pl = Plant(args.channel, d)
+        try:
+            s = gateway(args.channel, d / "run", d, "--timing", "realtime", "--period",
+                        args.period, "--duration", f"{args.seconds:g}s", "--max-missed",
+                        "1000000", *extra, timeout=args.seconds * 3 + 300)
+        finally:
+            account = pl.stop()
+        return s, account
+
+
+def print_realtime(args: argparse.Namespace, s: dict, account: str) -> None:
+    r, t = s["run"], s.get("timing", {})
     total = r["cycles"] + r["missed_cycles"]
     print(f"\nreal time, period {args.period}, {args.seconds:g} s, SYNC by the kernel's BCM"
           f"{', drive deadlines off' if args.no_deadlines else ''}:")
@@ -165,29 +171,76 @@ def main() -> int:
     for f in s.get("faults", []):
         print(f"  fault at {f['time']:.1f} s: {f['kind']} 0x{f['code'] or 0:04X} {f['text']}")
 
-    # ------------------------------------------------------------------ lockstep
+
+def lockstep(args: argparse.Namespace, root: Path) -> list[float]:
+    """Cycles/s of each lockstep run; RunError at the first that does not complete."""
     rates = []
     for k in range(args.repeats):
         d = root / f"lockstep{k}"
         d.mkdir(exist_ok=True)
-        pl = Plant(args.channel, d)
-        try:
-            s = gateway(args.channel, d / "run", d, "--timing", "lockstep", "--profile",
-                        "profiles/paper.toml", "--period", args.period, timeout=900)
-        finally:
-            pl.stop()
+        with the_run(f"lockstep run {k + 1} of {args.repeats}"):
+            pl = Plant(args.channel, d)
+            try:
+                s = gateway(args.channel, d / "run", d, "--timing", "lockstep", "--profile",
+                            "profiles/paper.toml", "--period", args.period, timeout=900)
+            finally:
+                pl.stop()
+            require_completed(s)
         r = s["run"]
         rates.append(r["cycles"] / r["wall_time_s"])
         print(f"lockstep run {k + 1}: {r['cycles']} cycles in {r['wall_time_s']:.2f} s = "
               f"{rates[-1]:.0f} cycles/s, reaction median "
               f"{us(s['timing']['reaction']['median'])}, p99 {us(s['timing']['reaction']['p99'])}")
-    result["lockstep_cycles_per_s"] = rates
-    if rates:
+    return rates
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-c", "--channel", default="vcan0")
+    ap.add_argument("--seconds", type=float, default=60.0, help="real-time run length (60)")
+    ap.add_argument("--period", default="1ms")
+    ap.add_argument("--repeats", type=int, default=3, help="lockstep runs (3; 0: none)")
+    ap.add_argument("--quick", action="store_true", help="10 s of real time, 1 lockstep run")
+    ap.add_argument("--out", type=Path, help="keep the run directories here")
+    add_json_option(ap)
+    ap.add_argument("--no-deadlines", action="store_true",
+                    help="real-time run with the drive's deadlines off (see above)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.seconds, args.repeats = 10.0, 1
+    root = args.out or Path(tempfile.mkdtemp(prefix="bench-twoproc-"))
+    root.mkdir(parents=True, exist_ok=True)
+    print(f"two processes on socketcan:{args.channel}; {where()}; runs under {root}")
+    fig = Figures(where=where(), deadlines=not args.no_deadlines)
+
+    # ------------------------------------------------------------------ real time
+    try:
+        s, account = realtime(args, root)
+    except RunError as exc:
+        fig.fail("realtime", f"real-time run: {exc}")
+        print(f"\nreal time, period {args.period}, {args.seconds:g} s: "
+              f"{failed_text(fig.failed['realtime'])}")
+    else:
+        print_realtime(args, s, account)
+        figures = {"run": s["run"], "timing": s.get("timing"), "plant": account}
+        try:
+            require_completed(s)
+            fig.put("realtime", figures)
+        except RunError as exc:
+            fig.fail("realtime", f"real-time run: {exc}")
+            fig.put("realtime_until_stop", figures)
+            print(f"  {failed_text(fig.failed['realtime'])}")
+
+    # ------------------------------------------------------------------ lockstep
+    rates = fig.measure("lockstep_cycles_per_s", lockstep, args, root)
+    if rates is None:
+        print(f"lockstep across two processes: {failed_text(fig.failed['lockstep_cycles_per_s'])}")
+    elif rates:
         print(f"lockstep across two processes: median {statistics.median(rates):.0f} cycles/s "
               f"({', '.join(f'{x:.0f}' for x in rates)})")
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-    return 0
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status()
 
 
 if __name__ == "__main__":

@@ -12,6 +12,13 @@ Columns are speed errors ω − ω* in rad/s: RMS over the run, max |·|, and th
 (last sample). "runaway" marks max |ω − ω*| > 50 rad/s. The PNG (``--png``, default
 ``runs/robustness.png``) shows |ω − ω*| over time per case. Nothing here is fixed in
 advance: every figure is simulated when the script runs (a few minutes on one core).
+
+A run that ends in a numerical error (a runaway) is "diverged", a result. A run that fails
+otherwise (another exception from the simulation) is a failed measurement: ``FAILED:
+<reason>`` in its cell, the other cases go on, exit status 1 (bench/_common.py).
+``--json [FILE]`` keys: ``"<block>: <row> / <controller>"`` for every case, each
+``{"rms", "max", "final", "runaway"}`` (speed error, rad/s; non-finite as "inf"/"nan") or
+null; ``runs``, ``seconds``, ``png`` (the figure written, or null); ``failed``.
 """
 
 from __future__ import annotations
@@ -27,6 +34,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _common import Figures, RunError, add_json_option, failed_text, the_run  # noqa: E402
 
 from dbc.motor import MotorParams  # noqa: E402
 from gateway.reference import load_profile, paper_profile  # noqa: E402
@@ -57,10 +66,16 @@ class Case:
     t: np.ndarray | None = None
     e: np.ndarray | None = None
     row: str = ""  # the table row, default the scenario
+    failed: str = ""  # why the run failed (not a divergence: an error), "" if it did not
 
     @property
     def runaway(self) -> bool:
-        return not self.max <= RUNAWAY
+        return not self.failed and not self.max <= RUNAWAY
+
+    @property
+    def name(self) -> str:
+        """The case's figure name: block, row, controller."""
+        return f"{self.block}: {self.row or self.scenario} / {self.controller}"
 
 
 def blocks() -> dict[str, list[Case]]:
@@ -129,9 +144,17 @@ def simulate(case: Case) -> Case:
         ROOT / "gateway" / "profiles" / f"{case.profile}.toml")
     cfg = sim_config(plant=resolve_scenario(case.scenario), **case.kw)
     try:
-        rec = run(prof, MotorParams(), cfg).arrays()
-    except (ValueError, OverflowError) as exc:  # a runaway may end in a numerical error
-        print(f"  {case.block}/{case.scenario}/{case.controller}: {exc}", file=sys.stderr)
+        with the_run():
+            try:
+                rec = run(prof, MotorParams(), cfg).arrays()
+            except (ValueError, OverflowError) as exc:  # a runaway may end in a numerical error
+                print(f"  {case.block}/{case.scenario}/{case.controller}: {exc}",
+                      file=sys.stderr)
+                return case
+    except RunError as exc:  # any other error: the run failed, not the controller
+        case.failed = str(exc)
+        print(f"  {case.block}/{case.scenario}/{case.controller}: {failed_text(case.failed)}",
+              file=sys.stderr)
         return case
     e = rec["w_m"] - rec["w_ref"]
     finite = np.isfinite(e)
@@ -161,6 +184,9 @@ def table(cases: list[Case], markdown: bool) -> str:
             c = by.get((s, k))
             if c is None:
                 row.append("")
+                continue
+            if c.failed:
+                row.append(failed_text(c.failed))
                 continue
             cell = f"{fmt(c.rms)} / {fmt(c.max)} / {fmt(c.final)}"
             row.append(cell + (" runaway" if c.runaway else ""))
@@ -233,24 +259,40 @@ def main(argv: list[str] | None = None) -> int:
                     help="run only this block (repeatable)")
     ap.add_argument("--png", default=str(ROOT / "runs" / "robustness.png"),
                     help="figure of |ω − ω*| per case (default runs/robustness.png)")
+    add_json_option(ap)
     args = ap.parse_args(argv)
     all_cases = {b: cs for b, cs in blocks().items() if not args.only or b in args.only}
+    fig = Figures()
     t0 = time.perf_counter()
     for b, cases in all_cases.items():
         for c in cases:
             simulate(c)
+            if c.failed:
+                fig.fail(c.name, c.failed)
+            else:
+                fig.put(c.name, {"rms": c.rms, "max": c.max, "final": c.final,
+                                 "runaway": c.runaway})
         title = TITLES[b]
         print(f"\n**{title}**\n" if args.markdown else f"\n{title}")
         print(table(cases, args.markdown), flush=True)
-    print(f"\n({sum(len(c) for c in all_cases.values())} runs, "
-          f"{time.perf_counter() - t0:.0f} s; speed errors ω − ω* in rad/s; sampled 1 ms, "
-          f"delay 1, (d, q) setpoints; 'runaway': max > {RUNAWAY:g} rad/s)")
+    runs, seconds = sum(len(c) for c in all_cases.values()), time.perf_counter() - t0
+    fig.put("runs", runs)
+    fig.put("seconds", seconds)
+    print(f"\n({runs} runs, {seconds:.0f} s; speed errors ω − ω* in rad/s; sampled 1 ms, "
+          f"delay 1, (d, q) setpoints; 'runaway': max > {RUNAWAY:g} rad/s"
+          f"{f'; {len(fig.failed)} FAILED' if fig.failed else ''})")
+    fig.put("png", None)
     try:
         plot(all_cases, Path(args.png))
         print(f"wrote {args.png}")
+        fig.put("png", args.png)
     except ImportError:
         print("(install matplotlib for the figure)")
-    return 0
+    except OSError as exc:
+        print(f"cannot write the figure to {args.png}: {exc.strerror or exc}")
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status()
 
 
 if __name__ == "__main__":

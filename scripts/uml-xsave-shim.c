@@ -26,7 +26,8 @@
  *
  * The host's layout is read once, when the library is loaded (CPUID per call made UML's
  * boot ten times slower). Built by scripts/vcan-run as a shared library; the padding is
- * xsave_pad(), exported for tests/test_xsave_shim.py. With UML_XSAVE_SHIM_REPORT=FILE it
+ * xsave_pad(), exported for tests/test_xsave_shim.py (with xsave_host_size() and, for the
+ * test only, xsave_xcr0() and xsave_layout_end()). With UML_XSAVE_SHIM_REPORT=FILE it
  * also appends one line per NT_X86_XSTATE call to FILE ("get|set IOV_LEN HOST_SIZE"),
  * which vcan-run uses once to learn UML's buffer size (a trial boot). For testing on a host
  * that does not need it, UML_XSAVE_SHIM_PAD_TO=N (N >= the host's size) pads every short
@@ -98,6 +99,44 @@ uint32_t xsave_host_size(void)
         return 0;
     __cpuid_count(0xD, 0, a, b, c, d);
     return b;
+}
+
+/* XCR0, the state components the OS has enabled, read with XGETBV (ECX = 0); 0 where the
+ * OS has not enabled XSAVE (CPUID.1:ECX.OSXSAVE clear: XGETBV would fault). */
+uint64_t xsave_xcr0(void)
+{
+    unsigned a, b, c, d, lo, hi;
+    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & bit_OSXSAVE))
+        return 0;
+    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+    return ((uint64_t)hi << 32) | lo;
+}
+
+/* The end of the host's XSAVE image in the standard format, worked out from the layout
+ * rather than taken from CPUID.(EAX=0xD,ECX=0).EBX: the largest offset + size (CPUID 0xD
+ * sub-leaf i: EBX, EAX) over the user state components i >= 2 enabled in XCR0 (XGETBV),
+ * and at least the legacy area and the XSAVE header (x87 and SSE live there: 576 bytes).
+ * Not used by the shim; tests/test_xsave_shim.py checks xsave_host_size() against it on
+ * whatever host it runs. 0 without XSAVE enabled by the OS. */
+uint32_t xsave_layout_end(void)
+{
+    unsigned a, b, c, d;
+    if (__get_cpuid_max(0, NULL) < 0xD)
+        return 0;
+    uint64_t xcr0 = xsave_xcr0();
+    if (!xcr0)
+        return 0;
+    uint32_t end = XSAVE_HDR_OFFSET + XSAVE_HDR_SIZE;
+    for (unsigned i = 2; i < XSAVE_MAX_COMPONENTS; i++) {
+        if (!(xcr0 & ((uint64_t)1 << i)))
+            continue;
+        __cpuid_count(0xD, i, a, b, c, d);
+        if (c & 1)  /* supervisor state (never in XCR0, but as read_layout does) */
+            continue;
+        if (a && b + a > end)
+            end = b + a;
+    }
+    return end;
 }
 
 static void read_layout(void)

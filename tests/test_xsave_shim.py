@@ -2,10 +2,13 @@
 boot where the host's XSAVE area is larger than UML's buffer, e.g. with AMX).
 
 The shim is compiled here with gcc (scripts/bootstrap --test installs it) and its exported
-``xsave_pad`` is called through ctypes with a synthetic AMX host: 11008 bytes, UML's buffer
-2696 bytes (Debian's 6.1). Its ptrace() wrapper is checked against a real traced child on
-this host (a SETREGSET shorter than the host's size: EFAULT plain, accepted through the
-shim), and under UML in the vcan suite (``VCAN_RUN_XSAVE_SHIM=always`` / ``pad-test``, see
+``xsave_pad`` is called through ctypes with synthetic hosts (the layouts of CPUID leaf 0xD:
+an AMX host, 11008 bytes; Intel's AVX-512 layout, 2688; AMD Zen 4's, 2432) and UML's buffer
+of 2696 bytes (Debian's 6.1) or shorter ones. Nothing here assumes what this host is: its
+XSAVE size is checked against the layout the same CPU reports (XCR0 and CPUID 0xD's
+sub-leaves), and the shim's ptrace() wrapper against a real traced child (a SETREGSET
+shorter than the host's size: EFAULT plain, accepted through the shim). Under UML the shim
+is exercised in the vcan suite (``VCAN_RUN_XSAVE_SHIM=always`` / ``pad-test``, see
 scripts/vcan-run).
 """
 
@@ -30,6 +33,17 @@ NCOMP = 64
 AMX_HOST = {2: (576, 256), 5: (1088, 64), 6: (1152, 512), 7: (1664, 1024), 9: (2688, 8),
             17: (2752, 64), 18: (2816, 8192)}
 AMX_HOST_SIZE = 11008
+#: Intel's AVX-512 layout without PKRU: AVX, then (after MPX's 960..1088, not enabled) opmask,
+#: ZMM_Hi256, Hi16_ZMM.
+INTEL_AVX512_HOST = {2: (576, 256), 5: (1088, 64), 6: (1152, 512), 7: (1664, 1024)}
+INTEL_AVX512_HOST_SIZE = 2688
+#: AMD Zen 4 (EPYC) without PKRU: the AVX-512 components right after AVX, no MPX gap.
+AMD_ZEN4_HOST = {2: (576, 256), 5: (832, 64), 6: (896, 512), 7: (1408, 1024)}
+AMD_ZEN4_HOST_SIZE = 2432
+#: name -> (layout, XSAVE size): the synthetic hosts the padding is checked against
+HOSTS = {"amx": (AMX_HOST, AMX_HOST_SIZE),
+         "intel-avx512": (INTEL_AVX512_HOST, INTEL_AVX512_HOST_SIZE),
+         "amd-zen4": (AMD_ZEN4_HOST, AMD_ZEN4_HOST_SIZE)}
 UML_SIZE = 2696
 #: x87, SSE, AVX, opmask, ZMM_Hi256, Hi16_ZMM, PKRU, TILECFG, TILEDATA
 ALL_BV = sum(1 << i for i in (0, 1, *AMX_HOST))
@@ -49,7 +63,19 @@ def shim(tmp_path_factory):
                               ctypes.POINTER(ctypes.c_uint32), ctypes.POINTER(ctypes.c_uint32),
                               ctypes.c_uint]
     lib.xsave_host_size.restype = ctypes.c_uint32
+    lib.xsave_layout_end.restype = ctypes.c_uint32
+    lib.xsave_xcr0.restype = ctypes.c_uint64
     return lib
+
+
+def _bv(host: dict[int, tuple[int, int]]) -> int:
+    """XSTATE_BV with every component of ``host`` in use (x87 and SSE too)."""
+    return sum(1 << i for i in (0, 1, *host))
+
+
+def _layout_end(host: dict[int, tuple[int, int]]) -> int:
+    """What xsave_layout_end() computes, for a synthetic host."""
+    return max([HDR + 64, *(off + size for off, size in host.values())])
 
 
 def _layout(host: dict[int, tuple[int, int]]):
@@ -121,23 +147,51 @@ def test_too_short_for_the_header_is_refused(shim):
     assert dst == bytes([0xEE]) * AMX_HOST_SIZE
 
 
+@pytest.mark.parametrize("name", list(HOSTS))
+def test_synthetic_hosts_size_is_their_layout_end(name):
+    """The sizes the padding tests use are their layouts' ends (as xsave_layout_end()
+    computes it for a real host): Intel's AVX-512 and AMD's differ by MPX's gap."""
+    host, size = HOSTS[name]
+    assert _layout_end(host) == size
+
+
+@pytest.mark.parametrize("src_len", [HDR + 64, 832, 1500, 2000, 2432, 2440, 2688, 2696])
+@pytest.mark.parametrize("name", list(HOSTS))
+def test_padding_for_each_host_layout(shim, name, src_len):
+    """For each layout, a buffer shorter than the host's size is padded to it; the
+    components wholly inside the buffer keep their XSTATE_BV bits, the others are reset
+    (zeros, bit clear); a buffer at least the host's size passes through untouched."""
+    host, size = HOSTS[name]
+    src = _uml_image(src_len, _bv(host))
+    rc, dst = _pad(shim, src, size, host)
+    if src_len >= size:
+        assert rc == 1
+        assert dst == bytes([0xEE]) * size
+        return
+    assert rc == 0
+    fits = [0, 1] + [i for i, (off, n) in host.items() if off + n <= src_len]
+    assert struct.unpack_from("<QQ", dst, HDR) == (sum(1 << i for i in fits), 0)
+    assert dst[:HDR] == src[:HDR]
+    assert dst[HDR + 8:src_len] == src[HDR + 8:]
+    assert dst[src_len:] == bytes(size - src_len)
+
+
 def test_host_size_is_cpuid_0xd(shim):
-    """The host's XSAVE size as the shim reads it: at least the legacy area and header, and
-    at least AVX's end where the CPU has AVX."""
+    """The host's XSAVE size as the shim reads it (CPUID 0xD sub-leaf 0, EBX) is the end of
+    the layout the same CPU describes component by component (sub-leaves i: offset, size)
+    for the components the OS enabled in XCR0 (XGETBV), whatever the vendor: Intel's
+    AVX-512 ends at 2688 (after MPX's area), AMD Zen 4's at 2432, AMX's at 11008. At least
+    the legacy area and the header, and AVX's end where XCR0 enables AVX."""
+    xcr0 = shim.xsave_xcr0()
+    if not xcr0:  # the OS has not enabled XSAVE (CPUID.1:ECX.OSXSAVE clear): no components
+        assert shim.xsave_layout_end() == HDR + 64
+        return
     size = shim.xsave_host_size()
-    flags = set()
-    with open("/proc/cpuinfo") as f:
-        for line in f:
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                break
+    assert xcr0 & 0x3 == 0x3, f"XCR0 {xcr0:#x}: x87 and SSE are always enabled"
+    assert size == shim.xsave_layout_end(), f"XCR0 {xcr0:#x}"
     assert size >= HDR + 64
-    if "avx" in flags:
+    if xcr0 & 0x4:  # AVX: YMM_Hi128 at 576..832 in every layout
         assert size >= 832
-    if "avx512f" in flags:
-        assert size >= 2688
-    if "amx_tile" in flags:
-        assert size >= AMX_HOST_SIZE
 
 
 # ---------------------------------------------------------------- the ptrace contract, here
@@ -165,7 +219,8 @@ def test_shim_reissues_a_short_setregset_at_the_host_size(shim):
     host = shim.xsave_host_size()
     assert host > HDR + 64, f"host XSAVE size {host}: no room for a shorter image"
     # legacy area, header and AVX (PKRU, AVX-512, AMX beyond); without AVX, no AVX
-    short, kept = (832, 0x7) if host > 832 else (HDR + 64, 0x3)
+    avx = bool(shim.xsave_xcr0() & 0x4)
+    short, kept = (832, 0x7) if avx and host > 832 else (HDR + 64, 0x3)
     libc = ctypes.CDLL(None, use_errno=True)
     plain, wrapped = _ptrace_fn(libc), _ptrace_fn(shim)
     pid = os.fork()
