@@ -202,8 +202,9 @@ def test_duration_stops(buses, tmp_path: Path) -> None:
     t0 = time.monotonic()
     result = run_log(rx, tmp_path / "run.blf", duration=0.3, quiet=True)
     wall = time.monotonic() - t0
-    assert 0.29 <= result.duration < 1.0
-    assert wall < 2.5
+    # at least the duration; at most late by what a loaded host holds a thread, not 10×
+    assert 0.29 <= result.duration < 3.0
+    assert wall < 5.0
     assert result.frames == 0
     assert read_log(tmp_path / "run.blf") == []
 

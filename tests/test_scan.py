@@ -164,7 +164,8 @@ def test_local_node_with_heartbeat(bus, remote, profile) -> None:
     remote(5, heartbeat_ms=50)
     t0 = time.monotonic()
     infos = scan(bus, TIMEOUT, profile, sdo_timeout=SDO_TIMEOUT)
-    assert time.monotonic() - t0 < TIMEOUT + 1.0
+    # it listens TIMEOUT, then asks each node found; a loaded host is late, not 5 s late
+    assert time.monotonic() - t0 < TIMEOUT + 5.0
     assert [i.node_id for i in infos] == [5]
     n = infos[0]
     assert n.nmt_state == "PRE-OPERATIONAL"
@@ -222,7 +223,7 @@ def test_heartbeat_only_node_and_boot_up(bus, channel, profile) -> None:
 def test_empty_bus(bus) -> None:
     t0 = time.monotonic()
     assert scan(bus, 0.2, None, sdo_timeout=SDO_TIMEOUT) == []
-    assert 0.2 <= time.monotonic() - t0 < 1.0
+    assert 0.2 <= time.monotonic() - t0 < 5.0  # its listen time, late on a loaded host
 
 
 def test_scan_sends_no_nmt(bus, channel, profile) -> None:
