@@ -35,6 +35,7 @@ EXACT = ("t", "i_sa", "i_sb", "u_sa", "u_sb", "i_sd_ref", "i_sq_ref", "u_sd_ref"
 # ------------------------------------------------------------------ bit for bit
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize(
     ("sim_kwargs", "cli_args"),
     [
@@ -59,6 +60,7 @@ def test_lockstep_equals_simulate_bit_for_bit(emulator, tmp_path, sim_kwargs, cl
     assert_disabled(emu)
 
 
+@pytest.mark.timing
 def test_paper_scenario_lockstep_converges_like_simulate(emulator, tmp_path):
     emu = emulator()
     assert gateway_run(emu, tmp_path) == 0
@@ -132,6 +134,7 @@ steps = [{ t = 1.5, value = 2.0, ramp = 0.05 }]
 """
 
 
+@pytest.mark.timing
 def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_factory):
     emu = emulator()
     ref = tmp_path_factory.mktemp("reference") / "slow-hold.toml"
@@ -154,6 +157,7 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_fact
 # ----------------------------------------------------------------- stop paths
 
 
+@pytest.mark.timing
 def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     """What Ctrl-C and SIGTERM do: a stop request ends the loop and the drive is disabled."""
     emu = emulator()
@@ -181,6 +185,7 @@ def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     assert len(frames) == s["run"]["bus_frames_logged"] > 4 * s["run"]["cycles"]
 
 
+@pytest.mark.timing
 def test_drive_fault_stops_the_loop(emulator, tmp_path):
     """An EMCY (here: a PDO of wrong length, 0x8210) stops the run and is reported."""
     emu = emulator()
@@ -198,6 +203,7 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     assert_disabled(emu)
 
 
+@pytest.mark.timing
 def test_lost_drive_stops_the_loop(emulator, tmp_path):
     emu = emulator()
     signals = StopSignals()
@@ -289,6 +295,7 @@ def test_sim_command_is_the_quick_start(tmp_path, capsys):
     assert (tmp_path / "bus.blf").stat().st_size > 0
 
 
+@pytest.mark.timing
 def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
     """A real SIGINT (and a second one during shutdown) to `hil-gateway sim`."""
     import signal
