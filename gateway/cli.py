@@ -193,6 +193,28 @@ def _choices(enum: Any) -> list[str]:
     return [m.value for m in enum]
 
 
+def _controller_choice(args: argparse.Namespace) -> Any:
+    """``--controller`` and ``--controller-params``, checked before anything runs: the
+    controller is found (a registered name or module:Class) and its parameters read."""
+    import tomllib
+
+    from gateway.control.interface import ControllerChoice, controller_factory
+
+    name = args.controller
+    controller_factory(name)  # found, or a UserError naming what is registered
+    params: dict[str, Any] = {}
+    if args.controller_params:
+        path = Path(args.controller_params)
+        try:
+            params = tomllib.loads(path.read_text(encoding="utf-8"))
+        except OSError as exc:
+            why = exc.strerror or exc
+            raise UserError(f"--controller-params {path}: cannot read it ({why})") from exc
+        except tomllib.TOMLDecodeError as exc:
+            raise UserError(f"--controller-params {path}: not valid TOML: {exc}") from exc
+    return ControllerChoice(name, params)
+
+
 def _add_control_options(p: argparse.ArgumentParser) -> None:
     from gateway.control.controller import Discretisation, EstimatorKind, FluxSource, Law
     from gateway.control.laws import Gains
@@ -201,6 +223,16 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", "--profile", dest="profile", metavar="FILE",
                    help="reference profile ω*(t), ψ*(t), T_L(t) (TOML); default: the paper's "
                         "section 6 scenario")
+    p.add_argument("--controller", metavar="NAME", default="paper",
+                   help="the controller in the loop: 'paper' (default: the laws of Marino, "
+                        "Tomei & Verrelli, with the options below), 'ifoc' (indirect "
+                        "field-oriented control with a speed sensor, the baseline of a "
+                        "vector drive), a name another installed package registers "
+                        "(entry-point group can_drive_hil.controllers), or "
+                        "package.module:Class; docs/controllers.md")
+    p.add_argument("--controller-params", metavar="FILE.toml",
+                   help="the controller's parameters: a TOML table of names to values, "
+                        "passed to its factory (not for 'paper', whose options are below)")
     p.add_argument("--law", type=Law, choices=list(Law), default=Law.CURRENT_FED,
                    help="control law: current-fed (15),(16),(20) or full-order (25)-(27),(32)")
     p.add_argument("--flux", type=FluxSource, choices=list(FluxSource),
@@ -314,6 +346,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
+        controller=_controller_choice(args),
     )
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
@@ -390,7 +423,9 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
             limits=report.limits_for(cfg.gains, None if dp.mode is DriveMode.IDEAL
                                      else dp.u_lim, dp.i_trip),
             delay_s=cfg.sampling.delay * cfg.sampling.period if sampled else 0.0)
-    print(f"{PROG} simulate: {profile.name}, law {args.law}, flux {args.flux}, drive "
+    who = (f"law {args.law}, flux {args.flux}" if cfg.controller.is_paper
+           else f"controller {cfg.controller.name}")
+    print(f"{PROG} simulate: {profile.name}, {who}, drive "
           f"{cfg.drive_mode}, plant {cfg.plant.name}, load {cfg.load}, period {label}"
           + ("" if cfg.sampling is None else
              f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
@@ -488,7 +523,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
                             "emulator; a real drive runs its current loop: use --drive-mode "
                             "current-loop")
         mode = DriveMode.CURRENT_LOOP
-    if mode not in law.drive_modes:
+    if args.controller == "paper" and mode not in law.drive_modes:
         raise UserError(f"the {law} law does not drive a '{mode}' drive: use --drive-mode "
                         f"{' or '.join(law.drive_modes)}")
     if args.flux is FluxSource.TRUE and not drive.truth:
@@ -569,7 +604,8 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     load = _load_mode(args, plant, drive)
     try:
         cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load,
-                      discretisation=_design(args, load), identify=args.identify)
+                      discretisation=_design(args, load), identify=args.identify,
+                      controller=_controller_choice(args))
         cfg.controller_config()
     except ValueError as exc:
         raise UserError(str(exc)) from exc
@@ -601,8 +637,10 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
             finally:
                 close()
             _report_run(out, kind, summary, profile, cfg, drive, windows, truth)
+    who = (f"{cfg.law}, flux {cfg.flux}" if cfg.controller.is_paper
+           else f"controller {cfg.controller.name}")
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
-          f"{cfg.drive_mode}), {cfg.law}, flux {cfg.flux}, load {cfg.load}, {cfg.timing}, "
+          f"{cfg.drive_mode}), {who}, load {cfg.load}, {cfg.timing}, "
           f"period {format_duration(cfg.period)}, delay {cfg.sampling.delay}, "
           f"{cfg.discretisation} design")
     _print_run(kind, summary, out, profile)

@@ -11,16 +11,18 @@ Roles are the signal names of ``dbc/drive.dbc`` (:mod:`dbc.signals`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from dbc.cia402 import SW_INTERNAL_LIMIT, Controlword
 from dbc.modes import SetpointFrame
 from dbc.signals import SETPOINTS
 from dbc.timing import Sampling
-from gateway.control.controller import Command, Controller, Sample
+from gateway.control.controller import PAPER_SIGNALS
+from gateway.control.interface import Command, DriveController, Sample
 from gateway.control.laws import Refs
 
 
@@ -30,40 +32,39 @@ class ReferenceProfile(Protocol):
     def at(self, t: float) -> Refs: ...
 
 
-class CycleRow(NamedTuple):
-    """One cycle's record (SI units; the columns of ``signals.csv``, docs in README).
+#: The cycle's own columns of ``signals.csv``, whatever the controller (SI units; docs in
+#: docs/outputs.md). t: sample time t_k, s. w_ref, psi_ref, T_L: references at t_k. w_m,
+#: psi_r_mod, T_e: the drive's truth (emulator only; NaN otherwise). i_sa, i_sb, u_sa, u_sb:
+#: measured currents and average applied voltages. i_sd_ref … u_sq_ref: setpoints sent.
+#: eps_0, w_0: the frame sent. i_limited, u_limit_active: 1.0 when the controller's current
+#: limit / the drive's voltage limit acted. The controller's own signals follow
+#: (:attr:`gateway.control.interface.DriveController.signals`).
+CYCLE_COLUMNS = ("t", "w_ref", "psi_ref", "T_L", "w_m", "psi_r_mod", "i_sa", "i_sb", "u_sa",
+                 "u_sb", "i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref", "eps_0", "w_0", "T_e",
+                 "i_limited", "u_limit_active")
 
-    t: sample time t_k, s. w_ref, psi_ref, T_L: references at t_k. w_m, psi_r_mod, T_e:
-    the drive's truth (emulator only; NaN otherwise). w_hat, psi_r_mod_hat, psi_rd_hat,
-    psi_rq_hat: the controller's estimates. i_sa, i_sb, u_sa, u_sb: measured currents and
-    average applied voltages. i_sd_ref … u_sq_ref: setpoints sent. eps_0, w_0: the frame
-    sent. i_limited, u_limit_active: 1.0 when the current limit / the drive's voltage
-    limit acted.
-    """
 
-    t: float
-    w_ref: float
-    psi_ref: float
-    T_L: float
-    w_m: float
-    psi_r_mod: float
-    w_hat: float
-    psi_r_mod_hat: float
-    i_sa: float
-    i_sb: float
-    u_sa: float
-    u_sb: float
-    i_sd_ref: float
-    i_sq_ref: float
-    u_sd_ref: float
-    u_sq_ref: float
-    eps_0: float
-    w_0: float
-    psi_rd_hat: float
-    psi_rq_hat: float
-    T_e: float
-    i_limited: float
-    u_limit_active: float
+#: The bus loop's columns after the controller's (:mod:`gateway.loop`): the drive's
+#: statusword and SYNC-counter echo; SYNC period, SYNC → last TPDO and last TPDO → RPDOs sent
+#: (reaction), s; missed cycles so far; 1.0 when the cycle's setpoints were withheld.
+BUS_COLUMNS = ("statusword", "sync_counter", "sync_period", "sync_to_tpdo", "reaction",
+               "missed", "withheld")
+
+
+@functools.cache
+def row_type(signals: tuple[str, ...], extra: tuple[str, ...] = ()) -> type[Any]:
+    """The record's row class for a controller that logs ``signals``: a NamedTuple of the
+    cycle's columns, the controller's, then ``extra`` (the bus loop's); every consumer reads
+    it by name."""
+    clash = sorted(set(signals) & set(CYCLE_COLUMNS + extra))
+    if clash:
+        raise ValueError(f"the controller logs {', '.join(clash)}, a column of the cycle's "
+                         "own: name its signals otherwise")
+    return NamedTuple("CycleRow", [(n, float) for n in (*CYCLE_COLUMNS, *signals, *extra)])
+
+
+#: The row of the paper's controllers.
+CycleRow = row_type(PAPER_SIGNALS)
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,15 +91,16 @@ def truth_from(measured: Mapping[str, float]) -> Truth:
 
 
 def sample_from(measured: Mapping[str, float]) -> Sample:
-    """The controller's input from the drive's role values: currents, voltages, and the
+    """The controller's input from the drive's role values: currents, voltages, the
     emulator's true flux where it sends it (read only in the comparison mode
-    ``flux="true"``)."""
+    ``flux="true"``), and the drive's speed where it sends one."""
     psi = (complex(measured["psi_ra"], measured["psi_rb"]) if "psi_ra" in measured
            else None)
     return Sample(
         i_s_ab=complex(measured["i_sa"], measured["i_sb"]),
         u_s_ab=complex(measured["u_sa"], measured["u_sb"]),
         psi_r_ab=psi,
+        w_m=measured.get("w_m"),
     )
 
 
@@ -123,10 +125,11 @@ def setpoint_values(
 
 
 class CycleOutput(NamedTuple):
-    """What one cycle produces: the role values to send, and the record row."""
+    """What one cycle produces: the role values to send, and the record row (a
+    :func:`row_type` row)."""
 
     setpoints: dict[str, float]
-    row: CycleRow
+    row: Any
 
 
 class ControlCycle:
@@ -137,11 +140,13 @@ class ControlCycle:
     the interval the setpoints act on, t_k + delay·T (docs/ARCHITECTURE.md).
     """
 
-    def __init__(self, controller: Controller, profile: ReferenceProfile,
+    def __init__(self, controller: DriveController, profile: ReferenceProfile,
                  sampling: Sampling) -> None:
         self.controller = controller
         self.profile = profile
         self.sampling = sampling
+        self.row_type = row_type(controller.signals)
+        self._n_logged = len(controller.signals)
 
     def step(self, k: int, measured: Mapping[str, float], truth: Truth | None = None
              ) -> CycleOutput:
@@ -155,13 +160,15 @@ class ControlCycle:
         T_L_cmd = self.profile.at(s.t_apply(t)).T_L if s.delay else refs.T_L
         values = setpoint_values(cmd, T_L_cmd, s.setpoint_frame)
         tr = truth if truth is not None else truth_from(measured)
-        psi = cmd.psi_r_dq
         status = int(measured.get("statusword", 0))
-        row = CycleRow(
-            t, refs.w_ref, refs.psi_ref, refs.T_L, tr.w_m, abs(tr.psi_r_ab), cmd.w_hat,
-            abs(psi), sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real,
-            sample.u_s_ab.imag, cmd.i_s_dq_ref.real, cmd.i_s_dq_ref.imag, cmd.u_s_dq_ref.real,
-            cmd.u_s_dq_ref.imag, cmd.eps_0, cmd.w_0, psi.real, psi.imag, tr.T_e,
-            float(cmd.i_limited), float(bool(status & SW_INTERNAL_LIMIT)),
+        if len(cmd.logged) != self._n_logged:
+            raise ValueError(f"the controller logged {len(cmd.logged)} values for its "
+                             f"{self._n_logged} signals {self.controller.signals}")
+        row = self.row_type(
+            t, refs.w_ref, refs.psi_ref, refs.T_L, tr.w_m, abs(tr.psi_r_ab),
+            sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real, sample.u_s_ab.imag,
+            cmd.i_s_dq_ref.real, cmd.i_s_dq_ref.imag, cmd.u_s_dq_ref.real, cmd.u_s_dq_ref.imag,
+            cmd.eps_0, cmd.w_0, tr.T_e, float(cmd.i_limited),
+            float(bool(status & SW_INTERNAL_LIMIT)), *cmd.logged,
         )
         return CycleOutput(values, row)

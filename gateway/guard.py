@@ -21,10 +21,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from gateway.cycle import CycleRow
 from gateway.reference import Profile
 from gateway.reference.demand import MotorLike, demand
 
@@ -114,27 +114,38 @@ class Envelope:
                    psi_max=1.5 * psi_peak + 0.2, u_max=2.0 * u_peak + 100.0,
                    e_max=20.0 + 0.1 * w_peak, psi_on=0.25 * psi_peak)
 
-    def check(self, r: CycleRow) -> str | None:
-        """None, or which bound a cycle's row crossed."""
-        w_hat, w_ref, w_m = r.w_hat, r.w_ref, r.w_m
-        checks: tuple[tuple[str, float, float, str], ...] = (
-            ("speed estimate |ω̂|", abs(w_hat), self.w_max, "rad/s"),
-            ("speed error |ω̂ − ω*|", abs(w_hat - w_ref), self.e_max, "rad/s"),
+    def check(self, r: Any) -> str | None:
+        """None, or which bound a cycle's row (:func:`gateway.cycle.row_type`) crossed. The
+        estimate checks apply to the controllers that log an estimate (``w_hat``,
+        ``psi_r_mod_hat``, ``psi_rd_hat``/``psi_rq_hat``: the paper's); the truth's where
+        the drive sends it."""
+        w_ref, w_m = r.w_ref, r.w_m
+        w_hat = getattr(r, "w_hat", None)
+        psi_hat = getattr(r, "psi_r_mod_hat", None)
+        checks: list[tuple[str, float, float, str]] = [
             ("stator current |i_s|", math.hypot(r.i_sa, r.i_sb), self.i_max, "A"),
             ("stator voltage |u_s|", math.hypot(r.u_sa, r.u_sb), self.u_max, "V"),
-            ("flux estimate |ψ̂_r|", r.psi_r_mod_hat, self.psi_max, "Wb"),
-        )
+        ]
+        if w_hat is not None:
+            checks[:0] = [("speed estimate |ω̂|", abs(w_hat), self.w_max, "rad/s"),
+                          ("speed error |ω̂ − ω*|", abs(w_hat - w_ref), self.e_max, "rad/s")]
+        if psi_hat is not None:
+            checks.append(("flux estimate |ψ̂_r|", psi_hat, self.psi_max, "Wb"))
         if math.isfinite(w_m):
-            checks += (("speed |ω|", abs(w_m), self.w_max, "rad/s"),
-                       ("estimation error |ω̂ − ω|", abs(w_hat - w_m), self.e_max, "rad/s"))
+            checks.append(("speed |ω|", abs(w_m), self.w_max, "rad/s"))
+            if w_hat is not None:
+                checks.append(("estimation error |ω̂ − ω|", abs(w_hat - w_m), self.e_max,
+                               "rad/s"))
+            else:
+                checks.append(("speed error |ω − ω*|", abs(w_m - w_ref), self.e_max, "rad/s"))
         for what, value, bound, unit in checks:
             if not value <= bound:  # NaN too
                 return f"{what} = {value:.4g} {unit} beyond {bound:.4g} {unit}"
-        if r.psi_ref >= self.psi_on:
-            angle = math.degrees(math.atan2(r.psi_rq_hat, r.psi_rd_hat))
-            if not (abs(angle) <= self.angle_max
-                    and r.psi_r_mod_hat >= self.psi_min * r.psi_ref):
-                return (f"field orientation lost: the flux estimate is {r.psi_r_mod_hat:.3g} "
+        psi_dq = (getattr(r, "psi_rd_hat", None), getattr(r, "psi_rq_hat", None))
+        if r.psi_ref >= self.psi_on and psi_hat is not None and None not in psi_dq:
+            angle = math.degrees(math.atan2(psi_dq[1], psi_dq[0]))
+            if not (abs(angle) <= self.angle_max and psi_hat >= self.psi_min * r.psi_ref):
+                return (f"field orientation lost: the flux estimate is {psi_hat:.3g} "
                         f"Wb at {angle:+.0f}° from the frame's d axis, for ψ* = "
                         f"{r.psi_ref:.3g} Wb (limits ±{self.angle_max:g}°, "
                         f"{self.psi_min:g}·ψ*). The speed estimate cannot be trusted: the "
@@ -143,9 +154,12 @@ class Envelope:
                         f"error at low speed (--estimator rs-adaptive)")
         return None
 
-    def flux_deficit(self, r: CycleRow) -> bool:
-        """Whether the flux estimate is below ``deficit``·ψ* (once ψ* ≥ psi_on)."""
-        return r.psi_ref >= self.psi_on and not r.psi_r_mod_hat >= self.deficit * r.psi_ref
+    def flux_deficit(self, r: Any) -> bool:
+        """Whether the flux estimate (where the controller logs one) is below
+        ``deficit``·ψ* (once ψ* ≥ psi_on)."""
+        psi_hat = getattr(r, "psi_r_mod_hat", None)
+        return (psi_hat is not None and r.psi_ref >= self.psi_on
+                and not psi_hat >= self.deficit * r.psi_ref)
 
 
 def profile_envelope(profile: Profile, motor: MotorLike, i_limit: float) -> Envelope:
@@ -177,7 +191,7 @@ class DivergenceWatch:
         self._start: tuple[float, float] | None = None  # (ω, ω*) of the first row with truth
         self._deficit_since: float | None = None  # t of the first row of a flux deficit
 
-    def check(self, row: CycleRow, k: int) -> bool:
+    def check(self, row: Any, k: int) -> bool:
         """Whether cycle ``k`` (its row ``row``) ends the run."""
         if self._start is None and math.isfinite(row.w_m):
             self._start = (row.w_m, row.w_ref)

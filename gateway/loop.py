@@ -40,15 +40,16 @@ from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, NamedTuple
+from typing import Any
 
 import can
 
 from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, NmtState, sync_counter
 from dbc.cia402 import SW_FAULT, State
 from dbc.timing import LOCKSTEP_BACKSTOP_S, Sampling
-from gateway.control.controller import Controller
-from gateway.cycle import ControlCycle, CycleRow, ReferenceProfile
+from gateway.control.controller import PAPER_SIGNALS
+from gateway.control.interface import DriveController
+from gateway.cycle import BUS_COLUMNS, ControlCycle, ReferenceProfile, row_type
 from gateway.guard import DivergenceWatch, Envelope, Plausibility
 from gateway.process_data import ProcessData
 from gateway.report import Record
@@ -79,15 +80,13 @@ RECENT_FRAMES = 24
 SPIN_MARGIN = 0.0003
 
 
-#: A bus cycle's record: the cycle's columns (:class:`gateway.cycle.CycleRow`) and the
-#: bus's: statusword and SYNC-counter echo of the drive; SYNC period, SYNC → last TPDO and
-#: last TPDO → RPDOs sent (reaction), s; missed cycles so far; 1.0 when this cycle's
-#: setpoints were withheld (ready after the next SYNC was due: not sent).
-LoopRow = NamedTuple("LoopRow", [*((name, float) for name in CycleRow._fields),
-                                 ("statusword", float), ("sync_counter", float),
-                                 ("sync_period", float), ("sync_to_tpdo", float),
-                                 ("reaction", float), ("missed", float),
-                                 ("withheld", float)])
+def loop_row_type(signals: tuple[str, ...]) -> type[Any]:
+    """A bus cycle's row for a controller that logs ``signals``."""
+    return row_type(signals, BUS_COLUMNS)
+
+
+#: The bus row of the paper's controllers.
+LoopRow = loop_row_type(PAPER_SIGNALS)
 
 
 @dataclass(frozen=True)
@@ -148,7 +147,7 @@ class CycleLoop:
         bus: can.BusABC,
         subscribe: Callable[[int, Callable[[int, bytearray, float], None]], None],
         pd: ProcessData,
-        controller: Controller,
+        controller: DriveController,
         profile: ReferenceProfile,
         cfg: LoopConfig,
         own_echo: bool = True,
@@ -163,7 +162,8 @@ class CycleLoop:
         self.own_echo = own_echo
         self.fault = fault or threading.Event()
         self._fault_cause = fault_cause
-        self.record = Record(LoopRow)
+        self._row = loop_row_type(controller.signals)
+        self.record = Record(self._row)
         #: the last frames seen and sent: (time.time(), 'rx'/'tx', COB-ID, data hex)
         self.recent: deque[tuple[float, str, int, str]] = deque(maxlen=RECENT_FRAMES)
         self._misses: deque[int] = deque()  # cycles missed within the last window
@@ -437,7 +437,7 @@ class CycleLoop:
         self.stats.last_good_cycle = k
         self._consecutive_missed = 0
         self.stats.cycles += 1
-        self.record.append(LoopRow(
+        self.record.append(self._row(
             *row, float(sw), float(measured.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
             t_sent - t_arrival, float(self.stats.missed), float(withheld),

@@ -144,20 +144,23 @@ def metrics(
     """The summary metrics (SI units).
 
     speed_error = ω − ω*, flux_error = |ψ_r| − ψ*, estimation_error = ω̂ − ω, each with
-    max |·|, RMS, final value and per-window max/RMS; peak_current = max |i_s|,
+    max |·|, RMS, final value and per-window max/RMS (estimation_error only for a controller
+    that logs a speed estimate ``w_hat``); peak_current = max |i_s|,
     peak_voltage = max |u_s| (average over a period). ``windows``: (from, to) or
     (from, to, label) in s, e.g. :func:`profile_windows`; those the run did not reach are
     left out.
     """
     windows = tuple(windows)
     t = sig["t"]
-    return {
+    out = {
         "speed_error": _error_stats(t, sig["w_m"] - sig["w_ref"], windows),
         "flux_error": _error_stats(t, sig["psi_r_mod"] - sig["psi_ref"], windows),
-        "estimation_error": _error_stats(t, sig["w_hat"] - sig["w_m"], windows),
-        "peak_current": float(np.max(np.hypot(sig["i_sa"], sig["i_sb"]))),
-        "peak_voltage": float(np.max(np.hypot(sig["u_sa"], sig["u_sb"]))),
     }
+    if "w_hat" in sig:  # a controller with a speed estimate (the paper's)
+        out["estimation_error"] = _error_stats(t, sig["w_hat"] - sig["w_m"], windows)
+    out["peak_current"] = float(np.max(np.hypot(sig["i_sa"], sig["i_sb"])))
+    out["peak_voltage"] = float(np.max(np.hypot(sig["u_sa"], sig["u_sb"])))
+    return out
 
 
 def profile_windows(profile: Any, spec: str | None = None) -> tuple[tuple[float, float, str], ...]:
@@ -222,6 +225,8 @@ def summary_table(summary: Mapping[str, Any]) -> str:
     ]
     lines = [heads]
     for label, key, unit in rows:
+        if key not in summary:
+            continue
         m = summary[key]
         cells = [label, _fmt(m["max"], unit), _fmt(m["rms"], unit), _fmt(m["final"], unit)]
         cells += [_fmt(w["max"], unit) for w in m["windows"]]
@@ -339,8 +344,9 @@ def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
 
 def title_for(config: Mapping[str, Any]) -> str:
     """One line naming the whole configuration of a run, from summary["configuration"]:
-    law, flux source and estimator, drive mode, period, delay, setpoint frame, and how it
-    ran (simulate, or over CAN with transport and timing)."""
+    the controller (the paper's: law, flux source and estimator), drive mode, period,
+    delay, setpoint frame, and how it ran (simulate, or over CAN with transport and
+    timing)."""
     def period_text(p: Any) -> str:
         if p == "continuous" or p is None:
             return "continuous time"
@@ -350,8 +356,10 @@ def title_for(config: Mapping[str, Any]) -> str:
     flux = config.get("flux", "?")
     flux_text = ("true flux" if flux == "true"
                  else f"estimated flux ({config.get('estimator', 'open-loop')})")
-    parts = [f"{config.get('law', '?')} law", flux_text,
-             f"{config.get('drive_mode', '?')} drive", period_text(config.get("period"))]
+    name = (config.get("controller") or {}).get("name", "paper")
+    head = ([f"{config.get('law', '?')} law", flux_text] if name == "paper"
+            else [f"controller {name}"])
+    parts = [*head, f"{config.get('drive_mode', '?')} drive", period_text(config.get("period"))]
     if config.get("period") not in (None, "continuous"):
         parts.append(f"delay {config.get('delay', '?')}")
         parts.append(f"{config.get('setpoint_frame', '?')} setpoints")
@@ -464,26 +472,68 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
     plt.close(fig)
     written.append(p)
 
-    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), layout="constrained")
+    estimate = "w_hat" in sig
+    fig, ax = plt.subplots(3 if estimate else 2, 1, sharex=True,
+                           figsize=(8, 7.5 if estimate else 5.5), layout="constrained")
     ax[0].plot(t, sig["w_m"] - sig["w_ref"])
     ax[0].set_ylabel("ω − ω* [rad/s]")
     ax[1].plot(t, sig["psi_r_mod"] - sig["psi_ref"])
     ax[1].set_ylabel("|ψr| − ψ* [Wb]")
-    ax[2].plot(t, sig["w_hat"] - sig["w_m"])
-    ax[2].set_ylabel("ω̂ − ω [rad/s]")
-    ax[2].set_xlabel("time [s]")
+    if estimate:
+        ax[2].plot(t, sig["w_hat"] - sig["w_m"])
+        ax[2].set_ylabel("ω̂ − ω [rad/s]")
+    ax[-1].set_xlabel("time [s]")
     for a in ax:
         a.grid(True, alpha=0.3)
         for w in windows[1:]:
             a.axvline(w["from"], color="0.6", lw=0.8, ls=":")
-    suptitle(fig, "Fig. 2 — tracking and estimation errors (dotted: metric windows)")
+    suptitle(fig, "Fig. 2 — tracking and estimation errors (dotted: metric windows)"
+             if estimate else "Fig. 2 — tracking errors (dotted: metric windows)")
     p = out_dir / "fig2_errors.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
     written.append(p)
 
     written.append(_plot_fig3(plt, sig, out_dir, windows, limits, delay_s, suptitle))
+    own = controller_signals(sig)
+    if own:
+        written.append(_plot_fig4(plt, sig, own, out_dir, suptitle))
     return written
+
+
+#: The signals Fig. 2 already shows, and the paper's flux estimate (checked by the guard):
+#: not drawn again in Fig. 4.
+DRAWN_ELSEWHERE = frozenset({"w_hat", "psi_r_mod_hat", "psi_rd_hat", "psi_rq_hat"})
+#: Fig. 4 draws at most this many of the controller's signals.
+FIG4_MAX = 8
+
+
+def controller_signals(sig: Mapping[str, np.ndarray]) -> list[str]:
+    """The columns a controller logged (:attr:`DriveController.signals`) that no other
+    figure draws: those not of the cycle, the bus or :data:`DRAWN_ELSEWHERE`."""
+    from gateway.cycle import BUS_COLUMNS, CYCLE_COLUMNS
+
+    known = set(CYCLE_COLUMNS) | set(BUS_COLUMNS) | DRAWN_ELSEWHERE
+    return [n for n in sig if n not in known]
+
+
+def _plot_fig4(plt: Any, sig: Mapping[str, np.ndarray], names: list[str], out_dir: Path,
+               suptitle: Callable[[Any, str], None]) -> Path:
+    """Fig. 4: the controller's own signals, one panel each (the first FIG4_MAX)."""
+    shown = names[:FIG4_MAX]
+    fig, ax = plt.subplots(len(shown), 1, sharex=True, squeeze=False,
+                           figsize=(8, 1.2 + 1.6 * len(shown)), layout="constrained")
+    for a, name in zip(ax[:, 0], shown, strict=True):
+        a.plot(sig["t"], sig[name], lw=1)
+        a.set_ylabel(name)
+        a.grid(True, alpha=0.3)
+    ax[-1, 0].set_xlabel("time [s]")
+    more = f" (first {FIG4_MAX} of {len(names)})" if len(names) > FIG4_MAX else ""
+    suptitle(fig, f"Fig. 4 — the controller's signals{more}")
+    p = out_dir / "fig4_controller.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
 
 
 def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,

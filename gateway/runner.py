@@ -41,9 +41,9 @@ from gateway.control.controller import (
     as_enum,
     euler_only,
 )
+from gateway.control.interface import ControllerChoice, ControllerContext, summary_of
 from gateway.control.laws import Gains
 from gateway.control.load_observer import load_config
-from gateway.control.sampled import make_controller
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.guard import Envelope, Plausibility, profile_envelope
@@ -92,6 +92,7 @@ class RunConfig:
     plant_scenario: dict[str, Any] | None = None
     load: LoadSource = LoadSource.KNOWN
     identify: bool = False
+    controller: ControllerChoice = field(default_factory=ControllerChoice)
 
     def __post_init__(self) -> None:
         try:
@@ -265,18 +266,21 @@ def _eds_default(master: DriveMaster, name: str) -> float:
     return float(var.default)
 
 
-def required_roles(cfg: RunConfig, pd: ProcessData) -> tuple[str, ...]:
+def required_roles(cfg: RunConfig, pd: ProcessData, requires: tuple[str, ...] = ()
+                   ) -> tuple[str, ...]:
     """The roles a run needs of the drive: CiA 402 words, the measured currents and applied
-    voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, and the
-    true flux only for ``--flux true``."""
+    voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, the true
+    flux only for ``--flux true``, and what the controller ``requires`` (its optional
+    attribute, e.g. ``("w_m",)``: a speed sensor)."""
     frame = pd.setpoint_frame
     i1, i2, u1, u2 = SETPOINTS[frame]
     roles = ["controlword", "statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
     if frame is SetpointFrame.DQ:
         roles += ["eps_0", "w_0"]
     roles += [u1, u2] if cfg.drive_mode is DriveMode.VOLTAGE else [i1, i2]
-    if cfg.flux is FluxSource.TRUE:
+    if cfg.flux is FluxSource.TRUE and cfg.controller.is_paper:
         roles += ["psi_ra", "psi_rb"]
+    roles += [r for r in requires if r not in roles]
     return tuple(roles)
 
 
@@ -362,8 +366,18 @@ def run_gateway(
     t_start = time.time()
     try:
         master.connect(listeners=[recorder])
-        pd.require(required_roles(cfg, pd), f"the {cfg.law} law with a {cfg.drive_mode} drive",
-                   master.node.object_dictionary.indices)
+        # the exact design models what the drive applies: for the emulator's PI current loop
+        # its response time (1/bandwidth, from its EDS); a real drive is taken as ideal
+        lag = (1.0 / _eds_default(master, "current_loop_bw")
+               if drive.emulator and cfg.drive_mode is DriveMode.CURRENT_LOOP else 0.0)
+        paper = cfg.controller_config(lag)
+        ctl = cfg.controller.make(ControllerContext(
+            motor=motor, sampling=cfg.sampling, refs_at=profile.at, drive_mode=cfg.drive_mode,
+            current_lag=lag, paper=paper))
+        who = (f"the {cfg.law} law" if cfg.controller.is_paper
+               else f"controller {cfg.controller.name}")
+        pd.require(required_roles(cfg, pd, getattr(ctl, "requires", ())),
+                   f"{who} with a {cfg.drive_mode} drive", master.node.object_dictionary.indices)
         mode = (drive.mode_voltage if cfg.drive_mode is DriveMode.VOLTAGE
                 else drive.mode_current)
         emulator: dict[str, int | float] = {}
@@ -388,11 +402,6 @@ def run_gateway(
         master.start(lockstep=lockstep, alive_ids=[p.cob_id for p in pd.tpdos] if lockstep
                      else ())
         master.enable()
-        # the exact design models what the drive applies: for the emulator's PI current loop
-        # its response time (1/bandwidth, from its EDS); a real drive is taken as ideal
-        lag = (1.0 / _eds_default(master, "current_loop_bw")
-               if drive.emulator and cfg.drive_mode is DriveMode.CURRENT_LOOP else 0.0)
-        ctl = make_controller(motor, cfg.controller_config(lag), profile.at)
 
         def fault_cause() -> tuple[StopReason, str] | None:
             f = master.first_fault
@@ -499,8 +508,9 @@ def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
     summary["faults"] = [{"time": f.time, "kind": f.kind, "code": f.code, "text": f.text,
                           "reason": f.reason.name} for f in master.state.faults]
     summary["configuration"] = configuration
-    if loop is not None and loop.ctl.commissioning is not None:
-        summary["identification"] = loop.ctl.commissioning.describe()
+    found = summary_of(loop.ctl) if loop is not None else None
+    if found is not None:
+        summary["identification"] = found
     if recorder.error:
         write_errors.append(recorder.error + f" ({recorder.dropped} frames not logged)")
     _write_summary_noting(out, summary, write_errors)

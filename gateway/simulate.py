@@ -27,6 +27,7 @@ from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
 from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
+    PAPER_SIGNALS,
     ControllerConfig,
     Discretisation,
     EstimatorKind,
@@ -35,11 +36,12 @@ from gateway.control.controller import (
     LoadSource,
     as_enum,
     euler_only,
+    paper_logged,
     untold,
 )
+from gateway.control.interface import ControllerChoice, ControllerContext, summary_of
 from gateway.control.laws import Gains, current_fed, full_order
 from gateway.control.load_observer import load_config
-from gateway.control.sampled import make_controller
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import load_drive_profile
 from gateway.errors import UserError
@@ -96,6 +98,7 @@ class SimConfig:
     plant: PlantScenario = field(default_factory=PlantScenario)
     load: LoadSource = LoadSource.KNOWN
     identify: bool = False
+    controller: ControllerChoice = field(default_factory=ControllerChoice)
 
     @classmethod
     def from_words(cls, period: float | None = 1e-3, delay: int = 1,
@@ -119,7 +122,11 @@ class SimConfig:
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        if self.drive_mode not in self.law.drive_modes:
+        if self.sampling is None and not self.controller.is_paper:
+            raise UserError(f"continuous time (--period continuous) integrates the paper's laws "
+                            f"only; controller {self.controller.name!r} runs sampled: choose "
+                            "a --period such as 1ms")
+        if self.controller.is_paper and self.drive_mode not in self.law.drive_modes:
             raise UserError(
                 f"the {self.law} law does not drive a '{self.drive_mode}' drive: use "
                 f"--drive-mode {' or '.join(self.law.drive_modes)} (the current-fed law sends "
@@ -259,11 +266,13 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
                                                              cfg.drive_mode)),
                   cfg.initial, **plant.drive_options(lambda t: profile.load.at(t)[0]))
     drive.enable(True)
-    ctl = make_controller(motor, cfg.controller_config(), profile.at, eps_0=cfg.eps_0,
-                          w_hat=cfg.w_hat_0)
+    paper = cfg.controller_config()
+    ctl = cfg.controller.make(ControllerContext(
+        motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=cfg.drive_mode,
+        current_lag=paper.current_lag, paper=paper, eps_0=cfg.eps_0, w_hat_0=cfg.w_hat_0))
     cycle = ControlCycle(ctl, profile, sampling)
     link = PdoLink(cfg.quantize, sampling.setpoint_frame)
-    rec = Record(CycleRow)
+    rec = Record(cycle.row_type)
     apply = sampling.apply
     pending: dict[str, float] = {}
     T_L_active = [0.0]
@@ -290,8 +299,7 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
             progress(k / n_cycles)
         if stop is not None and stop.is_set():  # every cycle: a stop acts within one
             break
-    if ctl.commissioning is not None:
-        rec.identification = ctl.commissioning.describe()
+    rec.identification = summary_of(ctl)
     return rec
 
 
@@ -406,10 +414,12 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
         psi_hat = psi_r_used(x) * cmath.exp(-1j * eps)
         T_e = pm.J * pm.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
         row = CycleRow(
-            t, r.w_ref, r.psi_ref, r.T_L, x[0], abs(psi_r), x[6 if full else 4], abs(psi_hat),
-            i.real, i.imag, u.real, u.imag, out.i_sd_ref, out.i_sq_ref, out.u_sd_ref,
-            out.u_sq_ref, math.remainder(eps, 2 * math.pi), out.w_0,
-            psi_hat.real, psi_hat.imag, T_e, float(out.i_limited), 0.0,
+            t=t, w_ref=r.w_ref, psi_ref=r.psi_ref, T_L=r.T_L, w_m=x[0], psi_r_mod=abs(psi_r),
+            i_sa=i.real, i_sb=i.imag, u_sa=u.real, u_sb=u.imag, i_sd_ref=out.i_sd_ref,
+            i_sq_ref=out.i_sq_ref, u_sd_ref=out.u_sd_ref, u_sq_ref=out.u_sq_ref,
+            eps_0=math.remainder(eps, 2 * math.pi), w_0=out.w_0, T_e=T_e,
+            i_limited=float(out.i_limited), u_limit_active=0.0,
+            **dict(zip(PAPER_SIGNALS, paper_logged(x[6 if full else 4], psi_hat), strict=True)),
         )
         rec.append(row)
         if watch is not None and watch.check(row, j):

@@ -74,3 +74,11 @@ def test_pure_modules_do_no_bus_io(path):
 
 def test_a_can_run_does_not_load_the_simulation():
     assert not {"gateway.simulate", "gateway.sim"} & imports(ROOT / "gateway/runner.py")
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "examples").rglob("*.py")), ids=_rel)
+def test_example_controllers_use_the_interface_alone(path):
+    """A user's controller package needs nothing of ours but the controller interface
+    (docs/controllers.md): the example shows that."""
+    ours = {n for n in imports(path) if n.split(".")[0] in PACKAGES}
+    assert ours <= {"gateway.control.interface"}, ours

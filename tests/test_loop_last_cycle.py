@@ -16,7 +16,7 @@ def _bare_loop(n_cycles: int, max_missed: int) -> CycleLoop:
     cfg = LoopConfig(n_cycles=n_cycles, sampling=Sampling(1e-3), timing="realtime",
                      max_missed=max_missed, max_miss_rate=1.0)
     return CycleLoop(None, lambda *args: None, ProcessData([]),  # type: ignore[arg-type]
-                     SimpleNamespace(coast=lambda: None), None, cfg,  # type: ignore[arg-type]
+                     SimpleNamespace(coast=lambda: None, signals=()), None, cfg,  # type: ignore[arg-type]
                      own_echo=False)
 
 

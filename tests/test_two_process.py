@@ -368,3 +368,26 @@ def test_foreign_drive_runs_from_its_profile_over_vcan(vcan_channel, tmp_path):
     s = summary(tmp_path / "run")
     assert s["run"]["cycles"] == 500 and s["run"]["stop"] == "END_OF_PROFILE"
     assert abs(s["speed_error"]["final"]) < 0.1 and s["shutdown"]["safe"]
+
+
+def test_a_users_controller_runs_over_vcan(vcan_channel, tmp_path, monkeypatch):
+    """The example controller of examples/pi_foc, not installed, named module:Class (its
+    source on PYTHONPATH), runs `run` in lockstep against `hil-plant run` in another process,
+    with its own signals in signals.csv and its figure (docs/controllers.md)."""
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.setenv("PYTHONPATH", str(root / "examples" / "pi_foc" / "src"))
+    ch = vcan_channel
+    with plant(ch, tmp_path):
+        gw = run(gateway_run(ch, tmp_path / "run", "--timing", "lockstep", "--controller",
+                             "pi_foc:PiSpeedFoc", "--reference", str(root / "profiles" /
+                                                                      "quick.toml")),
+                 tmp_path, "gateway", timeout=120)
+    assert gw.popen.returncode == 0, gw.describe()
+    s = summary(tmp_path / "run")
+    assert s["run"]["stop_reason"] == "end of the profile" and s["run"]["cycles"] == 500
+    assert s["configuration"]["controller"]["name"] == "pi_foc:PiSpeedFoc"
+    names, sig = read_signals(tmp_path / "run" / "signals.csv")
+    assert "torque_demand" in names and "flux_model" in names
+    assert abs(sig["flux_model"][-1] - sig["psi_ref"][-1]) < 0.05
+    assert (tmp_path / "run" / "fig4_controller.png").is_file()
+    assert abs(s["speed_error"]["final"]) < 0.5

@@ -31,6 +31,7 @@ from gateway.control.estimator import (
     OpenLoopFluxEstimator,
     RsAdaptiveFluxEstimator,
 )
+from gateway.control.interface import Command, Sample
 from gateway.control.laws import Gains, Motor, Refs, current_fed, full_order
 from gateway.control.load_observer import LoadObserver, RefsWithLoad
 
@@ -162,43 +163,15 @@ class ControllerConfig:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
 
 
-@dataclass(frozen=True, slots=True)
-class Sample:
-    """What the drive reports at t_k.
-
-    i_s_ab: stator currents sampled at t_k, A (complex a + jb).
-    u_s_ab: average applied stator voltage over (t_{k−1}, t_k], V.
-    psi_r_ab: true rotor flux at t_k, Wb, or None (only needed with ``flux="true"``).
-    """
-
-    i_s_ab: complex
-    u_s_ab: complex
-    psi_r_ab: complex | None = None
+#: The signals the paper's controllers log (their :attr:`Command.logged`, in order): the speed
+#: estimate ω̂ (16)/(27), rad/s, and the rotor flux the law used in the frame at t_k, Wb:
+#: its modulus and its (d, q) components.
+PAPER_SIGNALS = ("w_hat", "psi_r_mod_hat", "psi_rd_hat", "psi_rq_hat")
 
 
-@dataclass(frozen=True, slots=True)
-class Command:
-    """The controller's output at t_k and its internal signals.
-
-    i_s_dq_ref, u_s_dq_ref: setpoints in the (d, q) frame, A and V.
-    eps_0: frame angle at the start of the interval they act on, rad, in [−π, π).
-    w_0: frame speed, rad/s.
-    i_s_ab_ref, u_s_ab_ref: the same setpoints in the (a, b) frame, rotated with the angle
-        of the interval's midpoint, for drives that hold (a, b) setpoints.
-    w_hat: speed estimate ω̂ at t_k, rad/s.
-    psi_r_dq: rotor flux the law used (estimated or true) in the frame at t_k, Wb.
-    i_limited: the current limit clipped i_sq*.
-    """
-
-    i_s_dq_ref: complex
-    u_s_dq_ref: complex
-    eps_0: float
-    w_0: float
-    i_s_ab_ref: complex
-    u_s_ab_ref: complex
-    w_hat: float
-    psi_r_dq: complex
-    i_limited: bool
+def paper_logged(w_hat: float, psi_r_dq: complex) -> tuple[float, float, float, float]:
+    """The values of :data:`PAPER_SIGNALS`."""
+    return (w_hat, abs(psi_r_dq), psi_r_dq.real, psi_r_dq.imag)
 
 
 def wrap_angle(x: float) -> float:
@@ -207,7 +180,10 @@ def wrap_angle(x: float) -> float:
 
 
 class Controller:
-    """The sampled Marino–Tomei–Verrelli controller (current-fed or full-order)."""
+    """The sampled Marino–Tomei–Verrelli controller (current-fed or full-order), Euler
+    design; a :class:`gateway.control.interface.DriveController`."""
+
+    signals = PAPER_SIGNALS
 
     def __init__(
         self,
@@ -298,9 +274,8 @@ class Controller:
             w_0=w_0,
             i_s_ab_ref=i_s_dq_ref * to_ab,
             u_s_ab_ref=u_s_dq_ref * to_ab,
-            w_hat=self.w_hat,
-            psi_r_dq=psi_r_dq,
             i_limited=out.i_limited,
+            logged=paper_logged(self.w_hat, psi_r_dq),
         )
         dw_hat = out.dw_hat
         if self.load_observer is not None:  # issue 14: ω̂ also pulled to the observer's ω̂_m
@@ -309,6 +284,10 @@ class Controller:
         self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0
         self._last = (w_0, dw_hat)
         return cmd
+
+    def summary(self) -> dict[str, object] | None:
+        """The standstill identification's result (``--identify``) for summary.json."""
+        return None if self.commissioning is None else self.commissioning.describe()
 
     def withhold(self) -> None:
         """The command of the last :meth:`step` was not sent (ready only after the SYNC it

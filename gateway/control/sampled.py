@@ -38,13 +38,14 @@ from __future__ import annotations
 import cmath
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
 from dbc.modes import SetpointFrame
 from gateway.control.commissioning import Commissioning
 from gateway.control.controller import (
-    Command,
+    PAPER_SIGNALS,
     Controller,
     ControllerConfig,
     Discretisation,
@@ -52,11 +53,12 @@ from gateway.control.controller import (
     FluxSource,
     Law,
     LoadSource,
-    Sample,
+    paper_logged,
     untold,
     wrap_angle,
 )
 from gateway.control.estimator import IntervalFluxEstimator, IntervalRsAdaptiveFluxEstimator
+from gateway.control.interface import Command, ControllerContext, DriveController, Sample
 from gateway.control.laws import Refs, sat_tanh
 
 
@@ -88,7 +90,10 @@ def phi(s: complex, T: float) -> complex:
 
 
 class SampledController:
-    """The sampled-data current-fed controller (15), (16), (20) (see the module docstring)."""
+    """The sampled-data current-fed controller (15), (16), (20) (see the module docstring);
+    a :class:`gateway.control.interface.DriveController`."""
+
+    signals = PAPER_SIGNALS
 
     def __init__(
         self,
@@ -147,6 +152,10 @@ class SampledController:
         psi = c.flux()
         self.estimator.identified(found.R_s, psi, sample.i_s_ab)
         return psi
+
+    def summary(self) -> dict[str, object] | None:
+        """The standstill identification's result (``--identify``) for summary.json."""
+        return None if self.commissioning is None else self.commissioning.describe()
 
     def _set_motor(self, motor) -> None:
         """The controller's motor from now on (the cached products too)."""
@@ -328,7 +337,7 @@ class SampledController:
         return Command(
             i_s_dq_ref=new.i_dq, u_s_dq_ref=new.u_dq, eps_0=eps_app, w_0=w_0,
             i_s_ab_ref=new.i_dq * to_ab, u_s_ab_ref=new.u_dq * to_ab,
-            w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
+            i_limited=limited, logged=paper_logged(w_k, psi_k),
         )
 
     def _midpoint(self, psi: complex, w: float, r: Refs, T_L: float
@@ -603,7 +612,7 @@ class FullOrderSampledController(SampledController):
         return Command(
             i_s_dq_ref=target, u_s_dq_ref=u, eps_0=eps_app, w_0=w_0,
             i_s_ab_ref=target * to_ab, u_s_ab_ref=u * to_ab,
-            w_hat=w_k, psi_r_dq=psi_k, i_limited=limited,
+            i_limited=limited, logged=paper_logged(w_k, psi_k),
         )
 
     def coast(self) -> None:
@@ -633,7 +642,7 @@ def _untold_at(refs_at: Callable[[float], Refs]) -> Callable[[float], Refs]:
 
 
 def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
-                    eps_0: float = 0.0, w_hat: float = 0.0):
+                    eps_0: float = 0.0, w_hat: float = 0.0) -> DriveController:
     """The controller ``config.discretisation`` names: the Euler :class:`Controller` or the
     sampled-data design. Both have ``step(refs, sample) -> Command`` and ``coast()``.
 
@@ -651,3 +660,21 @@ def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], 
             return FullOrderSampledController(motor, config, refs_at, eps_0=eps_0,
                                               w_hat=w_hat)
     return Controller(motor, config, eps_0=eps_0, w_hat=w_hat)
+
+
+def paper_controller(context: ControllerContext, params: Mapping[str, Any]
+                     ) -> DriveController:
+    """The ``paper`` controller (the entry point of ``can_drive_hil.controllers``): the laws
+    of Marino, Tomei & Verrelli with the command line's options (``context.paper``, a
+    :class:`ControllerConfig`), in the design its discretisation names
+    (:func:`make_controller`). Its options come from the command line, not from
+    ``--controller-params``."""
+    if params:
+        raise ValueError(f"the paper's laws take their options from the command line (--law, "
+                         f"--flux, --estimator, ...), not --controller-params: "
+                         f"{', '.join(sorted(params))}")
+    config = context.paper if context.paper is not None else ControllerConfig(
+        sampling=context.sampling, discretisation=Discretisation.EXACT,
+        current_lag=context.current_lag)
+    return make_controller(context.motor, config, context.refs_at, eps_0=context.eps_0,
+                           w_hat=context.w_hat_0)
