@@ -368,6 +368,7 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
     from dbc.signals import SETPOINT_MESSAGE
     from gateway import report
     from gateway.guard import DivergenceWatch, profile_envelope
+    from gateway.results import write_results
     from gateway.stop import StopReason
 
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
@@ -414,12 +415,9 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
         if rec.identification is not None:
             summary["identification"] = rec.identification
         summary["wall_time_s"] = wall
-        report.write_summary(out / "summary.json", summary)
-        rec.write_csv(out / "signals.csv")
         dp = cfg.drive_params
-        figures = report.plot_figures(
-            sig, out, report.title_for(summary["configuration"]),
-            windows=summary["speed_error"]["windows"],
+        figures = write_results(
+            out, sig, summary, figures=True,
             limits=report.limits_for(cfg.gains, None if dp.mode is DriveMode.IDEAL
                                      else dp.u_lim, dp.i_trip),
             delay_s=cfg.sampling.delay * cfg.sampling.period if sampled else 0.0)
@@ -431,9 +429,14 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
              f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
              f"{args.setpoint_frame[1]}), {cfg.discretisation} design"))
     print(report.summary_table(summary))
-    print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/summary.json, signals.csv"
-          + (", " + ", ".join(p.name for p in figures) if figures else
-             " (install matplotlib for the figures)"))
+    errors = summary.get("write_errors", [])
+    for e in errors:
+        print(f"{PROG}: {e}", file=sys.stderr)
+    written = [n for n in ("signals.csv", *(p.name for p in figures), "summary.json")
+               if not any(f"/{n}" in e or f" {n}" in e for e in errors)]
+    print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/"
+          + ", ".join(written) + ("" if figures or errors else
+                                  " (install matplotlib for the figures)"))
     if ended is StopReason.DIVERGED:
         print(f"{PROG}: the loop diverged and the simulation stopped: {watch.reason} (the "
               "bus loop's divergence envelope, README \"Faults and the shutdown\"); the files "
@@ -441,7 +444,7 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
     elif stop.is_set():
         print(f"{PROG}: stopped early ({summary['stopped_early']}); the files hold the run so "
               "far", file=sys.stderr)
-    return ended.exit_status
+    return 1 if errors else ended.exit_status
 
 
 # ------------------------------------------------------------------------- run / sim
@@ -596,6 +599,7 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     """
     from gateway import report
     from gateway.loop import LoopRow
+    from gateway.results import Reporting
     from gateway.runner import StopSignals, run_gateway
 
     profile = _load_profile(args.profile)
@@ -632,11 +636,12 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
                 summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
                                       gateway_node=args.gateway_node,
                                       own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
-                                      progress=progress, signals=signals, bus_label=label)
+                                      progress=progress, signals=signals, bus_label=label,
+                                      reporting=Reporting(kind, windows, truth,
+                                                          _limits(cfg, drive)))
                 progress.done(complete=summary["run"]["exit_status"] == 0)
             finally:
                 close()
-            _report_run(out, kind, summary, profile, cfg, drive, windows, truth)
     who = (f"{cfg.law}, flux {cfg.flux}" if cfg.controller.is_paper
            else f"controller {cfg.controller.name}")
     print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
@@ -647,62 +652,14 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     return _finish_run(summary)
 
 
-def _report_run(out: Path, kind: str, summary: dict[str, Any], profile: Any, cfg: Any,
-                drive: Any, windows: Any, truth: Any) -> None:
-    """Fit the run's summary and figures to the profile and say what they rest on.
-
-    The metrics are recomputed over the profile's windows; with `sim` the emulator's
-    full-resolution truth replaces TPDO3's INT16 values in signals.csv and the metrics
-    (summary["truth"] says which); summary["quantisation"] gives each bus signal's LSB.
-    """
-    try:
-        _refit_run(out, kind, summary, cfg, drive, windows, truth)
-    except OSError as exc:  # the runner's files stand; say what could not be redone
-        summary.setdefault("write_errors", []).append(
-            f"cannot rewrite the run's files in {out}: {exc.strerror or exc}")
-        summary["run"]["exit_status"] = 1
-        print(f"{PROG}: {summary['write_errors'][-1]}", file=sys.stderr)
-
-
-def _refit_run(out: Path, kind: str, summary: dict[str, Any], cfg: Any, drive: Any,
-               windows: Any, truth: Any) -> None:
-    import numpy as np
-
+def _limits(cfg: Any, drive: Any) -> dict[str, float]:
+    """The limits Fig. 3 draws: the controller's current limit, and the emulator's voltage
+    limit and over-current trip (a real drive's are its own)."""
     from gateway import report
     from gateway.sim import emulator_limits
 
-    summary["configuration"]["command"] = kind
-    summary["quantisation"] = report.quantisation(True, drive.setpoints)
-    csv_path = out / "signals.csv"
-    if summary.get("write_errors"):
-        return  # what was written stands as the runner reported it
-    if csv_path.is_file() and "speed_error" in summary:
-        sig = report.read_csv(csv_path)
-        full = None
-        if truth is not None and len(sig["t"]):
-            full = truth.columns(np.rint(sig["t"] / cfg.period))
-        if full is not None:
-            # the same cycles as TPDO3's: within half its LSB wherever it does not saturate
-            lsb = summary["quantisation"]["signals"]["w_m"]["lsb"]
-            ok = np.abs(sig["w_m"]) < 1000.0
-            if not np.all(np.abs(full["w_m"][ok] - sig["w_m"][ok]) <= lsb / 2 + 1e-9):
-                logging.getLogger(__name__).warning(
-                    "the emulator's truth does not match TPDO3's cycle by cycle; the "
-                    "summary uses TPDO3")
-                full = None
-        if full is not None:
-            sig.update(full)
-            report.write_columns_csv(csv_path, sig)
-        summary["truth"] = report.TRUTH_FULL if full is not None else report.TRUTH_TPDO3
-        summary.update(report.metrics(sig, windows))
-        i_trip, u_lim = emulator_limits() if drive.emulator else (None, None)
-        report.plot_figures(
-            sig, out, report.title_for(summary["configuration"]),
-            windows=summary["speed_error"]["windows"],
-            limits=report.limits_for(cfg.gains, None if cfg.drive_mode == "ideal" else u_lim,
-                                     i_trip),
-            delay_s=cfg.sampling.delay * cfg.period)
-    report.write_summary(out / "summary.json", summary)
+    i_trip, u_lim = emulator_limits() if drive.emulator else (None, None)
+    return report.limits_for(cfg.gains, None if cfg.drive_mode == "ideal" else u_lim, i_trip)
 
 
 #: Interfaces that deliver this process's own frames back when asked (receive_own_messages).

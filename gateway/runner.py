@@ -52,6 +52,7 @@ from gateway.master import DriveMaster
 from gateway.process_data import ProcessData, process_data
 from gateway.reference import Profile
 from gateway.reference.demand import sample_times
+from gateway.results import Reporting, merge_truth, write_results, write_summary_noting
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
@@ -332,13 +333,16 @@ def run_gateway(
     signals: StopSignals | None = None,
     bus_label: str = "",
     gateway_node: int | None = None,
+    reporting: Reporting | None = None,
 ) -> dict[str, Any]:
     """Run the loop against the drive on ``bus``; returns the summary (also written to out/).
 
     summary.json is written before the loop starts (``run.status = "running"``) and
     replaced atomically at the end, so a crash leaves the configuration and the status; the
-    bus log is flushed every second.
+    bus log is flushed every second. The results are written once, at the end
+    (:func:`gateway.results.write_results`), as ``reporting`` says.
     """
+    reporting = reporting or Reporting()
     node_id = node or drive.node
     pd = process_data(drive, node_id)
     if cfg.sampling.setpoint_frame != pd.setpoint_frame:
@@ -355,7 +359,8 @@ def run_gateway(
                           plausibility=plausibility,
                           envelope=envelope)
     signals = signals or StopSignals()
-    configuration = _configuration(cfg, drive, profile, node_id, bus_label)
+    configuration = _configuration(cfg, drive, profile, node_id, bus_label,
+                                   reporting.command)
     recorder = BusRecorder(out / cfg.bus_log)
     master = DriveMaster(bus, drive, node_id, gateway_node)
     if load_note:
@@ -409,7 +414,7 @@ def run_gateway(
 
         loop = CycleLoop(bus, master.network.subscribe, pd, ctl, profile, loop_cfg,
                          own_echo=own_echo, fault=master.fault, fault_cause=fault_cause)
-        _write_summary_noting(out, {"run": {"status": "running", "started": t_start},
+        write_summary_noting(out, {"run": {"status": "running", "started": t_start},
                                     "configuration": configuration}, [])
         signals.on_stop = loop.request_stop
         if signals.requested.is_set():
@@ -432,13 +437,13 @@ def run_gateway(
     if error is not None:
         raise error
     return _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
-                      signals.reason, t_start)
+                      signals.reason, t_start, reporting)
 
 
 def _configuration(cfg: RunConfig, drive: DriveProfile, profile: Profile, node_id: int,
-                   bus_label: str) -> dict[str, Any]:
+                   bus_label: str, command: str = "run") -> dict[str, Any]:
     return {
-        "command": "run", "bus": bus_label, "node": node_id, "drive_profile": drive.source,
+        "command": command, "bus": bus_label, "node": node_id, "drive_profile": drive.source,
         "profile": profile.source,
         **{k: v for k, v in asdict(cfg).items() if k not in ("gains", "sampling")},
         "period": cfg.period, "delay": cfg.sampling.delay,
@@ -463,19 +468,21 @@ def _final_stop(stats: Any, master: DriveMaster, interrupt_reason: str
 
 
 def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
-               interrupt_reason, t_start) -> dict[str, Any]:
-    """Write signals.csv, the figures and summary.json; what cannot be written is named in
-    ``summary["write_errors"]`` (and the exit status is then 1)."""
+               interrupt_reason, t_start, reporting: Reporting) -> dict[str, Any]:
+    """The summary, then the results written once (:func:`gateway.results.write_results`):
+    signals.csv with the emulator's full-resolution truth merged where `sim` has it, the
+    metrics over the profile's windows, the figures, summary.json; what cannot be written
+    is named in ``summary["write_errors"]`` (and the exit status is then 1)."""
     summary: dict[str, Any] = {}
     write_errors: list[str] = []
+    sig = None
+    summary["quantisation"] = report.quantisation(True, drive.setpoints)
     if loop is not None and len(loop.record):
         sig = loop.record.arrays()
-        _try_write(write_errors, out / "signals.csv", lambda p: loop.record.write_csv(p),
-                   "the per-cycle signals")
         if drive.truth:  # tracking errors need the emulator's truth (TPDO3)
-            summary.update(report.metrics(sig))
-            _try_write(write_errors, out, lambda p: report.plot_figures(
-                sig, p, f"(over CAN, {cfg.timing})"), "the figures")
+            lsb = summary["quantisation"]["signals"]["w_m"]["lsb"]
+            summary["truth"] = merge_truth(sig, reporting.truth, cfg.period, lsb)
+            summary.update(report.metrics(sig, reporting.windows))
         summary["timing"] = timing_stats(sig, cfg.period, cfg.timing is Timing.REALTIME)
     stop, message = _final_stop(stats, master, interrupt_reason)
     shutdown = master.shutdown_report
@@ -513,31 +520,9 @@ def _summarise(loop, stats, master, recorder, cfg, drive, out, configuration,
         summary["identification"] = found
     if recorder.error:
         write_errors.append(recorder.error + f" ({recorder.dropped} frames not logged)")
-    _write_summary_noting(out, summary, write_errors)
+    write_results(out, sig, summary, figures=bool(drive.truth), limits=reporting.limits,
+                  delay_s=cfg.sampling.delay * cfg.period, errors=write_errors)
     return summary
-
-
-def _try_write(errors: list[str], path: Path, write: Callable[[Path], object], what: str
-               ) -> None:
-    try:
-        write(path)
-    except OSError as exc:
-        errors.append(f"cannot write {what} to {path}: {exc.strerror or exc}")
-
-
-def _write_summary_noting(out: Path, summary: dict[str, Any], errors: list[str]) -> None:
-    """summary.json, atomically; write errors (earlier ones in ``errors`` too) go into it,
-    and if it cannot be written itself, into the exit status and onto stderr."""
-    if errors:
-        summary["write_errors"] = list(errors)
-        summary.setdefault("run", {})["exit_status"] = 1
-    try:
-        report.write_summary(out / "summary.json", summary)
-    except OSError as exc:
-        errors.append(f"cannot write the summary to {out / 'summary.json'}: "
-                      f"{exc.strerror or exc}")
-        summary["write_errors"] = list(errors)
-        summary.setdefault("run", {})["exit_status"] = 1
 
 
 def timing_stats(sig: dict[str, np.ndarray], period: float, realtime: bool) -> dict[str, Any]:

@@ -1,0 +1,107 @@
+"""The one writer of a run's results: ``signals.csv``, the figures and ``summary.json``.
+
+`simulate`, `sim` and `run` all end here, each file written once: the record's columns
+(with the emulator's full-resolution truth merged in before anything is written, where a
+`sim` run has it), the metrics computed once from them, the figures drawn from the same
+columns, and the summary last, naming any file that could not be written
+(``write_errors``, exit status 1). Only `sim`/`run` write a ``summary.json`` before this, the
+``run.status = "running"`` marker that a crash leaves behind, which this replaces
+atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from gateway import report
+
+log = logging.getLogger(__name__)
+
+
+class TruthColumns(Protocol):
+    """The emulator's state at full resolution by cycle (:class:`gateway.sim.TruthRecorder`)."""
+
+    def columns(self, cycles: np.ndarray) -> dict[str, np.ndarray] | None: ...
+
+
+@dataclass(frozen=True)
+class Reporting:
+    """How a bus run reports: the command's name (``sim``, ``run``), the metric windows
+    (:func:`gateway.report.profile_windows`), the emulator's full-resolution truth (`sim`),
+    and the limits Fig. 3 draws (:func:`gateway.report.limits_for`)."""
+
+    command: str = "run"
+    windows: tuple = report.DEFAULT_WINDOWS
+    truth: TruthColumns | None = None
+    limits: Mapping[str, float] = field(default_factory=dict)
+
+
+def merge_truth(sig: dict[str, np.ndarray], truth: TruthColumns | None, period: float,
+                lsb: float) -> str:
+    """Replace TPDO3's INT16 truth in ``sig`` by the emulator's full-resolution state of
+    the same cycles, where it has them and they agree with TPDO3 within half its LSB
+    ``lsb`` (rad/s) wherever TPDO3 does not saturate; returns what the truth rests on."""
+    if truth is None or not len(sig["t"]):
+        return report.TRUTH_TPDO3
+    full = truth.columns(np.rint(sig["t"] / period))
+    if full is None:
+        return report.TRUTH_TPDO3
+    ok = np.abs(sig["w_m"]) < 1000.0
+    if not np.all(np.abs(full["w_m"][ok] - sig["w_m"][ok]) <= lsb / 2 + 1e-9):
+        log.warning("the emulator's truth does not match TPDO3's cycle by cycle; the summary "
+                    "uses TPDO3")
+        return report.TRUTH_TPDO3
+    sig.update(full)
+    return report.TRUTH_FULL
+
+
+def _try_write(errors: list[str], path: Path, write: Callable[[Path], object], what: str
+               ) -> Any:
+    try:
+        return write(path)
+    except OSError as exc:
+        errors.append(f"cannot write {what} to {path}: {exc.strerror or exc}")
+        return None
+
+
+def write_results(out: Path, sig: Mapping[str, np.ndarray] | None, summary: dict[str, Any],
+                  *, figures: bool, limits: Mapping[str, float] | None = None,
+                  delay_s: float = 0.0, errors: list[str] | None = None) -> list[Path]:
+    """Write ``signals.csv`` (``sig``: the record's columns; None: no cycle ran), the figures
+    (``figures``: the run has the truth they need) and ``summary.json``, once each; the
+    figure titles come from ``summary["configuration"]``, the metric windows from its
+    ``speed_error``. What cannot be written goes into ``summary["write_errors"]`` with exit
+    status 1. Returns the figures written."""
+    errors = list(errors or [])
+    drawn: list[Path] = []
+    if sig is not None:
+        _try_write(errors, out / "signals.csv", lambda p: report.write_columns_csv(p, sig),
+                   "the per-cycle signals")
+        if figures and "speed_error" in summary:
+            drawn = _try_write(errors, out, lambda p: report.plot_figures(
+                sig, p, report.title_for(summary.get("configuration", {})),
+                windows=summary["speed_error"]["windows"], limits=limits,
+                delay_s=delay_s), "the figures") or []
+    write_summary_noting(out, summary, errors)
+    return drawn
+
+
+def write_summary_noting(out: Path, summary: dict[str, Any], errors: list[str]) -> None:
+    """summary.json, atomically; write errors (earlier ones in ``errors`` too) go into it,
+    and if it cannot be written itself, into the exit status and onto stderr."""
+    if errors:
+        summary["write_errors"] = list(errors)
+        summary.setdefault("run", {})["exit_status"] = 1
+    try:
+        report.write_summary(out / "summary.json", summary)
+    except OSError as exc:
+        errors.append(f"cannot write the summary to {out / 'summary.json'}: "
+                      f"{exc.strerror or exc}")
+        summary["write_errors"] = list(errors)
+        summary.setdefault("run", {})["exit_status"] = 1

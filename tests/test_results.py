@@ -1,0 +1,91 @@
+"""One writer of a run's results (gateway/results.py): `simulate`, `sim` and `run` write
+signals.csv, every figure and the final summary.json once each, with the metrics computed
+once (in `sim` from the emulator's full-resolution truth, merged before the first write).
+`sim`/`run` also write the summary's "running" marker before the loop, which a crash leaves
+behind (README, "Faults and the shutdown")."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import pytest
+from gw_support import gateway_run
+
+from gateway import report
+from gateway.cli import main
+
+QUICK = "profiles/quick.toml"
+
+
+@pytest.fixture
+def writes(monkeypatch):
+    """Counts of what the report functions write, by file name."""
+    seen: Counter[str] = Counter()
+    real_csv, real_sum, real_plot = (report.write_columns_csv, report.write_summary,
+                                     report.plot_figures)
+    metrics_calls = []
+    real_metrics = report.metrics
+
+    def csv(path, sig):
+        seen[path.name] += 1
+        return real_csv(path, sig)
+
+    def summary(path, s):
+        seen[path.name + (" running" if s.get("run", {}).get("status") == "running"
+                          else "")] += 1
+        return real_sum(path, s)
+
+    def plot(*a, **k):
+        paths = real_plot(*a, **k)
+        seen.update(p.name for p in paths)
+        return paths
+
+    def metrics(*a, **k):
+        metrics_calls.append(1)
+        return real_metrics(*a, **k)
+
+    monkeypatch.setattr(report, "write_columns_csv", csv)
+    monkeypatch.setattr(report, "write_summary", summary)
+    monkeypatch.setattr(report, "plot_figures", plot)
+    monkeypatch.setattr(report, "metrics", metrics)
+    seen.metrics = metrics_calls  # type: ignore[attr-defined]
+    return seen
+
+
+FIGURES = ("fig1_references.png", "fig2_errors.png", "fig3_currents_voltages.png")
+
+
+def _once(seen: Counter, *extra: str) -> None:
+    for name in ("signals.csv", "summary.json", *FIGURES, *extra):
+        assert seen[name] == 1, (name, dict(seen))
+    assert len(seen.metrics) == 1, "the metrics were computed more than once"
+
+
+def test_simulate_writes_each_file_once(tmp_path, writes):
+    assert main(["simulate", "--reference", QUICK, "--out", str(tmp_path / "o")]) == 0
+    _once(writes)
+    assert writes["summary.json running"] == 0
+
+
+def test_sim_writes_each_file_once_with_the_truth_merged_first(tmp_path, writes):
+    out = tmp_path / "o"
+    assert main(["sim", "--reference", QUICK, "--out", str(out)]) == 0
+    _once(writes)
+    assert writes["summary.json running"] == 1  # the crash marker before the loop
+    s = json.loads((out / "summary.json").read_text())
+    assert s["truth"] == report.TRUTH_FULL and s["configuration"]["command"] == "sim"
+
+
+def test_run_writes_each_file_once(emulator, tmp_path, writes):
+    emu = emulator()
+    assert gateway_run(emu, tmp_path / "o", "--reference", QUICK, "--duration", "0.2s") == 0
+    _once(writes)
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["truth"] == report.TRUTH_TPDO3 and s["configuration"]["command"] == "run"
+
+
+def test_a_users_controller_draws_its_figure_once(tmp_path, writes):
+    assert main(["sim", "--controller", "ifoc", "--reference", QUICK,
+                 "--out", str(tmp_path / "o")]) == 0
+    _once(writes, "fig4_controller.png")
