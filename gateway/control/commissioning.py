@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -204,6 +204,19 @@ class Commissioning:
             return None
         self.result = self.identifier.solve()
         return self.result
+
+    def apply(self, refs: Refs, i_s_ab: complex, u_s_ab: complex, estimator: Any
+              ) -> tuple[Identification, complex] | None:
+        """:meth:`step`, and at the sample that ends an accepted identification: the flux
+        ``estimator`` restarted from the identified voltage model (its ``identified``), and
+        (the identification, that rotor flux ψ_r_ab in Wb) returned, for the controller to
+        use the identified R_s and R_r from now on. None at every other sample."""
+        found = self.step(refs, i_s_ab, u_s_ab)
+        if found is None or not found.accepted:
+            return None
+        psi = self.flux()
+        estimator.identified(found.R_s, psi, i_s_ab)
+        return found, psi
 
     def flux(self) -> complex:
         """The voltage-model rotor flux at the last sample with the identified R_s, Wb."""

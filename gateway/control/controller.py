@@ -174,6 +174,17 @@ def paper_logged(w_hat: float, psi_r_dq: complex) -> tuple[float, float, float, 
     return (w_hat, abs(psi_r_dq), psi_r_dq.real, psi_r_dq.imag)
 
 
+def law_flux(true_flux: bool, sample: Sample, psi_hat_ab: complex | None) -> complex:
+    """The rotor flux the law uses, Wb: the estimate ``psi_hat_ab``, or with ``--flux true``
+    (the paper's comparison with flux measurements) the drive's true flux."""
+    if not true_flux:
+        assert psi_hat_ab is not None
+        return psi_hat_ab
+    if sample.psi_r_ab is None:
+        raise ValueError("flux='true' needs the true rotor flux in the sample")
+    return sample.psi_r_ab
+
+
 def wrap_angle(x: float) -> float:
     """Angle wrapped to [−π, π), rad."""
     return (x + math.pi) % TWO_PI - math.pi
@@ -224,21 +235,16 @@ class Controller:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""
         T = self._T
         eps_0 = self.eps_0
-        if self._true_flux:
-            if sample.psi_r_ab is None:
-                raise ValueError("flux='true' needs the true rotor flux in the sample")
-            psi_r_ab = sample.psi_r_ab
-        else:
-            psi_r_ab = self.estimator.update(
-                sample.i_s_ab, sample.u_s_ab, T, eps_0, refs.psi_ref
-            )
+        psi_hat_ab = (None if self._true_flux else
+                      self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, eps_0,
+                                            refs.psi_ref))
         if self.commissioning is not None:
-            found = self.commissioning.step(refs, sample.i_s_ab, sample.u_s_ab)
-            if found is not None and found.accepted:
-                self.motor = replace(self.motor, R_s=found.R_s, R_r=found.R_r)
-                if not self._true_flux:
-                    psi_r_ab = self.commissioning.flux()
-                    self.estimator.identified(found.R_s, psi_r_ab, sample.i_s_ab)
+            found = self.commissioning.apply(refs, sample.i_s_ab, sample.u_s_ab,
+                                             self.estimator)
+            if found is not None:
+                ident, psi_hat_ab = found
+                self.motor = replace(self.motor, R_s=ident.R_s, R_r=ident.R_r)
+        psi_r_ab = law_flux(self._true_flux, sample, psi_hat_ab)
         if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt
             refs = self.load_observer.refs(refs, sample.i_s_ab, sample.u_s_ab, eps_0)
         elif self._untold:

@@ -53,6 +53,7 @@ from gateway.control.controller import (
     FluxSource,
     Law,
     LoadSource,
+    law_flux,
     paper_logged,
     untold,
     wrap_angle,
@@ -145,12 +146,11 @@ class SampledController:
         c = self.commissioning
         if c is None:
             return psi_hat_ab
-        found = c.step(refs, sample.i_s_ab, sample.u_s_ab)
-        if found is None or not found.accepted:
+        found = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator)
+        if found is None:
             return psi_hat_ab
-        self._set_motor(replace(self.motor, R_s=found.R_s, R_r=found.R_r))
-        psi = c.flux()
-        self.estimator.identified(found.R_s, psi, sample.i_s_ab)
+        ident, psi = found
+        self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r))
         return psi
 
     def summary(self) -> dict[str, object] | None:
@@ -291,12 +291,7 @@ class SampledController:
         psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
                                            i_end_ab, eps_k, refs.psi_ref)
         psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
-        if self._true_flux:
-            if sample.psi_r_ab is None:
-                raise ValueError("flux='true' needs the true rotor flux in the sample")
-            psi_ab = sample.psi_r_ab
-        else:
-            psi_ab = psi_hat_ab
+        psi_ab = law_flux(self._true_flux, sample, psi_hat_ab)
         psi_k = psi_ab * cmath.exp(-1j * eps_k)
         # ω̂ at t_k: (16), (20) integrated over I_{k−1}, model corrected by the measured end
         psi0 = self._psi_prev
@@ -562,12 +557,7 @@ class FullOrderSampledController(SampledController):
         psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
                                            rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
         psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
-        if self._true_flux:
-            if sample.psi_r_ab is None:
-                raise ValueError("flux='true' needs the true rotor flux in the sample")
-            psi_ab = sample.psi_r_ab
-        else:
-            psi_ab = psi_hat_ab
+        psi_ab = law_flux(self._true_flux, sample, psi_hat_ab)
         psi_k = psi_ab * rot_k
         _, _, w_k = self._fo_finish(model, (i_k, psi_k))
         self.w_hat = w_k
