@@ -26,7 +26,7 @@ import struct
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -98,6 +98,104 @@ def write_frame(writer: can.Listener, msg: can.Message) -> None:
     except struct.error:
         msg.channel = None
         writer.on_message_received(msg)
+
+
+#: The bus log's queue holds at most this many frames (beyond, frames are dropped, counted).
+MAX_QUEUED = 200_000
+#: The bus log is flushed to the file this often, s.
+FLUSH_PERIOD = 1.0
+
+
+class BusRecorder(can.Listener):
+    """The raw bus log: frames queued in the receive thread, written by a writer thread.
+
+    Queuing costs the control cycle a deque append. The queue is bounded
+    (:data:`MAX_QUEUED` frames): beyond it frames are dropped and counted. The writer thread
+    flushes the file every :data:`FLUSH_PERIOD` s, so after a crash (kill -9) the log is
+    readable up to the last flush. A write error (a full disk) stops the writing and is
+    kept in :attr:`error`; the run goes on and reports it. :meth:`stop` drains what is
+    queued and closes the file on every exit path.
+    """
+
+    def __init__(self, path: Path) -> None:
+        try:
+            self._writer = can.Logger(str(path))
+        except (OSError, ValueError) as exc:
+            raise UserError(f"cannot write the bus log {str(path)!r}: {exc}") from exc
+        self.path = path
+        self.count = 0
+        self.dropped = 0
+        self.error = ""
+        self._queue: deque[can.Message] = deque()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # one writer at a time (thread, or stop())
+        self._thread = threading.Thread(target=self._drain_loop, name="bus-log", daemon=True)
+        self._thread.start()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if len(self._queue) < MAX_QUEUED and not self.error:
+            self._queue.append(msg)
+        else:
+            self.dropped += 1
+
+    def _drain(self) -> None:
+        q = self._queue
+        writer = self._writer
+        while q:
+            msg = q.popleft()
+            if self.error:
+                self.dropped += 1
+                continue
+            try:
+                write_frame(writer, msg)
+                self.count += 1
+            except (OSError, ValueError) as exc:
+                self.error = f"writing {self.path} failed after {self.count} frames: {exc}"
+                self.dropped += 1
+                log.error("bus log: %s", self.error)
+
+    def _flush(self) -> None:
+        """Make what was written readable after a crash (BLF: close the open container)."""
+        if self.error:
+            return
+        try:
+            flush_container = getattr(self._writer, "_flush", None)  # BLFWriter's container
+            if flush_container is not None:
+                flush_container()
+            file = getattr(self._writer, "file", None)
+            if file is not None:
+                file.flush()
+        except (OSError, ValueError) as exc:
+            self.error = f"writing {self.path} failed after {self.count} frames: {exc}"
+            log.error("bus log: %s", self.error)
+
+    def _drain_loop(self) -> None:
+        next_flush = time.monotonic() + FLUSH_PERIOD
+        while not self._stop.wait(0.05):
+            with self._lock:
+                self._drain()
+                if time.monotonic() >= next_flush:
+                    next_flush += FLUSH_PERIOD
+                    self._flush()
+
+    def stop(self) -> None:
+        """Write what is queued, flush and close (idempotent)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join(2.0)
+        with self._lock:
+            self._drain()
+            try:
+                self._writer.stop()
+            except (OSError, ValueError) as exc:
+                if not self.error:
+                    self.error = f"closing {self.path} failed after {self.count} frames: {exc}"
+
+    def account(self) -> dict[str, Any]:
+        """For the summary: frames written, dropped, the error if any."""
+        return {"bus_log": self.path.name, "bus_frames_logged": self.count,
+                "bus_frames_dropped": self.dropped, "bus_log_error": self.error or None}
 
 
 class Frames(list):
@@ -365,12 +463,20 @@ class LogResult:
     error: BaseException | None = None
     #: frames on a decoded PDO's COB-ID whose length is not the PDO's, by message name
     decode_errors: Counter[str] = field(default_factory=Counter)
+    #: the raw log: frames written, frames not written (a full disk, a full queue), and why
+    written: int = 0
+    dropped: int = 0
+    write_error: str = ""
 
     def account(self) -> str:
         """Frames logged, per-message counts and duration, a few lines."""
         rate = self.frames / self.duration if self.duration > 0 else 0.0
-        lines = [f"logged {self.frames} frames in {self.duration:.2f} s ({rate:.0f}/s) to "
+        lines = [f"logged {self.written} frames in {self.duration:.2f} s ({rate:.0f}/s) to "
                  f"{self.path}"]
+        if self.write_error or self.dropped:
+            lines[0] = (f"received {self.frames} frames in {self.duration:.2f} s; "
+                        f"{self.written} written to {self.path}, {self.dropped} NOT written"
+                        + (f" ({self.write_error})" if self.write_error else ""))
         if self.csv_path is not None:
             lines[0] += f"; {self.decoded} decoded rows to {self.csv_path}"
         if self.counts:
@@ -385,13 +491,14 @@ class LogResult:
 
 
 class _Recorder(can.Listener):
-    """Writes every frame to the raw log; decodes the node's PDOs for the display and CSV.
+    """Hands every frame to the raw log (:class:`BusRecorder`, the writer a run uses too);
+    decodes the node's PDOs for the display and CSV.
 
     Runs in the notifier thread; :meth:`close` (idempotent, also called by the notifier's
-    ``stop``) flushes and closes the files; frames arriving after it are dropped.
+    ``stop``) drains and closes the files; frames arriving after it are dropped.
     """
 
-    def __init__(self, writer: can.Listener, node_id: int, decode: bool,
+    def __init__(self, writer: BusRecorder, node_id: int, decode: bool,
                  csv_file: TextIO | None, prefer: Iterable[str] = (),
                  drive: DriveProfile | None = None) -> None:
         self.writer = writer
@@ -421,7 +528,7 @@ class _Recorder(can.Listener):
         with self.lock:
             if self.closed:
                 return
-            write_frame(self.writer, msg)
+            self.writer.on_message_received(msg)
             if self.t_first is None:
                 self.t_first = msg.timestamp
             self.frames += 1
@@ -533,12 +640,7 @@ def run_log(bus: can.BusABC, path: str | Path, *, node_id: int | None = None,
     if node_id is None:
         node_id = drive.node if drive is not None else 1
     _decoders(node_id, prefer, drive)  # bad node/message/profile → UserError before any file
-    try:
-        writer = can.Logger(p)
-    except ValueError as exc:
-        raise UserError(f"-o {str(p)!r}: {exc}") from exc
-    except OSError as exc:
-        raise UserError(f"cannot write the log {str(p)!r}: {exc.strerror or exc}") from exc
+    writer = BusRecorder(p)  # UserError when it cannot be opened
     csv_file = None
     try:
         if cp is not None:
@@ -585,6 +687,8 @@ def run_log(bus: can.BusABC, path: str | Path, *, node_id: int | None = None,
             with contextlib.suppress(Exception):
                 display.tick(final=True)
     result.frames, result.decoded = rec.frames, rec.decoded
+    result.write_error = writer.error
+    result.written, result.dropped = writer.count, writer.dropped
     result.counts = Counter(rec.counts)
     result.decode_errors = Counter(rec.errors)
     result.error = rec.error
@@ -642,6 +746,10 @@ def cmd_log(args: argparse.Namespace) -> int:
     finally:
         bus.shutdown()
     print(result.account())
+    if result.write_error:
+        raise UserError(f"the log {path} holds the first {result.written} of "
+                        f"{result.frames} frames: {result.write_error}. Free space or choose "
+                        "another -o", exit_code=1)
     if result.error is not None:
         raise UserError(f"receiving from {cfg.label()} failed: {result.error}. The log {path} "
                         f"is complete up to that point ({result.frames} frames).")

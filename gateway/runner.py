@@ -9,7 +9,6 @@ bus log flushed and closed; the caller shuts the bus down.
 
 from __future__ import annotations
 
-import collections
 import logging
 import math
 import signal
@@ -30,7 +29,7 @@ from dbc.motor import MotorParams
 from dbc.signals import SETPOINTS
 from dbc.timing import Sampling, TimeBase, internal_rate
 from gateway import report
-from gateway.buslog import LOG_SUFFIXES, write_frame
+from gateway.buslog import LOG_SUFFIXES, BusRecorder
 from gateway.control.controller import (
     ControllerConfig,
     Discretisation,
@@ -57,10 +56,6 @@ from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
 
-#: The bus log's queue holds at most this many frames (beyond, frames are dropped, counted).
-MAX_QUEUED = 200_000
-#: The bus log is flushed to the file this often, s.
-FLUSH_PERIOD = 1.0
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -124,98 +119,6 @@ class RunConfig:
                                 discretisation=self.discretisation, current_lag=current_lag,
                                 load=self.load, **load_config(self.load, self.drive_mode),
                                 identify=self.identify)
-
-
-class BusRecorder(can.Listener):
-    """The raw bus log: frames queued in the receive thread, written by a writer thread.
-
-    Queuing costs the control cycle a deque append. The queue is bounded
-    (:data:`MAX_QUEUED` frames): beyond it frames are dropped and counted. The writer thread
-    flushes the file every :data:`FLUSH_PERIOD` s, so after a crash (kill -9) the log is
-    readable up to the last flush. A write error (a full disk) stops the writing and is
-    kept in :attr:`error`; the run goes on and reports it. :meth:`stop` drains what is
-    queued and closes the file on every exit path.
-    """
-
-    def __init__(self, path: Path) -> None:
-        try:
-            self._writer = can.Logger(str(path))
-        except (OSError, ValueError) as exc:
-            raise UserError(f"cannot write the bus log {str(path)!r}: {exc}") from exc
-        self.path = path
-        self.count = 0
-        self.dropped = 0
-        self.error = ""
-        self._queue: collections.deque[can.Message] = collections.deque()
-        self._stop = threading.Event()
-        self._lock = threading.Lock()  # one writer at a time (thread, or stop())
-        self._thread = threading.Thread(target=self._drain_loop, name="bus-log", daemon=True)
-        self._thread.start()
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if len(self._queue) < MAX_QUEUED and not self.error:
-            self._queue.append(msg)
-        else:
-            self.dropped += 1
-
-    def _drain(self) -> None:
-        q = self._queue
-        writer = self._writer
-        while q:
-            msg = q.popleft()
-            if self.error:
-                self.dropped += 1
-                continue
-            try:
-                write_frame(writer, msg)
-                self.count += 1
-            except (OSError, ValueError) as exc:
-                self.error = f"writing {self.path} failed after {self.count} frames: {exc}"
-                self.dropped += 1
-                log.error("bus log: %s", self.error)
-
-    def _flush(self) -> None:
-        """Make what was written readable after a crash (BLF: close the open container)."""
-        if self.error:
-            return
-        try:
-            flush_container = getattr(self._writer, "_flush", None)  # BLFWriter's container
-            if flush_container is not None:
-                flush_container()
-            file = getattr(self._writer, "file", None)
-            if file is not None:
-                file.flush()
-        except (OSError, ValueError) as exc:
-            self.error = f"writing {self.path} failed after {self.count} frames: {exc}"
-            log.error("bus log: %s", self.error)
-
-    def _drain_loop(self) -> None:
-        next_flush = time.monotonic() + FLUSH_PERIOD
-        while not self._stop.wait(0.05):
-            with self._lock:
-                self._drain()
-                if time.monotonic() >= next_flush:
-                    next_flush += FLUSH_PERIOD
-                    self._flush()
-
-    def stop(self) -> None:
-        """Write what is queued, flush and close (idempotent)."""
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        self._thread.join(2.0)
-        with self._lock:
-            self._drain()
-            try:
-                self._writer.stop()
-            except (OSError, ValueError) as exc:
-                if not self.error:
-                    self.error = f"closing {self.path} failed after {self.count} frames: {exc}"
-
-    def account(self) -> dict[str, Any]:
-        """For the summary: frames written, dropped, the error if any."""
-        return {"bus_log": self.path.name, "bus_frames_logged": self.count,
-                "bus_frames_dropped": self.dropped, "bus_log_error": self.error or None}
 
 
 class StopSignals:

@@ -317,3 +317,28 @@ def test_cli_bad_input(tmp_path: Path) -> None:
                               "-i", "virtual", "-c", "x"])
     with pytest.raises(UserError, match="--duration"):
         args.func(args)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf"])
+def test_cli_on_a_full_disk_says_what_was_kept(suffix: str, channel: str, db, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """`log` to a file on a full disk (/dev/full): the run's own queued writer keeps the
+    frames it could, the account says how many were not written and why, exit 1, no
+    traceback (never a false "logged N frames")."""
+    target = tmp_path / f"full{suffix}"
+    target.symlink_to("/dev/full")
+    args = _parser().parse_args(["log", "-o", str(target), "--duration", "0.5", "-i",
+                                 "virtual", "-c", channel, "--quiet"])
+    tx = can.Bus(interface="virtual", channel=channel)
+    try:
+        timer = threading.Timer(0.2, lambda: [tx.send(m) for _, m in frames(db) * 50])
+        timer.start()
+        with pytest.raises(UserError) as err:
+            args.func(args)
+        timer.join(timeout=2.0)
+    finally:
+        tx.shutdown()
+    assert err.value.exit_code == 1
+    assert "No space left on device" in str(err.value) and "Free space" in str(err.value)
+    out = capsys.readouterr().out
+    assert "NOT written" in out
