@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python bench/bench_sampled.py [--markdown] [--quick]
 
-For each configuration of issue 13's targets the paper scenario (`profiles/paper.toml`, the
+For each target configuration of the sampled-data design the paper scenario (the
 embedded `paper_profile()`) runs through `gateway.simulate` — the drive model, the PDO
 codec and the controller exactly as over the bus — once with `discretisation="euler"`
 (the laws stepped with forward Euler) and once with `"exact"` (docs/sampled-control.md),

@@ -1,4 +1,4 @@
-"""The divergence guard without a speed sensor (issue 14): how often it stops a run that was
+"""The divergence guard without a speed sensor: how often it stops a run that was
 under control, how early it stops one that was not, and what it does with a load the laws
 are not told.
 

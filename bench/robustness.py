@@ -1,4 +1,4 @@
-"""The robustness table of issue 14: the sensorless loop against plants that differ from the
+"""The robustness table of the sensorless loop against plants that differ from the
 controller's model (plant scenarios, ``plant/scenarios/``), with `hil-gateway simulate`'s
 Python API (sampled 1 ms, one period of SYNC delay, (d, q) setpoints, INT16 PDOs).
 

@@ -155,7 +155,7 @@ def _add_plant_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", metavar="SCENARIO",
                    help="plant scenario (TOML file, or a shipped name such as rs+10): how the "
                         "emulated motor, sensors, inverter and load differ from the "
-                        "controller's model (issue 14); default: the nominal plant")
+                        "controller's model; default: the nominal plant")
 
 
 class Progress:
@@ -255,8 +255,8 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     p.add_argument("--load", choices=("known", "observed", "untold"),
                    help="the load torque for the laws: known (the profile's T_L, the paper, "
-                        "docs/paper.md §E6), observed (estimated by the load observer, issue "
-                        "14; current-fed law; exact plants only so far, see BENCHMARKS.md) or "
+                        "docs/paper.md §E6), observed (estimated by the load observer; "
+                        "current-fed law; exact plants only so far, see BENCHMARKS.md) or "
                         "untold (the laws assume none: T_L = 0); default: the plant "
                         "scenario's [load].known, else known where the drive applies the "
                         "profile's load (the emulator, a drive profile with a T_L signal) and "
@@ -291,7 +291,7 @@ def _design(args: argparse.Namespace, load: str) -> Any:
 def _load_mode(args: argparse.Namespace, plant: Any, drive: Any = None) -> str:
     """--load; else the scenario's [load].known (told, else observed); else told where the
     drive applies the profile's load — the emulator, or a drive profile that maps a T_L
-    signal (a dynamometer the gateway commands) — and untold where it cannot (issue 14: "not
+    signal (a dynamometer the gateway commands) — and untold where it cannot ("not
     told against a real drive"; the laws then assume no load rather than feed forward one
     the shaft may not carry). Not told does not mean observed: the load observer runs away
     with a 10 mA offset or R_s +10 % even unloaded (docs/robustness.md §2), so it stays

@@ -202,7 +202,7 @@ def guards(drive: DriveProfile, profile: Profile, motor: MotorParams, cfg: RunCo
 def _load_note(cfg: RunConfig, pd: Any, profile: Any, duration: float) -> str:
     """The note for a run on a drive that cannot apply the profile's load torque (no T_L role
     in its process data: no dynamometer the gateway commands) while the profile has one, or
-    "". By default such a run does not tell the laws that load (``untold``, issue 14); told
+    "". By default such a run does not tell the laws that load (``untold``); told
     anyway (``--load known``), the laws feed forward a torque the shaft may not carry."""
     if cfg.load is LoadSource.OBSERVED or "T_L" in pd.roles:
         return ""

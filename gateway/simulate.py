@@ -71,12 +71,11 @@ class SimConfig:
     w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
     discretisation: sampled runs only: "exact" (the sampled-data design,
         docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
-    load: "known" (the paper), "observed" or "untold" (T_L = 0): the controller's T_L
-        (issue 14).
+    load: "known" (the paper), "observed" or "untold" (T_L = 0): the controller's T_L.
     identify: R_s and R_r identified during the standstill magnetisation (sampled runs;
         :mod:`gateway.control.commissioning`).
-    plant: how the plant differs from the controller's model (issue 14,
-        :mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
+    plant: how the plant differs from the controller's model
+        (:mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
         motor factors and the load only.
     """
 
@@ -260,7 +259,7 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
     T = sampling.period
     duration = cfg.duration or profile.duration
     n_cycles = round(duration / T)
-    plant = cfg.plant  # the plant is the controller's model × the scenario (issue 14)
+    plant = cfg.plant  # the plant is the controller's model × the scenario
     drive = Drive(plant.plant_motor(motor),
                   plant.drive_params(drive_params_for_period(cfg.drive_params, T,
                                                              cfg.drive_mode)),
@@ -328,7 +327,7 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     n = round(duration / h)
     t_eval = np.arange(n + 1) * h
     m, g = motor, cfg.gains
-    pm = cfg.plant.plant_motor(motor)  # the plant's motor (issue 14); m is the controller's
+    pm = cfg.plant.plant_motor(motor)  # the plant's motor; m is the controller's
     load = cfg.plant.load_function(lambda t: profile.load.at(t)[0])
     k_r = m.M / m.L_r
     pk_r = pm.M / pm.L_r

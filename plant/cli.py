@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="motor parameters (TOML: J, R_s, R_r, L_s, L_r, M in SI units, "
                           "e.g. gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     run.add_argument("--plant", metavar="SCENARIO",
-                     help="plant scenario (TOML file or shipped name, e.g. rs+10; issue 14): "
+                     help="plant scenario (TOML file or shipped name, e.g. rs+10): "
                           "its motor factors multiply the device's motor (--motor or the "
                           "paper's), its sensor and inverter errors and drifts apply, and its "
                           "dynamometer adds the extra torque to RPDO3's T_L (torque = "

@@ -1,4 +1,4 @@
-"""The drive emulator as a CANopen CiA 402 device on any python-can bus (issue 3).
+"""The drive emulator as a CANopen CiA 402 device on any python-can bus.
 
 :class:`DriveDevice` wraps a pure :class:`plant.drive.Drive` in a CiA 301 slave composed
 like a python-canopen node of parts, each in its module:
@@ -87,7 +87,7 @@ class DriveDevice:
     device's defaults, to which reset node returns; ``drive_params.mode`` sets the defaults
     of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1).
     ``drive_options``: keyword arguments of every :class:`plant.drive.Drive` the device
-    builds (the dynamometer ``load`` and ``motor_drift`` of a plant scenario, issue 14).
+    builds (the dynamometer ``load`` and ``motor_drift`` of a plant scenario).
     ``on_sample(cycle, measurement)``, optional: called in the receive thread after each
     cycle's model step with the cycle number and the full-resolution :class:`Measurement`
     (for diagnostics in the same process, e.g. `hil-gateway sim`'s truth record).

@@ -55,7 +55,7 @@ commanded one, as a real drive reports its reference): dead time, −dead_time·
 sign(i_k) on each phase k, from the true phase currents at the step start; DC-link ripple,
 the applied vector scaled by 1 + u_dc_ripple·sin(2π·u_dc_ripple_hz·t) at the step midpoint.
 
-Plant-side options of the constructor (issue 14, see :mod:`plant.scenario`): ``load`` =
+Plant-side options of the constructor (see :mod:`plant.scenario`): ``load`` =
 f(t, T_L) gives the dynamometer torque at time t from the value T_L passed to
 :meth:`Drive.advance` (held over the period), evaluated at each internal step's midpoint;
 ``motor_drift`` = {field: relative change per second} makes the motor's parameters

@@ -36,7 +36,7 @@ load the controller may or may not be told::
 
 Load (the dynamometer of the emulator):
 
-* ``torque = "rpdo"`` (default, the behaviour before issue 14): the T_L the gateway sends in
+* ``torque = "rpdo"`` (default): the T_L the gateway sends in
   RPDO3 each cycle — the profile's T_L at the start of the interval — held over the period;
 * ``torque = "profile"``: the run's reference profile T_L(t) evaluated *within* the period at
   the emulator's internal rate (10 kHz), RPDO3 ignored: the load a real dynamometer applies

@@ -9,7 +9,7 @@ present state; a successful write stores the value, keeps the mirrored objects i
 :class:`SdoHooks`.
 
 Before a request reaches python-canopen's server, this module enforces what that server
-does not (issue 11): block transfers (initiate upload ccs 5, download ccs 6) are aborted
+does not: block transfers (initiate upload ccs 5, download ccs 6) are aborted
 with 0x05040001 (this server offers none; python-canopen would answer a block upload with
 a plain upload); a segmented download is bounded by the size its initiate declared, or
 without one by the object's size (a numeric object's length, else

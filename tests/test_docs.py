@@ -86,3 +86,22 @@ def test_help_cites_only_shipped_files(argv, capsys):
     assert "shared/paper" not in out and "ERRATA" not in out
     for doc in re.findall(r"docs/[a-zA-Z_]+\.md", out):
         assert (ROOT / doc).exists(), doc
+
+
+def test_user_facing_text_cites_no_issue_numbers(capsys):
+    """README, the docs, BENCHMARKS.md, the shipped profiles and scenarios and every
+    command's --help stand alone: users cannot see the project's issues."""
+    from gateway.cli import main
+
+    texts = {p: p.read_text(encoding="utf-8") for p in
+             [ROOT / "README.md", ROOT / "BENCHMARKS.md", *(ROOT / "docs").glob("*.md"),
+              *(ROOT / "gateway" / "profiles").glob("*.toml"),
+              *(ROOT / "plant" / "scenarios").glob("*.toml")]}
+    for argv in (["--help"], ["simulate", "--help"], ["sim", "--help"], ["run", "--help"],
+                 ["compare", "--help"], ["log", "--help"], ["check", "--help"]):
+        with pytest.raises(SystemExit):
+            main(argv)
+        texts[" ".join(argv)] = capsys.readouterr().out
+    for where, text in texts.items():
+        found = re.findall(r"\bissues? #?\d+", text, flags=re.IGNORECASE)
+        assert not found, (where, found)

@@ -1,5 +1,5 @@
 """Standstill identification of R_s and the rotor time constant during the magnetisation
-(issue 14; docs/robustness.md §5).
+(docs/robustness.md §5).
 
 At standstill the rotor flux obeys rows 2–3 of model (1) with ω = 0,
 

@@ -130,7 +130,7 @@ class ControllerConfig:
         (0: ideal current source; only the exact design uses it).
     Strings are accepted for the enums (the command-line words) and converted.
     load: "known" (the laws get the profile's T_L, dT_L/dt: the paper, docs/paper.md §E6) or
-        "observed" (issue 14: T̂_L, dT̂_L/dt of :class:`LoadObserver` instead).
+        "observed" (T̂_L, dT̂_L/dt of :class:`LoadObserver` instead).
     load_bandwidth, load_speed_gain, load_current_rise: the load observer's tuning
         (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).
     identify: identify R_s and R_r during the standstill magnetisation and use them from the
@@ -223,7 +223,7 @@ class Controller:
         self._in_flight: deque[tuple[float, float]] = deque([(0.0, 0.0)] * self._delay)
         self._last = (0.0, 0.0)  # (ω0, dω̂/dt) of the last step, for coast()
         self._held: tuple[float, float] | None = None  # the drive's command, for withhold()
-        # issue 14: the load torque estimated instead of known (None: known)
+        # the load torque estimated instead of known (None: known)
         c = self.config
         self.load_observer = (LoadObserver(motor, self._T, c.load_bandwidth, c.load_speed_gain,
                                            c.load_current_rise)
@@ -284,7 +284,7 @@ class Controller:
             logged=paper_logged(self.w_hat, psi_r_dq),
         )
         dw_hat = out.dw_hat
-        if self.load_observer is not None:  # issue 14: ω̂ also pulled to the observer's ω̂_m
+        if self.load_observer is not None:  # ω̂ also pulled to the observer's ω̂_m
             dw_hat += self.load_observer.speed_injection(self.w_hat)
         self.w_hat += T * dw_hat  # (16)/(27), forward Euler
         self.eps_0 = wrap_angle(eps_0 + T * w_0)  # (15)/(26): dε0/dt = ω0

@@ -198,7 +198,7 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
 
 
 class RsAdaptation:
-    """The on-line stator-resistance law shared by the R_s-adaptive estimators (issue 14).
+    """The on-line stator-resistance law shared by the R_s-adaptive estimators.
 
     With the correction −ω_c·(ψ_s − ψ_s°), a resistance error ΔR = R_s − R̂_s leaves, for a
     current phasor turning at the stator frequency ω0, the steady residual
@@ -269,8 +269,8 @@ class _AdaptsRs:
 
 
 class RsAdaptiveFluxEstimator(_AdaptsRs, DriftFreeFluxEstimator):
-    """The drift-free estimator with on-line stator-resistance adaptation (issue 14;
-    :class:`RsAdaptation`), the Euler design's."""
+    """The drift-free estimator with on-line stator-resistance adaptation
+    (:class:`RsAdaptation`), the Euler design's."""
 
     def __init__(self, motor: Motor, w_c: float = 5.0, gamma_r: float = 60.0) -> None:
         super().__init__(motor, w_c)

@@ -1,4 +1,4 @@
-"""Load-torque observer for the sensorless controller when T_L is not known (issue 14).
+"""Load-torque observer for the sensorless controller when T_L is not known.
 
 Both laws of the paper use the load torque T_L — (15) and (16) through T_L/J, the
 full-order law (25)–(27) and φ_q0 of (32) also through dT_L/dt — and treat it as known
