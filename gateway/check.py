@@ -352,6 +352,10 @@ def check_drive(bus: can.BusABC, profile: DriveProfile, node: int | None = None,
             report.add("boot-up after NMT reset communication", True,
                        f"node {master.node_id} answered")
         except UserError as exc:
+            if master.identity is None:  # refused before any NMT or write
+                report.add("the device at the node is the profile's (0x1000, 0x1018)", False,
+                           str(exc), "check --node, or use the drive's own profile (--drive)")
+                return report
             if not master._booted.is_set():
                 report.add("boot-up after NMT reset communication", False, str(exc),
                            "check --node, power, wiring, bitrate (`hil-gateway scan`)")

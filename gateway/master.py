@@ -5,9 +5,12 @@ python-canopen does NMT, SDO, heartbeat and EMCY; the cyclic PDO exchange is don
 
 Sequence (:meth:`DriveMaster.connect` … :meth:`DriveMaster.shutdown`):
 
-1. heartbeat/boot-up callbacks registered, then NMT *reset communication*; wait for the
-   boot-up (a drive that does not answer → "no drive at node N");
-2. SDO: check 0x1000 (device type) against the profile; configure in PRE-OPERATIONAL:
+1. identify the device at the node by SDO reads only (:meth:`DriveMaster.identify`:
+   0x1000 device type, 0x1018 vendor/product/revision) against the profile; a device that
+   is not the profile's (or, for the emulator's profile, not the emulator) is refused
+   before any NMT command or write. Then heartbeat/boot-up callbacks registered, NMT
+   *reset communication*, wait for the boot-up;
+2. SDO: configure in PRE-OPERATIONAL:
    cycle period 0x1006, synchronous window 0x1007, producer heartbeat 0x1017, consumer
    heartbeat 0x1016 (the gateway's own heartbeat), PDO mappings and transmission types
    (every SYNC), RPDO deadline 0x140x.5, mode of operation 0x6060, emulator objects;
@@ -17,7 +20,9 @@ Sequence (:meth:`DriveMaster.connect` … :meth:`DriveMaster.shutdown`):
 5. shutdown (:meth:`DriveMaster.shutdown`), on every exit path: the power stage off
    through the CiA 402 state machine, confirmed by an SDO read of the statusword; if the
    drive does not answer SDO (NMT STOPPED), NMT PRE-OPERATIONAL and again; if still not
-   confirmed, NMT *reset node* and its boot-up. The drive's supervision of the gateway
+   confirmed and the drive is one the gateway configured that stopped answering, NMT
+   *reset node* and its boot-up (never for a drive that answers with an SDO abort, nor one
+   not identified or configured). The drive's supervision of the gateway
    (0x1016) is switched off only once the power stage is confirmed off; otherwise the
    gateway's heartbeat stops with the supervision on, so the drive trips by itself, and
    the run is reported unsafe.
@@ -89,6 +94,23 @@ class FaultEvent:
         return f"{self.kind}{code}: {self.text}"
 
 
+@dataclass(frozen=True)
+class Identity:
+    """What answered at the node: device type (0x1000) and 0x1018 vendor, product and
+    revision (None: the device aborted the read, it has no such object)."""
+
+    device_type: int | None
+    vendor: int | None = None
+    product: int | None = None
+    revision: int | None = None
+
+    def describe(self) -> str:
+        def hx(x: int | None) -> str:
+            return "none" if x is None else f"0x{x:08X}"
+        return (f"device type {hx(self.device_type)}, vendor {hx(self.vendor)}, product "
+                f"{hx(self.product)}, revision {hx(self.revision)}")
+
+
 @dataclass
 class MasterState:
     """What the master saw of the drive."""
@@ -149,6 +171,10 @@ class DriveMaster:
         self._watchdog: threading.Thread | None = None
         self._stop_watchdog = threading.Event()
         self._connected = False
+        self._identified = False  # the device at the node is the profile's (identify())
+        self._configured = False  # we wrote to it (configure())
+        self._refused = False  # the shutdown's SDO was answered with an abort
+        self.identity: Identity | None = None
         self._armed = False  # the NMT watch: set by start(), cleared by shutdown()
         self._lockstep = False  # the loop's time is the SYNC count (start())
         self.shutdown_report: ShutdownReport | None = None
@@ -157,24 +183,25 @@ class DriveMaster:
 
     def connect(self, listeners: list[can.Listener] | None = None) -> None:
         """Start the notifier (with extra ``listeners``, e.g. the bus log), subscribe to
-        heartbeat and EMCY, reset communication and await the boot-up."""
+        heartbeat and EMCY, identify the device at the node (:meth:`identify`: SDO reads
+        only), and only then reset its communication and await the boot-up. A device that
+        is not the profile's is refused before anything is sent to it."""
         self.network.connect()
         self._connected = True
         for listener in listeners or []:
             self.network.notifier.add_listener(listener)
         self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
         self.network.subscribe(EMCY_BASE + self.node_id, self._on_emcy)
+        self.identity = self.identify()
+        self._identified = True
         self._booted.clear()
         # reset communication (callbacks already registered)
         self.nmt_command(NmtCommand.RESET_COMMUNICATION)
         if not self._booted.wait(self.profile.boot_timeout_s):
             raise UserError(
-                f"no drive at node {self.node_id} on the bus: no boot-up within "
-                f"{self.profile.boot_timeout_s:g} s after an NMT reset communication. Check the "
-                "node id (--node), that the drive is powered and connected, the bitrate, and "
-                "for the emulator that `hil-plant run` is running on the same channel "
-                "(`hil-gateway scan` lists the nodes present).")
-        self.check_device_type()
+                f"node {self.node_id} ({self.identity.describe()}) sent no boot-up within "
+                f"{self.profile.boot_timeout_s:g} s after an NMT reset communication. Check "
+                "that its heartbeat/boot-up is not disabled and the bitrate.")
 
     def nmt_command(self, command: NmtCommand) -> None:
         """Send an NMT command to the drive (python-canopen's NMT object is not used: its
@@ -221,15 +248,79 @@ class DriveMaster:
         """The first fault seen while armed (the cause; later ones are consequences)."""
         return self.state.faults[0] if self.state.faults else None
 
-    def check_device_type(self) -> None:
-        """SDO read of 0x1000 against the profile's device type."""
-        value = self.sdo_read(0x1000, 0)
-        expected = self.profile.device_type
-        if expected is not None and value != expected:
+    def _read_identity(self, index: int, sub: int) -> int | None:
+        """One identity object by SDO: its value, None when the device aborts (an answer:
+        it has no such object); no answer at all raises :class:`SdoCommunicationError`."""
+        try:
+            return int(self._entry(index, sub).raw)
+        except SdoAbortedError:
+            return None
+        except KeyError:  # not in the profile's EDS: ask the device anyway
+            try:
+                return int.from_bytes(self.node.sdo.upload(index, sub)[:4], "little")
+            except SdoAbortedError:
+                return None
+
+    def identify(self) -> Identity:
+        """Which device answers at the node, by SDO reads only (0x1000, 0x1018 vendor,
+        product, revision), checked against the drive profile before any NMT command or
+        write: the device type must be the profile's; the vendor and product must be those
+        its EDS states (where it states them), and for a profile of the emulator
+        (``emulator = true``, whose own objects 0x2202 … are written) the emulator's, always.
+        Refused with what answered and why; nothing was sent to the device then."""
+        try:
+            device_type = self._read_identity(0x1000, 0)
+        except SdoCommunicationError as exc:
             raise UserError(
-                f"node {self.node_id} is not the drive the profile describes: device type "
-                f"0x{value:08X} (0x1000), expected 0x{expected:08X} ({self.profile.source}). "
-                "Check --node, or give the right drive profile with --drive.")
+                f"no drive at node {self.node_id} on the bus: no SDO answer to a read of "
+                f"0x1000 (device type) within {self.profile.sdo_timeout_s:g} s ({exc}). "
+                "Nothing was sent to the node. Check the node id (--node), that the drive is "
+                "powered, connected and not in NMT STOPPED (which answers no SDO), the "
+                "bitrate, and for the emulator that `hil-plant run` is running on the same "
+                "channel (`hil-gateway scan` lists the nodes present).") from exc
+        ident = Identity(device_type,
+                         *(self._read_identity(0x1018, sub) for sub in (1, 2, 3)))
+        where = f"node {self.node_id} ({ident.describe()})"
+        fix = (f"Nothing was written to it and no NMT command sent. Check --node, or give its "
+               f"own drive profile with --drive (profile used: {self.profile.source}).")
+        expected = self.profile.device_type
+        if device_type is None:
+            raise UserError(f"{where} aborted the read of its device type (0x1000): it is "
+                            f"not a CiA 301 device the profile describes. {fix}")
+        if expected is not None and device_type != expected:
+            raise UserError(
+                f"{where} is not the drive the profile describes: device type "
+                f"0x{device_type:08X} (0x1000), expected 0x{expected:08X}. {fix}")
+        want = self._eds_identity()
+        if self.profile.emulator:
+            if (ident.vendor, ident.product) != want:
+                raise UserError(
+                    f"{where} is not the can-drive-hil emulator that the profile names "
+                    f"(vendor 0x{want[0]:08X}, product 0x{want[1]:08X} in 0x1018): the "
+                    f"emulator's own objects (model, RPDO apply, internal rate, time base) "
+                    f"exist on no other device. {fix}")
+        else:
+            for what, got, exp in (("vendor", ident.vendor, want[0]),
+                                   ("product", ident.product, want[1])):
+                if exp and got is not None and got != exp:
+                    raise UserError(f"{where} is not the drive the profile describes: "
+                                    f"{what} 0x{got:08X} (0x1018), its EDS states "
+                                    f"0x{exp:08X}. {fix}")
+            if not any(want) or ident.vendor is None:
+                self.notes.append(f"node {self.node_id} identified by its device type only "
+                                  f"({ident.describe()}; the EDS states no vendor/product)")
+        return ident
+
+    def _eds_identity(self) -> tuple[int, int]:
+        """(vendor, product) as the profile's EDS states them in 0x1018 (0: not stated)."""
+        out = []
+        for sub in (1, 2):
+            try:
+                var = self.node.object_dictionary[0x1018][sub]
+                out.append(int(var.default or 0))
+            except (KeyError, TypeError, ValueError):
+                out.append(0)
+        return out[0], out[1]
 
     # -------------------------------------------------------------------------- SDO
 
@@ -312,6 +403,7 @@ class DriveMaster:
         objects (0x1006, 0x1007, 0x1016, 0x1017, 0x1019) are written only where the EDS has
         them; what was left out is in :attr:`notes`.
         """
+        self._configured = True
         self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
         p = self.profile
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
@@ -556,6 +648,11 @@ class DriveMaster:
                     report.steps.append(f"statusword still {report.state} after 1 s")
                     return False
                 time.sleep(0.005)
+        except SdoAbortedError as exc:  # an answer: the drive is there and refused
+            report.steps.append(f"SDO abort ({exc})")
+            self._refused = True
+            log.warning("disable voltage on node %d refused: %s", self.node_id, exc)
+            return False
         except Exception as exc:
             report.steps.append(f"no SDO answer ({type(exc).__name__}: {exc})")
             log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
@@ -579,8 +676,11 @@ class DriveMaster:
         return False
 
     def bring_down(self) -> ShutdownReport:
-        """Power stage off, confirmed (see the module docstring, step 5)."""
+        """Power stage off, confirmed (see the module docstring, step 5). NMT reset node is
+        the last resort, only for a drive the gateway configured and that stopped answering
+        SDO; a drive that answers with an SDO abort is not reset."""
         report = ShutdownReport()
+        self._refused = False
         reset = False
         safe = self._power_off_confirmed(report)
         if not safe:
@@ -590,7 +690,13 @@ class DriveMaster:
             except Exception as exc:
                 report.steps.append(f"NMT pre-operational not sent: {exc}")
             safe = self._power_off_confirmed(report)
-        if not safe:
+        if not safe and self._refused:
+            report.steps.append("NMT reset node not sent: the drive answers (an SDO abort is "
+                                "an answer, not silence)")
+        elif not safe and not self._configured:
+            report.steps.append("NMT reset node not sent: the gateway had not configured the "
+                                "drive")
+        elif not safe:  # the last resort, for a drive we configured that stopped answering
             safe = reset = self._reset_node_confirmed(report)
         report.safe = safe
         if safe and not reset:
@@ -617,7 +723,8 @@ class DriveMaster:
         """
         self._stop_watchdog.set()
         self._armed = False
-        if self._connected and self.shutdown_report is None:
+        if self._connected and self._identified and self.shutdown_report is None:
+            # a device not identified as the profile's is never written to nor reset
             self.shutdown_report = self.bring_down()
         if self._heartbeat_task is not None:
             try:

@@ -1,0 +1,107 @@
+"""Never harm a device that is not ours: before any NMT command or write, the gateway reads
+0x1000 and 0x1018 and refuses a device the drive profile does not describe; nothing else is
+sent to it. The device here is a plain python-canopen LocalNode (a third party's stack) with
+the CiA 402 device type of a frequency converter, as many real inverters report."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+
+import can
+import canopen
+import pytest
+
+from dbc import EDS_PATH
+from gateway.cli import main
+
+_channels = itertools.count()
+
+
+class Device:
+    """A CiA 301 node answering SDO from its dictionary, and the bus's frames, recorded."""
+
+    def __init__(self, node: int, device_type: int, vendor: int, product: int) -> None:
+        self.channel = f"not-ours-{next(_channels)}-{time.monotonic_ns()}"
+        self.network = canopen.Network()
+        self.network.connect(interface="virtual", channel=self.channel)
+        od = canopen.import_od(str(EDS_PATH), node)
+        od[0x1000].default = device_type
+        od[0x1018][1].default = vendor
+        od[0x1018][2].default = product
+        self.node = canopen.LocalNode(node, od)
+        self.network.add_node(self.node)
+        self.frames: list[can.Message] = []
+        self._lock = threading.Lock()
+        self.network.notifier.add_listener(self._record)
+
+    def _record(self, msg: can.Message) -> None:
+        with self._lock:
+            self.frames.append(msg)
+
+    def sent_to_it(self) -> tuple[list[can.Message], list[can.Message]]:
+        """The NMT commands and the SDO download requests on the bus."""
+        with self._lock:
+            frames = list(self.frames)
+        nmt = [m for m in frames if m.arbitration_id == 0x000]
+        downloads = [m for m in frames if 0x600 < m.arbitration_id < 0x680 and m.data
+                     and m.data[0] >> 5 == 1]
+        return nmt, downloads
+
+    def close(self) -> None:
+        self.network.disconnect()
+
+
+@pytest.fixture
+def device():
+    made = []
+
+    def make(**kw):
+        d = Device(**kw)
+        made.append(d)
+        return d
+
+    yield make
+    for d in made:
+        d.close()
+
+
+def _run(dev: Device, tmp_path, *args: str) -> int:
+    return main(["run", "-i", "virtual", "-c", dev.channel, "--reference",
+                 "profiles/quick.toml", "--out", str(tmp_path / "run"), *args])
+
+
+def test_a_cia402_inverter_of_another_vendor_gets_no_emulator_objects(device, tmp_path,
+                                                                      capsys):
+    """The emulator's profile (the default of `run`) against a frequency converter of
+    another vendor: refused by its identity, no NMT, no SDO write; exit 2."""
+    dev = device(node=1, device_type=0x00010192, vendor=0x000000AB, product=0x00001234)
+    before = dict(dev.node.data_store)
+    assert _run(dev, tmp_path) == 2
+    err = capsys.readouterr().err
+    assert "not the can-drive-hil emulator" in err and "0x000000AB" in err, err
+    assert "Nothing was written" in err and "Traceback" not in err
+    nmt, downloads = dev.sent_to_it()
+    assert nmt == [] and downloads == [], (nmt, downloads)
+    assert dict(dev.node.data_store) == before
+    assert not (tmp_path / "run").exists() or not (tmp_path / "run" / "signals.csv").exists()
+
+
+def test_another_device_type_is_refused_before_any_nmt(device, tmp_path, capsys):
+    dev = device(node=1, device_type=0x00000191, vendor=0, product=0x402)
+    assert _run(dev, tmp_path) == 2
+    err = capsys.readouterr().err
+    assert "device type 0x00000191" in err and "expected 0x00010192" in err, err
+    nmt, downloads = dev.sent_to_it()
+    assert nmt == [] and downloads == []
+
+
+def test_an_empty_node_gets_no_nmt(device, tmp_path, capsys):
+    """Nothing at node 5: said so, and no NMT command went to node 5 (nor any write)."""
+    dev = device(node=1, device_type=0x00010192, vendor=0, product=0x402)
+    assert _run(dev, tmp_path, "--node", "5") == 2
+    err = capsys.readouterr().err
+    assert "no drive at node 5" in err and "Nothing was sent" in err, err
+    nmt, downloads = dev.sent_to_it()
+    assert nmt == [] and downloads == []
