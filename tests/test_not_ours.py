@@ -105,3 +105,41 @@ def test_an_empty_node_gets_no_nmt(device, tmp_path, capsys):
     assert "no drive at node 5" in err and "Nothing was sent" in err, err
     nmt, downloads = dev.sent_to_it()
     assert nmt == [] and downloads == []
+
+
+def test_a_drive_that_answers_with_an_abort_is_not_reset(emulator, tmp_path, monkeypatch):
+    """At the stop the drive refuses the controlword (SDO abort 0x08000022): it answers,
+    so the gateway sends no NMT reset node; the run says the power stage is not confirmed
+    off (the drive's own supervision of the gateway's heartbeat then trips it)."""
+    from gw_support import run_in_thread, wait_cycles
+
+    from gateway.buslog import read_log
+    from gateway.runner import RunConfig, StopSignals
+    from plant import od as odm
+
+    refuse = threading.Event()
+    real = odm.ObjectStore.check_write
+
+    def check_write(self, index, subindex, data, nmt):
+        if refuse.is_set() and index == 0x6040:
+            raise canopen.sdo.exceptions.SdoAbortedError(odm.ABORT_STATE)
+        return real(self, index, subindex, data, nmt)
+
+    monkeypatch.setattr(odm.ObjectStore, "check_write", check_write)
+    emu = emulator()
+    signals = StopSignals()
+    th, result = run_in_thread(emu, tmp_path, RunConfig(duration=30.0), signals)
+    wait_cycles(emu.device, 100)
+    refuse.set()
+    signals.requested.set()
+    signals.reason = "SIGTERM received"
+    signals.on_stop(signals.reason)
+    th.join(15)
+    assert not th.is_alive()
+    s = result["summary"]
+    steps = " | ".join(s["shutdown"]["steps"])
+    assert "SDO abort" in steps and "NMT reset node not sent: the drive answers" in steps, steps
+    assert s["shutdown"]["safe"] is False and s["run"]["exit_status"] == 1
+    resets = [m for m in read_log(tmp_path / "bus.blf")
+              if m.arbitration_id == 0 and bytes(m.data)[:1] == b"\x81"]
+    assert resets == []
