@@ -45,7 +45,7 @@ examples:
 #: The files a run writes into its directory (besides the bus log named by --log):
 #: what --force removes before it reuses a directory.
 RUN_FILES = ("summary.json", "signals.csv", "fig1_references.png", "fig2_errors.png",
-             "fig3_currents_voltages.png")
+             "fig3_currents_voltages.png", "fig4_controller.png")
 
 
 def _out_dir(arg: str | None, kind: str, force: bool = False,
@@ -100,16 +100,20 @@ def _out_dir(arg: str | None, kind: str, force: bool = False,
 @contextmanager
 def _run_dir(arg: str | None, kind: str, force: bool = False,
              extra_files: Sequence[str] = ()) -> Iterator[Path]:
-    """:func:`_out_dir`, removed again if the run fails and leaves it empty."""
+    """:func:`_out_dir`, removed again if the run fails to start (an error raised before it
+    wrote its results: a failed start leaves no directory, not even the bus log of its
+    configuration). A directory that existed before is left as it was."""
     existed = bool(arg) and Path(arg).exists()
     parent_existed = Path(arg).parent.exists() if arg else Path("runs").exists()
     path = _out_dir(arg, kind, force, extra_files)
     try:
         yield path
     except BaseException:
-        if not existed:
+        if not existed and not (path / "signals.csv").exists():
             with suppress(OSError):
-                path.rmdir()  # only when empty
+                for name in (*RUN_FILES, *extra_files):
+                    (path / name).unlink(missing_ok=True)
+                path.rmdir()  # only when empty: nothing else of the user's is removed
                 if not parent_existed:
                     path.parent.rmdir()
         raise

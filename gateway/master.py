@@ -328,13 +328,22 @@ class DriveMaster:
         obj = self.node.sdo[index]
         return obj[sub] if isinstance(obj, canopen.sdo.Record | canopen.sdo.Array) else obj
 
+    def _sdo_failure(self, exc: BaseException) -> str:
+        """Why an SDO transfer failed, for a message: refused (an abort: the drive answered,
+        with its code) or not answered in time (slow or gone; where to give it longer)."""
+        if isinstance(exc, SdoCommunicationError):
+            return (f"no answer within {self.profile.sdo_timeout_s:g} s ({exc}): the drive is "
+                    "slow or gone; if it is slow, raise [timing].sdo_timeout_s in the drive "
+                    f"profile ({self.profile.source})")
+        return f"refused: {exc}"
+
     def sdo_read(self, index: int, sub: int = 0) -> int | float:
         """Read one object; failures become :class:`UserError` naming the object."""
         try:
             return self._entry(index, sub).raw
         except (SdoAbortedError, SdoCommunicationError, KeyError) as exc:
-            raise UserError(f"SDO read of 0x{index:04X}.{sub} from node {self.node_id} failed: "
-                            f"{exc}") from exc
+            raise UserError(f"SDO read of 0x{index:04X}.{sub} from node {self.node_id}: "
+                            f"{self._sdo_failure(exc)}") from exc
 
     def sdo_write(self, index: int, sub: int, value: int | float, what: str = "") -> None:
         """Write one object; an abort becomes a :class:`UserError` saying what was configured."""
@@ -346,7 +355,11 @@ class DriveMaster:
                 f"configuring node {self.node_id}: {value!r} does not fit object "
                 f"0x{index:04X}.{sub}{label} of the EDS ({exc}); check the drive profile "
                 f"({self.profile.source})") from exc
-        except (SdoAbortedError, SdoCommunicationError, KeyError) as exc:
+        except SdoCommunicationError as exc:
+            raise UserError(
+                f"configuring node {self.node_id} failed: SDO write of {value!r} to "
+                f"0x{index:04X}.{sub}{label}: {self._sdo_failure(exc)}.") from exc
+        except (SdoAbortedError, KeyError) as exc:
             raise UserError(
                 f"configuring node {self.node_id} failed: SDO write of {value!r} to "
                 f"0x{index:04X}.{sub}{label} was refused: {exc}. Check the drive profile "
@@ -483,7 +496,10 @@ class DriveMaster:
                 m.event_timer = self.profile.rpdo_timeout_ms
             m.enabled = True
             m.save()
-        except (SdoAbortedError, SdoCommunicationError) as exc:
+        except SdoCommunicationError as exc:
+            raise UserError(f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
+                            f"0x{pdo.cob_id:03X}): {self._sdo_failure(exc)}.") from exc
+        except SdoAbortedError as exc:
             raise UserError(f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
                             f"0x{pdo.cob_id:03X}) was refused: {exc}. Check the drive profile "
                             f"({self.profile.source}) against the drive's EDS.") from exc
@@ -505,8 +521,8 @@ class DriveMaster:
         try:
             m.read(from_od=False)
         except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id} "
-                            f"failed: {exc}") from exc
+            raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id}: "
+                            f"{self._sdo_failure(exc)}") from exc
         finally:  # the map subscribed on the COB-ID it read, which may not be the DBC's
             for cob_id in {pdo.cob_id, (m.cob_id or 0) & 0x7FF}:
                 with contextlib.suppress(KeyError, ValueError):

@@ -143,3 +143,29 @@ def test_a_drive_that_answers_with_an_abort_is_not_reset(emulator, tmp_path, mon
     resets = [m for m in read_log(tmp_path / "bus.blf")
               if m.arbitration_id == 0 and bytes(m.data)[:1] == b"\x81"]
     assert resets == []
+
+
+def test_a_slow_sdo_answer_is_named_as_slow_with_the_option(emulator, tmp_path, capsys,
+                                                            monkeypatch):
+    """The drive answers the RPDO mapping writes 1 s late (the profile waits 0.5 s): the
+    message says no answer came in time and names [timing].sdo_timeout_s, not 'refused'."""
+    from gw_support import gateway_run
+
+    from plant import sdo as sdom
+
+    real = sdom.SdoServer.on_request
+
+    def slow(self, can_id, data):
+        index = int.from_bytes(bytes(data[1:3]), "little")
+        if data[0] >> 5 == 1 and 0x1600 <= index <= 0x1602:
+            time.sleep(1.0)
+        return real(self, can_id, data)
+
+    monkeypatch.setattr(sdom.SdoServer, "on_request", slow)
+    emu = emulator()
+    assert gateway_run(emu, tmp_path / "run", "--duration", "0.1s") == 2
+    err = capsys.readouterr().err
+    assert "no answer within" in err and "sdo_timeout_s" in err and "refused" not in err, err
+    assert "Traceback" not in err
+    # a failed start leaves no run directory
+    assert not (tmp_path / "run").exists(), sorted(p.name for p in (tmp_path / "run").iterdir())
