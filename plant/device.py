@@ -30,7 +30,7 @@ This module composes them and runs the cycle.
   lockstep: 0x2205 time base, :mod:`plant.nmt`) 0x8130; RPDO deadline
   (0x14xx sub 5 event timer, counted in SYNC periods of simulated time) 0x8250; RPDO of
   wrong length 0x8210; over-current (|i_s_ref| or |i_s| beyond i_trip) 0x2310; over-speed
-  (|ω| beyond w_max, 0x2201 sub 9, power stage on) 0x8400; a non-finite model state or
+  (|ω| beyond w_max, 0x2201 sub 9, power stage on or off) 0x8400; a non-finite model state or
   measurement 0x6100 (the model is put back at rest, so the device stays usable); any
   handler exception (a bug) 0x1000. The DC-link voltage limit sets statusword bit 11
   while it clips (no fault). Fault reset (rising edge of controlword bit 7) sends EMCY
@@ -461,7 +461,10 @@ class DriveDevice:
             meas = _at_rest(drive.params.u_dc)
         elif was_on and drive.tripped:
             self._fault(Emcy.OVERCURRENT)
-        elif was_on and abs(meas.w_m) > drive.params.w_max:
+        elif abs(meas.w_m) > drive.params.w_max and (was_on or self._sm.state
+                                                      is not State.FAULT):
+            # supervised with the power stage off too (a dynamometer or a load can drive
+            # the motor): once, as a real drive's speed monitor reports it
             self._fault(Emcy.OVERSPEED)
         if self.on_sample is not None:  # what the TPDOs carry: the at-rest sample after a
             self.on_sample(m, meas)     # non-finite model, not its NaNs

@@ -180,7 +180,11 @@ class ObjectStore:
             if subindex != 0:
                 raise SdoAbortedError(ABORT_NO_SUBINDEX)
             return obj
-        if subindex not in obj:
+        # an ARRAY makes up any sub-index it is asked for (python-canopen): only those the
+        # dictionary holds exist (0x1003 beyond its entries, 0x1016 beyond sub 1 …)
+        declared = getattr(obj, "subindices", None)
+        if subindex not in (declared if declared is not None else obj) or \
+                (index, subindex) not in self.values:
             raise SdoAbortedError(ABORT_NO_SUBINDEX)
         return obj[subindex]
 

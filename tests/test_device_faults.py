@@ -77,6 +77,24 @@ def test_overspeed_faults_with_emcy_0x8400():
         rig.close()
 
 
+def test_overspeed_is_supervised_with_the_power_stage_off():
+    """A dynamometer (the emulated load) spins the motor of a drive whose power stage is
+    off: over-speed is still reported (EMCY 0x8400, Fault), once, not every cycle."""
+    rig = Rig(DriveParams(mode="ideal"))
+    try:
+        rig.write(0x2201, 9, 50.0)
+        rig.nmt("OPERATIONAL")  # never enabled: the power stage stays off
+        t = run_until_emcy(rig, 0x8400, 400, T_L=-50.0)
+        assert t["TPDO3"]["w_m"] > 50.0 and not rig.dev.drive.enabled
+        for _ in range(50):
+            rig.setpoints(T_L=-50.0)
+            rig.sync()
+        assert rig.emcy_codes().count(0x8400) == 1
+        assert rig.read(0x603F) == 0x8400
+    finally:
+        rig.close()
+
+
 def test_overspeed_limit_is_a_parameter():
     assert DriveParams().w_max == 600.0
     assert DriveParams(w_max=math.inf).w_max == math.inf
@@ -411,3 +429,37 @@ def test_fuzz_100k_frames_at_the_cycling_drive(monkeypatch):
               f"{acc['internal_errors']} internal errors, {enabled_frames} frames enabled")
     finally:
         rig.close()
+
+
+def test_every_missing_sub_index_is_an_abort_not_a_fault(emulator):
+    """A third-party master reads one sub-index past the end of every object of the
+    dictionary (0x1003 past its entries, 0x1016 past sub 1 …): each is answered with SDO
+    abort 0x06090011 (sub-index does not exist), and the device stays out of Fault."""
+    import canopen
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    from dbc import EDS_PATH
+
+    emu = emulator()
+    od = canopen.import_od(str(EDS_PATH), 1)
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=emu.channel)
+    try:
+        node = net.add_node(1, canopen.ObjectDictionary())
+        node.sdo.RESPONSE_TIMEOUT = 1.0
+        codes = {}
+        for obj in od.values():
+            subs = getattr(obj, "subindices", None)
+            past = (max(subs) + 1) if subs else 1
+            try:
+                node.sdo.upload(obj.index, past)
+                codes[(obj.index, past)] = None
+            except SdoAbortedError as exc:
+                codes[(obj.index, past)] = exc.code
+        wrong = {f"0x{i:04X}.{s}": c for (i, s), c in codes.items() if c != 0x06090011}
+        assert not wrong, wrong
+        account = emu.device.account()
+        assert account["internal_errors"] == 0 and account["fault_count"] == 0, account
+        assert account["state"] != "FAULT"
+    finally:
+        net.disconnect()
