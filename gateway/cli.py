@@ -11,6 +11,7 @@ import itertools
 import logging
 import math
 import os
+import re
 import sys
 import threading
 import time
@@ -19,7 +20,7 @@ from contextlib import contextmanager, suppress
 from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from gateway.errors import UserError
 from gateway.units import format_duration, parse_duration, parse_period
@@ -145,7 +146,8 @@ def _load_motor(path: str | None):
     try:
         return MotorParams.from_toml(path)
     except ParamsError as exc:
-        raise UserError(str(exc)) from exc
+        raise UserError(f"{exc}; the paper's motor, gateway/motors/paper.toml, is a "
+                        "template to copy") from exc
 
 
 def _load_scenario(arg: str | None):
@@ -826,9 +828,34 @@ def cmd_compare(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------- main
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-paragraph error: what is wrong and where the help is, not the
+    whole usage (subcommand parsers are of this class too)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+#: A negative number with or without a unit (``-1ms``, ``-0.5s``): a value, not an option.
+_NEGATIVE = re.compile(r"^-\.?\d")
+
+
+def _values_not_options(argv: Sequence[str]) -> list[str]:
+    """``--period -1ms`` → ``--period=-1ms``: argparse would take a negative value with a
+    unit for an option and say only "expected one argument"; as a value it reaches its
+    parser, which says what is wrong with it."""
+    out: list[str] = []
+    for a in argv:
+        if (out and _NEGATIVE.match(a) and out[-1].startswith("--") and "=" not in out[-1]):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of `hil-gateway` (all subcommands)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog=PROG,
         description="CANopen hardware-in-the-loop gateway: the sensorless speed and flux "
                     "controller of Marino, Tomei & Verrelli (2002) against a CiA 402 drive, "
@@ -969,7 +996,7 @@ def _usage(p: argparse.ArgumentParser) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `hil-gateway`; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_values_not_options(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)

@@ -17,6 +17,8 @@ def parse_duration(text: str, what: str = "duration") -> float:
     Raises :class:`UserError` naming ``what`` for anything else.
     """
     m = _DURATION.match(text)
+    if not m and text.strip().startswith("-") and _DURATION.match(text.strip()[1:]):
+        raise UserError(f"{what} {text!r} must be greater than zero")
     if not m:
         raise UserError(
             f"{what} {text!r} is not a duration: write a number with a unit, "

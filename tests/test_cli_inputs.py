@@ -74,6 +74,11 @@ steps = [ { t = 0.32, value = 100.0, ramp = 0.18 } ]
         (["simulate", "--windows", "7,x"], "--windows"),
         (["reference", "plot", PAPER, "-o", "q.txt"], ".png, .svg, .pdf"),
         (["compare", "nothing-here"], "not a run directory"),
+        (["simulate", "--period", "-1ms"], "--period '-1ms' must be greater than zero"),
+        (["sim", "--duration", "-1s"], "--duration '-1s' must be greater than zero"),
+        (["simulate", "--motor", "nope.toml"], "gateway/motors/paper.toml"),
+        (["simulate", "--no-such-option"], "unrecognized arguments: --no-such-option (see "
+                                           "hil-gateway --help)"),
     ],
 )
 def test_bad_input_is_refused_before_anything_runs(args, needle, tmp_path):
