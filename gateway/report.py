@@ -657,7 +657,9 @@ def config_only_in_some(runs: list[Run]) -> list[str]:
 
 
 def compare_table(runs: list[Run]) -> str:
-    """Errors side by side (one column per run) and the configuration keys that differ."""
+    """Errors side by side (one column per run), each controller's own logged signals (last
+    value and RMS; "—" for a run whose controller does not log it), and the configuration
+    keys that differ."""
     rows: list[tuple[str, str, str, tuple[str, ...]]] = [
         ("speed error max", "rad/s", "speed_error", ("max",)),
         ("speed error rms", "rad/s", "speed_error", ("rms",)),
@@ -687,6 +689,15 @@ def compare_table(runs: list[Run]) -> str:
             cells += [_fmt(r.summary["speed_error"]["windows"][j]["max"], "rad/s")
                       for r in runs]
             lines.append(cells)
+    own = [n for r in runs for n in controller_signals(r.signals or {})]
+    for name in dict.fromkeys(own):  # each controller's own signals: the last value and RMS
+        cells = [f"{name} final / rms"]
+        for r in runs:
+            x = (r.signals or {}).get(name)
+            x = None if x is None else x[np.isfinite(x)]
+            cells.append("—" if x is None or not x.size else
+                         f"{x[-1]:.4g} / {float(np.sqrt(np.mean(x * x))):.4g}")
+        lines.append(cells)
     widths = [max(len(r[j]) for r in lines) for j in range(len(heads))]
     text = "\n".join("  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j])
                                for j, c in enumerate(r)) for r in lines)

@@ -99,6 +99,7 @@ def test_compare_puts_a_users_controller_beside_the_papers(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "controller.name: paper | pi-foc" in out
     assert "estimation error rms" in out and "—" in out  # pi-foc has no estimate
+    assert "torque_demand final / rms" in out and "flux_model final / rms" in out
     assert (tmp_path / "c.png").stat().st_size > 10_000
 
 
