@@ -812,7 +812,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     runs = [report.load_run(Path(d)) for d in args.runs]
     print(report.compare_table(runs))
-    out = Path(args.output) if args.output else runs[0].path / "compare.png"
+    # a run directory stays as its run left it: the figure goes to the current directory
+    out = Path(args.output) if args.output else Path("compare.png")
     if out.suffix.lower() not in PLOT_SUFFIXES:
         raise UserError(f"-o {args.output!r}: the figure is written as "
                         f"{', '.join(PLOT_SUFFIXES)} (by the suffix)")
@@ -941,11 +942,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Compare run directories (of simulate, sim or run): print the errors of "
                     "each side by side with the configuration keys that differ, and write a "
                     "figure with every run's speed and flux errors overlaid (compare.png in "
-                    "the first run's directory, or -o FILE). See docs/outputs.md.")
+                    "the current directory, or -o FILE; the run directories are left as "
+                    "their runs wrote them). See docs/outputs.md.")
     p.add_argument("runs", nargs="+", metavar="RUN_DIR")
     p.add_argument("-o", "--output", metavar="FILE",
-                   help="figure file, .png, .svg or .pdf (default RUN_DIR/compare.png of the "
-                        "first run)")
+                   help="figure file, .png, .svg or .pdf (default ./compare.png)")
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("reference", aliases=["profile"],

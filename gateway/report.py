@@ -105,7 +105,15 @@ def read_csv(path: Path) -> dict[str, np.ndarray]:
     with path.open(newline="") as f:
         r = csv.reader(f)
         header = next(r)
-        rows = [[float(x) for x in row] for row in r]
+        rows = []
+        for n, row in enumerate(r, start=2):
+            try:
+                if len(row) != len(header):
+                    raise ValueError(f"{len(row)} values, the header has {len(header)}")
+                rows.append([float(x) for x in row])
+            except ValueError as exc:
+                raise ValueError(f"{path}, line {n}: {exc} (a truncated or damaged file?)"
+                                 ) from None
     data = np.asarray(rows, dtype=float).reshape(len(rows), len(header))
     return {name: data[:, j] for j, name in enumerate(header)}
 
@@ -426,8 +434,8 @@ def _setpoints_ab(sig: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
 
 def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
                  windows: Iterable[Mapping[str, Any]] = (),
-                 limits: Mapping[str, float] | None = None, delay_s: float = 0.0
-                 ) -> list[Path]:
+                 limits: Mapping[str, float] | None = None, delay_s: float = 0.0,
+                 stopped: str = "") -> list[Path]:
     """The paper's Fig. 1 (references and load) and Fig. 2 (errors), and Fig. 3 (stator
     currents and voltages: the whole run's magnitudes, then zoomed panels of start-up, a
     load step and steady state with the setpoints and the limits).
@@ -435,7 +443,9 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
     ``title``: the configuration (:func:`title_for`); ``windows``: the metric windows of
     the summary (drawn in Fig. 2, used to pick Fig. 3's zooms); ``limits``:
     :func:`limits_for`; ``delay_s``: time from a row's sample to its setpoints acting
-    (delay·T). Returns the PNG paths written, or [] when matplotlib is not installed.
+    (delay·T); ``stopped``: why a run ended before its profile (said in every title, and a
+    red line at its last sample in Figs. 1, 2 and 4). Returns the PNG paths written, or []
+    when matplotlib is not installed.
     """
     try:
         import matplotlib
@@ -451,7 +461,13 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
 
     def suptitle(fig: Any, what: str) -> None:
         conf = title.replace(" — ", "\n")  # configuration, then how it ran
-        fig.suptitle(f"{what}\n{conf}" if title else what, fontsize="medium")
+        if stopped:
+            conf += f"\nSTOPPED EARLY at t = {t[-1]:.3f} s: {stopped}"
+            for a in fig.axes:
+                if a.get_xlabel() == "time [s]" or a.get_shared_x_axes().joined(a, fig.axes[0]):
+                    a.axvline(t[-1], color="red", ls="--", lw=1)
+        text = f"{what}\n{conf}" if title or stopped else what
+        fig.suptitle(text, fontsize="medium", color="darkred" if stopped else "black")
 
     fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), layout="constrained")
     ax[0].plot(t, sig["w_ref"], label="ω* reference")

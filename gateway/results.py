@@ -83,11 +83,14 @@ def write_results(out: Path, sig: Mapping[str, np.ndarray] | None, summary: dict
     if sig is not None:
         _try_write(errors, out / "signals.csv", lambda p: report.write_columns_csv(p, sig),
                    "the per-cycle signals")
+        run = summary.get("run", {})
+        stopped = ("" if run.get("stop") in (None, "END_OF_PROFILE")
+                   else f"{run.get('stop')}, see summary.json run.stop_reason")
         if figures and "speed_error" in summary:
             drawn = _try_write(errors, out, lambda p: report.plot_figures(
                 sig, p, report.title_for(summary.get("configuration", {})),
                 windows=summary["speed_error"]["windows"], limits=limits,
-                delay_s=delay_s), "the figures") or []
+                delay_s=delay_s, stopped=stopped), "the figures") or []
     write_summary_noting(out, summary, errors)
     return drawn
 

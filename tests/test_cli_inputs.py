@@ -368,18 +368,22 @@ def test_profile_plot_default_goes_under_runs(tmp_path):
 # ------------------------------------------------------------------------------- compare
 
 
-def test_compare_prints_errors_side_by_side_and_writes_a_figure(tmp_path, capsys):
+def test_compare_prints_errors_side_by_side_and_writes_a_figure(tmp_path, capsys,
+                                                                 monkeypatch):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["simulate", "--profile", QUICK, "--out", str(a)]) == 0
     assert main(["simulate", "--profile", QUICK, "--period", "250us", "--out", str(b)]) == 0
     capsys.readouterr()
+    before = sorted(p.name for p in a.iterdir())
+    monkeypatch.chdir(tmp_path)
     assert main(["compare", str(a), str(b)]) == 0
     out = capsys.readouterr().out
     lines = out.splitlines()
     assert lines[0].split() == ["a", "b"]
     assert any(line.startswith("speed error max") for line in lines)
     assert "configuration differences:" in out and "period: 0.001 | 0.00025" in out
-    assert (a / "compare.png").read_bytes()[:4] == b"\x89PNG"
+    assert (tmp_path / "compare.png").read_bytes()[:4] == b"\x89PNG"
+    assert sorted(p.name for p in a.iterdir()) == before  # the run directory is untouched
     fig = tmp_path / "cmp.pdf"
     assert main(["compare", str(a), str(b), "-o", str(fig)]) == 0
     assert fig.read_bytes()[:4] == b"%PDF"
@@ -421,3 +425,14 @@ def test_fig3_zooms_on_start_up_a_load_step_and_steady_state():
     assert zooms[0][1:] == (pytest.approx(1e-3), pytest.approx(0.5))
     assert zooms[1][1] < 0.5 < zooms[1][2]
     assert zooms[2][2] == pytest.approx(2.5)
+
+
+def test_compare_names_a_truncated_signals_file(tmp_path, capsys):
+    run = tmp_path / "a"
+    assert main(["simulate", "--profile", QUICK, "--out", str(run)]) == 0
+    text = (run / "signals.csv").read_text()
+    (run / "signals.csv").write_text(text[: len(text) // 2])  # cut inside a line
+    capsys.readouterr()
+    assert main(["compare", str(run), "-o", str(tmp_path / "c.png")]) == 2
+    err = capsys.readouterr().err
+    assert "signals.csv, line" in err and "truncated" in err and "Traceback" not in err, err

@@ -89,3 +89,19 @@ def test_a_users_controller_draws_its_figure_once(tmp_path, writes):
     assert main(["sim", "--controller", "ifoc", "--reference", QUICK,
                  "--out", str(tmp_path / "o")]) == 0
     _once(writes, "fig4_controller.png")
+
+
+def test_the_figures_of_a_run_that_stopped_early_say_so(tmp_path, monkeypatch):
+    """A run stopped by the divergence guard: its figures are drawn up to the stop and told
+    why it stopped (every title says so, a red line marks the last sample)."""
+    seen = {}
+    real = report.plot_figures
+
+    def plot(*a, **k):
+        seen.update(k)
+        return real(*a, **k)
+
+    monkeypatch.setattr(report, "plot_figures", plot)
+    assert main(["simulate", "--plant", "rs-10", "--out", str(tmp_path / "o")]) == 1
+    assert seen["stopped"].startswith("DIVERGED")
+    assert (tmp_path / "o" / "fig1_references.png").is_file()
