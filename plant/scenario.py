@@ -1,6 +1,6 @@
 """Plant scenarios: how the emulated motor and drive differ from what the controller believes.
 
-Issue 14. A scenario is one TOML file (``--plant FILE`` of ``hil-gateway simulate``, ``hil-gateway
+A scenario is one TOML file (``--plant FILE`` of ``hil-gateway simulate``, ``hil-gateway
 sim`` and ``hil-plant run``). Everything is relative to the controller's model: the
 controller keeps the motor parameters it was given (``--motor`` or the paper's motor), the
 plant gets them multiplied by the scenario's factors, with sensor and inverter errors and a

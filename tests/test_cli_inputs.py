@@ -1,4 +1,4 @@
-"""Issue 15: no input yields a silent wrong result, a traceback or a lost run directory.
+"""No input yields a silent wrong result, a traceback or a lost run directory.
 
 Bad inputs are refused before anything runs (exit 2, one paragraph, no run directory);
 run directories are unique and never overwritten; a long `simulate` stops on the first

@@ -1,4 +1,4 @@
-"""Standstill identification of R_s and R_r (issue 14, docs/robustness.md §5)."""
+"""Standstill identification of R_s and R_r (docs/robustness.md §5)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The emulated drive is never left unsafe and never fails silently (issue 11): over-speed,
+"""The emulated drive is never left unsafe and never fails silently: over-speed,
 non-finite model state and handler exceptions fault with a named EMCY; setpoints do not
 survive a run; reserved COB-IDs, block transfers and unbounded segmented downloads are
 refused; a seeded fuzz of 100,000 frames at the device while it cycles."""

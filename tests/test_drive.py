@@ -326,7 +326,7 @@ def test_ideal_over_current_setpoint_trips() -> None:
 
 # ---- sensors --------------------------------------------------------------------------------
 def test_ideal_current_source_regulates_the_measured_current() -> None:
-    """Issue 14: a perfect current loop makes the *measured* current equal the setpoint, so
+    """A perfect current loop makes the *measured* current equal the setpoint, so
     the sensor errors land in the true current (before: in the measurement only)."""
     p = {"i_offset_ab": 0.2 - 0.1j, "i_gain_error": 0.03}
     d = make_drive("ideal", **p)
@@ -427,5 +427,5 @@ def test_measurement_carries_truth() -> None:
     assert (meas.w_m, meas.psi_r_ab) == (s.w_m, s.psi_r_ab)
     assert meas.T_e == pytest.approx(torque(MOTOR, s.psi_r_ab, s.i_s_ab), rel=1e-12)
     # the measurement carries the 0.5 A offset; the current loop regulates the measured value
-    # (issue 14), so the true current is off by −0.5 A and T_e ≠ T_L (it was ≈ T_L before)
+    # (a sensor error), so the true current is off by −0.5 A and T_e ≠ T_L
     assert meas.i_s_ab - s.i_s_ab == pytest.approx(0.5, abs=1e-12)

@@ -1,4 +1,4 @@
-"""Faults (issue 11): every fault injected, the drive ends safe, the cause is named, the exit
+"""Faults: every fault injected, the drive ends safe, the cause is named, the exit
 status is right and the run directory is complete and readable.
 
 The gateway and the emulated drive run in threads of one process on a virtual bus; an

@@ -84,7 +84,7 @@ def test_foreign_drive_runs_the_paper_scenario_sensorless(foreign, tmp_path):
 
 def test_a_load_the_drive_cannot_apply_is_named(foreign, tmp_path, caplog):
     """A drive profile without the T_L signal (no dynamometer the gateway can drive): by
-    default the laws are not told the profile's load (issue 14: not told against a real
+    default the laws are not told the profile's load (not told against a real
     drive), and the run says so; told anyway (--load known), the run warns with the ways
     out. This drive's shaft carries no load, so the untold run tracks better."""
     def without_load_signal(node: int):

@@ -1,4 +1,4 @@
-"""The load-torque observer (issue 14): T_L estimated when the controller is not told it."""
+"""The load-torque observer: T_L estimated when the controller is not told it."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def test_observer_finds_a_load_step_open_loop():
 
 
 def test_unknown_load_within_2x_of_known_on_the_paper_scenario():
-    """Issue 14, item 2: T_L not told, dynamometer applying the profile's load within each
+    """T_L not told, dynamometer applying the profile's load within each
     period; ideal current source, estimated flux (24), 1 ms, delay 1."""
     prof = paper_profile()
     scn = resolve_scenario("continuous-load")

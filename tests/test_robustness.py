@@ -1,4 +1,4 @@
-"""Issue 14, item 3: the sensorless loop (current-fed law, estimated flux, 1 ms, delay 1)
+"""The robustness targets: the sensorless loop (current-fed law, estimated flux, 1 ms, delay 1)
 against plants that differ from the controller's model. Targets asserted with a margin;
 the full table is bench/robustness.py (BENCHMARKS.md)."""
 

@@ -1,4 +1,4 @@
-"""The sampled-data design (docs/sampled-control.md) against issue 13's targets on the paper
+"""The sampled-data design (docs/sampled-control.md) against its targets on the paper
 scenario, T → 0, the Euler design unchanged, missed cycles, the interval flux estimator.
 
 The simulations are deterministic (no noise, no timing): the figures are asserted with a
@@ -236,7 +236,7 @@ def test_late_commands_are_withheld_and_the_model_says_so():
 
 
 def test_frame_angle_is_continuous():
-    """Each command's ε0 is the previous one's turned by its ω0·T: no jumps (issue 13 (a))."""
+    """Each command's ε0 is the previous one's turned by its ω0·T: no jumps."""
     T = 1e-3
     ctl = SampledController(MOTOR, ControllerConfig(sampling=Sampling(T, 1)), paper_profile().at)
     drive = Drive(MOTOR, DriveParams(mode="ideal"))
@@ -256,7 +256,7 @@ def test_frame_angle_is_continuous():
 
 def test_interval_estimator_integrates_what_the_drive_applied():
     """Ideal drive with setpoint steps every period: the interval estimator is exact, the
-    trapezoid of the samples is not (issue 13: ~10 mWb after magnetisation)."""
+    trapezoid of the samples is not (~10 mWb after magnetisation)."""
     T = 1e-3
     drive = Drive(MOTOR, DriveParams(mode="ideal"))
     drive.enable(True)

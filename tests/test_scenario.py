@@ -1,4 +1,4 @@
-"""Plant scenarios (issue 14): the loader, what they do to the plant, and the three commands."""
+"""Plant scenarios: the loader, what they do to the plant, and the three commands."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The emulator and the gateway as two real processes on SocketCAN vcan0 (issue 5).
+"""The emulator and the gateway as two real processes on SocketCAN vcan0.
 
 `hil-plant run -i socketcan -c vcan0` and `hil-gateway run -i socketcan -c vcan0 ...` are
 started as subprocesses, with `candump -L vcan0` (can-utils) as a third-party logger where
