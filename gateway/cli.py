@@ -422,7 +422,7 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
             summary["identification"] = rec.identification
         summary["wall_time_s"] = wall
         dp = cfg.drive_params
-        figures = write_results(
+        written = write_results(
             out, sig, summary, figures=True,
             limits=report.limits_for(cfg.gains, None if dp.mode is DriveMode.IDEAL
                                      else dp.u_lim, dp.i_trip),
@@ -438,11 +438,10 @@ def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any
     errors = summary.get("write_errors", [])
     for e in errors:
         print(f"{PROG}: {e}", file=sys.stderr)
-    written = [n for n in ("signals.csv", *(p.name for p in figures), "summary.json")
-               if not any(f"/{n}" in e or f" {n}" in e for e in errors)]
+    drawn = any(p.suffix == ".png" for p in written)
     print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/"
-          + ", ".join(written) + ("" if figures or errors else
-                                  " (install matplotlib for the figures)"))
+          + ", ".join(p.name for p in written) + ("" if drawn or errors else
+                                                  " (install matplotlib for the figures)"))
     if ended is StopReason.DIVERGED:
         print(f"{PROG}: the loop diverged and the simulation stopped: {watch.reason} (the "
               "bus loop's divergence envelope, README \"Faults and the shutdown\"); the files "
@@ -520,6 +519,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
     from dbc.modes import DriveMode
     from dbc.timing import Sampling
     from gateway.control.controller import FluxSource
+    from gateway.control.interface import DEFAULT_CONTROLLER
     from gateway.loop import Timing
     from gateway.process_data import process_data
     from gateway.runner import RunConfig
@@ -532,7 +532,7 @@ def _run_config(args: argparse.Namespace, drive: Any):
                             "emulator; a real drive runs its current loop: use --drive-mode "
                             "current-loop")
         mode = DriveMode.CURRENT_LOOP
-    if args.controller == "paper" and mode not in law.drive_modes:
+    if args.controller == DEFAULT_CONTROLLER and mode not in law.drive_modes:
         raise UserError(f"the {law} law does not drive a '{mode}' drive: use --drive-mode "
                         f"{' or '.join(law.drive_modes)}")
     if args.flux is FluxSource.TRUE and not drive.truth:

@@ -171,10 +171,9 @@ class DriveMaster:
         self._watchdog: threading.Thread | None = None
         self._stop_watchdog = threading.Event()
         self._connected = False
-        self._identified = False  # the device at the node is the profile's (identify())
         self._configured = False  # we wrote to it (configure())
         self._refused = False  # the shutdown's SDO was answered with an abort
-        self.identity: Identity | None = None
+        self.identity: Identity | None = None  #: the device at the node, once identified
         self._armed = False  # the NMT watch: set by start(), cleared by shutdown()
         self._lockstep = False  # the loop's time is the SYNC count (start())
         self.shutdown_report: ShutdownReport | None = None
@@ -193,7 +192,6 @@ class DriveMaster:
         self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
         self.network.subscribe(EMCY_BASE + self.node_id, self._on_emcy)
         self.identity = self.identify()
-        self._identified = True
         self._booted.clear()
         # reset communication (callbacks already registered)
         self.nmt_command(NmtCommand.RESET_COMMUNICATION)
@@ -739,7 +737,7 @@ class DriveMaster:
         """
         self._stop_watchdog.set()
         self._armed = False
-        if self._connected and self._identified and self.shutdown_report is None:
+        if self._connected and self.identity is not None and self.shutdown_report is None:
             # a device not identified as the profile's is never written to nor reset
             self.shutdown_report = self.bring_down()
         if self._heartbeat_task is not None:

@@ -77,22 +77,29 @@ def write_results(out: Path, sig: Mapping[str, np.ndarray] | None, summary: dict
     (``figures``: the run has the truth they need) and ``summary.json``, once each; the
     figure titles come from ``summary["configuration"]``, the metric windows from its
     ``speed_error``. What cannot be written goes into ``summary["write_errors"]`` with exit
-    status 1. Returns the figures written."""
+    status 1. Returns the files written, in that order (a file that failed is not among
+    them: never a false "wrote")."""
     errors = list(errors or [])
-    drawn: list[Path] = []
+    written: list[Path] = []
     if sig is not None:
+        n = len(errors)
         _try_write(errors, out / "signals.csv", lambda p: report.write_columns_csv(p, sig),
                    "the per-cycle signals")
+        if len(errors) == n:
+            written.append(out / "signals.csv")
         run = summary.get("run", {})
         stopped = ("" if run.get("stop") in (None, "END_OF_PROFILE")
                    else f"{run.get('stop')}, see summary.json run.stop_reason")
         if figures and "speed_error" in summary:
-            drawn = _try_write(errors, out, lambda p: report.plot_figures(
+            written.extend(_try_write(errors, out, lambda p: report.plot_figures(
                 sig, p, report.title_for(summary.get("configuration", {})),
                 windows=summary["speed_error"]["windows"], limits=limits,
-                delay_s=delay_s, stopped=stopped), "the figures") or []
-    write_summary_noting(out, summary, errors)
-    return drawn
+                delay_s=delay_s, stopped=stopped), "the figures") or [])
+    n = len(errors)
+    write_summary_noting(out, summary, errors)  # appends to ``errors`` when it fails
+    if len(errors) == n:
+        written.append(out / "summary.json")
+    return written
 
 
 def write_summary_noting(out: Path, summary: dict[str, Any], errors: list[str]) -> None:
