@@ -348,9 +348,14 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
         # The host could not keep a 10 ms real-time loop (measured, e.g. under the load stage's
         # stress-ng in UML: the emulator's process held for 30 periods processes the kernel's
         # queued SYNCs in a burst, and its RPDO deadline, counted in SYNCs, expires). What must
-        # hold then: a named safe stop, the drive confirmed off, the files complete.
-        assert r["stop"] in ("DRIVE_FAULT", "DRIVE_LOST") and r["exit_status"] == 1, r
-        assert "0x8250" in r["stop_reason"] or "cycles" in r["stop_reason"], r
+        # hold then: a named safe stop, the drive confirmed off, the files complete. The
+        # stops seen: the drive's RPDO deadline (0x8250), the loop's miss limit, and the
+        # divergence guard (the late cycles cost the sensorless estimate its accuracy: the
+        # controller does not yet account for the time a late cycle lost).
+        assert r["stop"] in ("DRIVE_FAULT", "DRIVE_LOST", "DIVERGED") and \
+            r["exit_status"] == 1, r
+        assert ("0x8250" in r["stop_reason"] or "cycles" in r["stop_reason"]
+                or "beyond" in r["stop_reason"]), r
         assert s["shutdown"]["safe"], s["shutdown"]
         assert (tmp_path / "run" / "signals.csv").is_file()
         return
