@@ -30,7 +30,8 @@ from dbc.motor import MotorParams
 from gateway.control.controller import ControllerConfig, Sample
 from gateway.control.sampled import make_controller
 from gateway.reference import paper_profile
-from gateway.simulate import SimConfig, run
+from gateway.session import run
+from gateway.spec import RunSpec
 
 TARGET_US = 20.0
 
@@ -41,7 +42,7 @@ def _samples(law: str, n: int) -> list[tuple[object, Sample]]:
     prof = paper_profile()
     drive = "ideal" if law == "current-fed" else "voltage"
     with the_run(f"the {law} samples' simulation"):
-        sig = run(prof, motor, SimConfig(law=law, drive_mode=drive, duration=n * 1e-3)).arrays()
+        sig = run(RunSpec(law=law, drive_mode=drive, duration=n * 1e-3), prof, motor).sig
     out = []
     for k in range(len(sig["t"])):
         t = float(sig["t"][k])
@@ -92,7 +93,7 @@ def bench_simulate(law: str, drive: str, repeats: int, duration: float) -> float
     for _ in range(repeats):
         with the_run():
             t0 = time.perf_counter()
-            run(prof, motor, SimConfig(law=law, drive_mode=drive, duration=duration))
+            run(RunSpec(law=law, drive_mode=drive, duration=duration), prof, motor)
             walls.append(time.perf_counter() - t0)
     return duration / statistics.median(walls)
 

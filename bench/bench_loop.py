@@ -46,23 +46,27 @@ from dbc.motor import MotorParams
 from gateway.cli import SIM_HEARTBEAT_TIMEOUT_MS
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.reference import paper_profile
-from gateway.report import read_csv
-from gateway.runner import RunConfig, run_gateway
+from gateway.runner import BusTarget
+from gateway.session import Output, run
 from gateway.sim import open_emulator
+from gateway.spec import RunSpec
 
 REALTIME = ("cycles", "missed_cycles", "late_rpdo", "sync_jitter_median_us",
             "sync_jitter_p99_us", "sync_jitter_max_us", "sync_to_tpdo_median_us",
             "sync_to_tpdo_p99_us", "reaction_p99_us")
 
 
-def _buses(args: argparse.Namespace, transport: str):
-    """(gateway bus, cleanup): the external bus, or the emulator on a new in-process bus
+def _target(args: argparse.Namespace, transport: str) -> BusTarget:
+    """The external bus, or the emulator on a new in-process bus
     (:func:`gateway.sim.open_emulator`, as `hil-gateway sim` starts it)."""
-    if args.interface:
-        bus = can.Bus(interface=args.interface, channel=args.channel, receive_own_messages=True)
-        return bus, bus.shutdown
-    bus, _label, cleanup = open_emulator(transport, 1, MotorParams.paper(), DriveMode.IDEAL)
-    return bus, cleanup
+    def open_buses(*_: object):
+        if args.interface:
+            bus = can.Bus(interface=args.interface, channel=args.channel,
+                          receive_own_messages=True)
+            return bus, f"{args.interface}:{args.channel}", bus.shutdown
+        return open_emulator(transport, 1, MotorParams.paper(), DriveMode.IDEAL)
+
+    return BusTarget(args.drive_profile, open_buses, command="bench")
 
 
 def drive_profile(args: argparse.Namespace) -> DriveProfile:
@@ -78,24 +82,18 @@ def drive_profile(args: argparse.Namespace) -> DriveProfile:
                                                    SIM_HEARTBEAT_TIMEOUT_MS))
 
 
-def one_run(args: argparse.Namespace, cfg: RunConfig, tag: str, transport: str
+def one_run(args: argparse.Namespace, spec: RunSpec, tag: str, transport: str
             ) -> tuple[dict, dict]:
     """(summary, signals) of one completed run; RunError when it did not complete."""
     out = Path(tempfile.mkdtemp(prefix=f"bench-{tag}-"))
     with the_run():
-        bus, cleanup = _buses(args, transport)
+        result = run(spec, paper_profile(), MotorParams.paper(),
+                     target=_target(args, transport), output=Output(str(out)))
         try:
-            summary = run_gateway(bus, args.drive_profile, paper_profile(),
-                                  MotorParams.paper(), cfg, out,
-                                  own_echo=(args.interface or "virtual") in ("socketcan",
-                                                                             "virtual"))
-        finally:
-            cleanup()
-        try:
-            require_completed(summary, out, ["signals.csv"])
+            require_completed(result.summary, out, ["signals.csv"])
         except RunError as exc:
             raise RunError(f"{exc} (run directory {out})") from exc
-        return summary, read_csv(out / "signals.csv")
+        return result.summary, result.sig
 
 
 def lockstep(args: argparse.Namespace, transport: str, repeats: int) -> dict:
@@ -103,7 +101,7 @@ def lockstep(args: argparse.Namespace, transport: str, repeats: int) -> dict:
     rates, reactions = [], []
     for r in range(repeats):
         with the_run(f"lockstep run {r + 1} of {repeats}"):
-            summary, sig = one_run(args, RunConfig(timing="lockstep"), f"ls{r}", transport)
+            summary, sig = one_run(args, RunSpec(timing="lockstep"), f"ls{r}", transport)
         rates.append(summary["run"]["cycles"] / summary["run"]["wall_time_s"])
         reactions.append(sig["reaction"])
     reaction = np.concatenate(reactions) * 1e6
@@ -116,7 +114,7 @@ def lockstep(args: argparse.Namespace, transport: str, repeats: int) -> dict:
 
 
 def realtime(args: argparse.Namespace, transport: str, seconds: float) -> dict:
-    cfg = RunConfig(timing="realtime", duration=seconds, max_missed=10**9)
+    cfg = RunSpec(timing="realtime", duration=seconds, max_missed=10**9)
     with the_run(f"real-time run of {seconds:g} s"):
         summary, _sig = one_run(args, cfg, "rt", transport)
     run, t = summary["run"], summary["timing"]

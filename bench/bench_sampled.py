@@ -33,15 +33,16 @@ from _common import Figures, add_json_option, failed_text, the_run
 from dbc.motor import MotorParams
 from gateway import report
 from gateway.reference import paper_profile
-from gateway.simulate import SimConfig, run
+from gateway.session import run
+from gateway.spec import RunSpec
 
-sim_config = SimConfig.from_words  # SimConfig from the command line's words
+sim_config = RunSpec.from_words  # RunSpec from the command line's words
 
 
 
 @dataclass(frozen=True)
 class Case:
-    """One configuration: a label, the SimConfig keywords, the target (RMS, rad/s)."""
+    """One configuration: a label, the RunSpec keywords, the target (RMS, rad/s)."""
 
     label: str
     kw: dict[str, Any] = field(default_factory=dict)
@@ -85,7 +86,7 @@ def simulate(case: Case, discretisation: str) -> dict[str, Any]:
     """The run's metrics; RunError when it fails."""
     with the_run():
         cfg = sim_config(**case.kw, discretisation=discretisation)
-        return report.metrics(run(paper_profile(), MotorParams.paper(), cfg).arrays())
+        return report.metrics(run(cfg, paper_profile(), MotorParams.paper()).sig)
 
 
 def measure(fig: Figures, case: Case, discretisation: str) -> dict[str, Any] | None:

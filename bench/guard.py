@@ -51,7 +51,7 @@ from dbc.motor import MotorParams  # noqa: E402
 from gateway.cycle import CycleRow  # noqa: E402
 from gateway.guard import DivergenceWatch, profile_envelope  # noqa: E402
 from gateway.reference import Signal, load_profile, paper_profile  # noqa: E402
-from gateway.simulate import run  # noqa: E402
+from gateway.session import run  # noqa: E402
 from plant.scenario import parse_scenario, resolve_scenario  # noqa: E402
 
 BOUNDED = 20.0  # rad/s: a run under control stays within this of ω*
@@ -85,7 +85,7 @@ def check_name(reason: str) -> str:
 
 
 def simulate(profile, plant, **kw) -> dict[str, np.ndarray]:
-    return run(profile, MOTOR, sim_config(plant=plant, **kw)).arrays()
+    return run(sim_config(plant=plant, **kw), profile, MOTOR).sig
 
 
 def simulate_and_replay(profile, plant, **kw) -> tuple[dict[str, np.ndarray], int | None, str]:

@@ -39,12 +39,13 @@ from _common import Figures, RunError, add_json_option, failed_text, the_run  # 
 
 from dbc.motor import MotorParams  # noqa: E402
 from gateway.reference import load_profile, paper_profile  # noqa: E402
-from gateway.simulate import SimConfig, run  # noqa: E402
+from gateway.session import run  # noqa: E402
+from gateway.spec import RunSpec  # noqa: E402
 from plant.scenario import resolve_scenario  # noqa: E402
 
 RUNAWAY = 50.0  # rad/s
 
-#: (label, SimConfig keywords) of the controller columns
+#: (label, RunSpec keywords) of the controller columns
 CONTROLLERS = {
     "true flux": {"flux": "true"},
     "open-loop": {"estimator": "open-loop"},
@@ -130,13 +131,13 @@ def blocks() -> dict[str, list[Case]]:
     return out
 
 
-def sim_config(drive: str | None = None, **kw) -> SimConfig:
-    """SimConfig of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design unless
+def sim_config(drive: str | None = None, **kw) -> RunSpec:
+    """RunSpec of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design unless
     the case says otherwise (the load observer exists in it only; block "exact" has the
     sampled-data design). Not imported from tests/: a third-party package (eds-utils)
     installs a top-level ``tests`` package that shadows the project's."""
     kw.setdefault("discretisation", "euler")
-    return SimConfig.from_words(1e-3, 1, "dq", drive, **kw)
+    return RunSpec.from_words(1e-3, 1, "dq", drive, **kw)
 
 
 def simulate(case: Case) -> Case:
@@ -146,7 +147,7 @@ def simulate(case: Case) -> Case:
     try:
         with the_run():
             try:
-                rec = run(prof, MotorParams(), cfg).arrays()
+                rec = run(cfg, prof, MotorParams()).sig
             except (ValueError, OverflowError) as exc:  # a runaway may end in a numerical error
                 print(f"  {case.block}/{case.scenario}/{case.controller}: {exc}",
                       file=sys.stderr)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 
 from dbc.modes import RpdoApply, SetpointFrame
 
@@ -40,6 +40,14 @@ class Sampling:
     def t_apply(self, t: float) -> float:
         """Start of the interval the setpoints computed at ``t`` act on, s."""
         return t + self.delay * self.period
+
+
+class Timing(StrEnum):
+    """How the master paces SYNC. LOCKSTEP: the next SYNC as soon as the RPDOs are out
+    (deterministic); REALTIME: SYNC on an absolute schedule."""
+
+    LOCKSTEP = "lockstep"
+    REALTIME = "realtime"
 
 
 class TimeBase(IntEnum):

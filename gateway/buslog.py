@@ -37,17 +37,9 @@ import can
 from dbc.bus import add_bus_options, bus_config, open_bus
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
+from gateway.logformat import LOG_SUFFIXES
 
 log = logging.getLogger(__name__)
-
-#: Raw log formats (python-can writers/readers), by file suffix.
-LOG_SUFFIXES: dict[str, str] = {
-    ".blf": "Vector BLF, compact binary",
-    ".asc": "Vector ASCII",
-    ".csv": "python-can CSV",
-    ".log": "candump -l, for canplayer",
-    ".trc": "PEAK trace",
-}
 
 #: The live display refreshes at most this often (s); a pipe gets one line per message/s.
 DISPLAY_PERIOD = 0.1
@@ -616,30 +608,80 @@ class _Display:
         self.out.flush()
 
 
-def run_log(bus: can.BusABC, path: str | Path, *, node_id: int | None = None,
-            decode: bool = False,
-            csv_path: str | Path | None = None, duration: float | None = None,
-            stop: threading.Event | None = None, quiet: bool = False,
-            out: TextIO | None = None, tty: bool | None = None,
-            prefer: Iterable[str] = (), drive: DriveProfile | None = None) -> LogResult:
-    """Log ``bus`` to ``path`` until ``duration`` (s) elapsed, ``stop`` is set or a bus error.
+@dataclass(frozen=True)
+class LogOptions:
+    """What :func:`run_log` decodes besides the raw log, and when it stops.
 
-    The caller owns the bus (opens and shuts it down). Returns the account; a bus error is
-    in :attr:`LogResult.error` (the files are complete up to it). Raises UserError for a bad
-    path or node before anything is received.
+    ``node_id``: the node whose PDOs are decoded (None: the drive profile's, else 1);
+    ``decode``: show them live (SI units); ``csv_path``: one CSV row per decoded frame
+    (decodes even without ``decode``); ``prefer``: alternative layouts of the built-in DBC
+    sharing a COB-ID (``RPDO2_AB``); ``drive``: decode with this drive profile's process data
+    instead; ``duration``: stop after this long (s), None: only on the caller's ``stop`` or a
+    bus error.
     """
+
+    node_id: int | None = None
+    decode: bool = False
+    csv_path: str | Path | None = None
+    prefer: Iterable[str] = ()
+    drive: DriveProfile | None = None
+    duration: float | None = None
+
+    @property
+    def node(self) -> int:
+        """The node decoded: ``node_id``, else the drive profile's node, else 1."""
+        if self.node_id is not None:
+            return self.node_id
+        return self.drive.node if self.drive is not None else 1
+
+
+def run_log(bus: can.BusABC, path: str | Path, options: LogOptions | None = None, *,
+            stop: threading.Event | None = None, quiet: bool = False,
+            out: TextIO | None = None, tty: bool | None = None) -> LogResult:
+    """Log ``bus`` to ``path`` until ``options.duration`` (s) elapsed, ``stop`` is set or a
+    bus error; ``options`` (default :class:`LogOptions()`: raw log only, no time limit) says
+    what is decoded.
+
+    The live display goes to ``out`` (standard output), as a refreshing table when ``tty``
+    (default: ``out.isatty()``); none when ``quiet``. The caller owns the bus (opens and shuts
+    it down). Returns the account; a bus error is in :attr:`LogResult.error` (the files are
+    complete up to it). Raises UserError for a bad path or node before anything is received.
+    """
+    opts = LogOptions() if options is None else options
     out = sys.stdout if out is None else out
     stop = threading.Event() if stop is None else stop
+    p, cp = _log_paths(path, opts.csv_path)
+    rec = _open_recorder(p, cp, opts)
+    display = None if quiet else _live_display(out, rec, opts.decode, tty)
+    elapsed = _receive(bus, rec, display, opts.duration, stop)
+    writer = rec.writer
+    return LogResult(path=p, csv_path=cp, duration=elapsed, frames=rec.frames,
+                     decoded=rec.decoded, write_error=writer.error, written=writer.count,
+                     dropped=writer.dropped, counts=Counter(rec.counts),
+                     decode_errors=Counter(rec.errors), error=rec.error)
+
+
+def _log_paths(path: str | Path, csv_path: str | Path | None) -> tuple[Path, Path | None]:
+    """The raw log's path (``-o``, see :func:`check_log_path`) and the decoded CSV's
+    (``--csv``: in a writable directory, not the raw log itself); UserError if not."""
     p = check_log_path(path)
-    cp = None
-    if csv_path is not None:
-        cp = Path(csv_path)
-        _check_writable(cp, "--csv")
-        if cp.resolve() == p.resolve():
-            raise UserError(f"--csv {str(cp)!r} is the raw log file itself; give another name")
-    if node_id is None:
-        node_id = drive.node if drive is not None else 1
-    _decoders(node_id, prefer, drive)  # bad node/message/profile → UserError before any file
+    if csv_path is None:
+        return p, None
+    cp = Path(csv_path)
+    _check_writable(cp, "--csv")
+    if cp.resolve() == p.resolve():
+        raise UserError(f"--csv {str(cp)!r} is the raw log file itself; give another name")
+    return p, cp
+
+
+def _open_recorder(p: Path, cp: Path | None, opts: LogOptions) -> _Recorder:
+    """The listener writing the raw log ``p`` and the CSV ``cp`` (if any) of ``opts``' node.
+
+    UserError for a bad node, message or drive profile before any file is opened, and for a
+    file that cannot be opened (the other one is closed again).
+    """
+    node_id = opts.node
+    _decoders(node_id, opts.prefer, opts.drive)  # bad node/message/profile → UserError
     writer = BusRecorder(p)  # UserError when it cannot be opened
     csv_file = None
     try:
@@ -648,51 +690,64 @@ def run_log(bus: can.BusABC, path: str | Path, *, node_id: int | None = None,
                 csv_file = open(cp, "w", newline="", encoding="utf-8")  # noqa: SIM115
             except OSError as exc:
                 raise UserError(f"cannot write --csv {str(cp)!r}: {exc.strerror or exc}") from exc
-        rec = _Recorder(writer, node_id, decode, csv_file, prefer, drive)
+        return _Recorder(writer, node_id, opts.decode, csv_file, opts.prefer, opts.drive)
     except BaseException:
         writer.stop()
         if csv_file is not None:
             csv_file.close()
         raise
-    display = None if quiet else _Display(out, rec, decode, tty)
-    if display is not None and not display.tty and not decode:
-        display = None  # nothing useful to print on a pipe without decoding
-    result = LogResult(path=p, csv_path=cp)
+
+
+def _live_display(out: TextIO, rec: _Recorder, decode: bool, tty: bool | None
+                  ) -> _Display | None:
+    """The live view of ``rec`` on ``out``; None on a pipe without ``decode`` (nothing useful
+    to print there)."""
+    display = _Display(out, rec, decode, tty)
+    return None if not display.tty and not decode else display
+
+
+def _receive(bus: can.BusABC, rec: _Recorder, display: _Display | None,
+             duration: float | None, stop: threading.Event) -> float:
+    """Receive from ``bus`` into ``rec`` through a :class:`can.Notifier` thread until
+    :func:`_wait` returns. On every exit path the notifier is stopped first, then the files
+    are closed, then the display is drawn a last time. Returns the time it took (s)."""
     t0 = time.monotonic()
     notifier = None
     try:
         notifier = can.Notifier(bus, [rec], timeout=0.1)
-        last_flush = t0
-        while True:
-            now = time.monotonic()
-            if duration is not None and now - t0 >= duration:
-                break
-            if rec.error is not None:
-                break
-            wait = DISPLAY_PERIOD if duration is None else min(DISPLAY_PERIOD,
-                                                                duration - (now - t0))
-            if stop.wait(max(wait, 0.0)):
-                break
-            if display is not None:
-                display.tick()
-            if now - last_flush >= 1.0:
-                rec.flush()
-                last_flush = now
+        _wait(rec, display, duration, stop, t0)
     finally:
         if notifier is not None:
             notifier.stop(timeout=2.0)  # joins the receive thread, then rec.stop()
         rec.close()
-        result.duration = time.monotonic() - t0
+        elapsed = time.monotonic() - t0
         if display is not None:
             with contextlib.suppress(Exception):
                 display.tick(final=True)
-    result.frames, result.decoded = rec.frames, rec.decoded
-    result.write_error = writer.error
-    result.written, result.dropped = writer.count, writer.dropped
-    result.counts = Counter(rec.counts)
-    result.decode_errors = Counter(rec.errors)
-    result.error = rec.error
-    return result
+    return elapsed
+
+
+def _wait(rec: _Recorder, display: _Display | None, duration: float | None,
+          stop: threading.Event, t0: float) -> None:
+    """Wait until ``duration`` (s) since ``t0`` (time.monotonic) elapsed, ``rec`` saw a receive
+    error or ``stop`` is set; meanwhile refresh the display (every :data:`DISPLAY_PERIOD` s at
+    most) and flush the CSV (about once a second)."""
+    last_flush = t0
+    while True:
+        now = time.monotonic()
+        if duration is not None and now - t0 >= duration:
+            return
+        if rec.error is not None:
+            return
+        wait = DISPLAY_PERIOD if duration is None else min(DISPLAY_PERIOD,
+                                                            duration - (now - t0))
+        if stop.wait(max(wait, 0.0)):
+            return
+        if display is not None:
+            display.tick()
+        if now - last_flush >= 1.0:
+            rec.flush()
+            last_flush = now
 
 
 # ------------------------------------------------------------------------------- CLI
@@ -740,9 +795,9 @@ def cmd_log(args: argparse.Namespace) -> int:
                 what += f" with {drive.source}"
             print(f"logging {cfg.label()} to {path}{what} {until}", flush=True)
         with _stop_on_signals(stop):
-            result = run_log(bus, path, node_id=node, decode=args.decode,
-                             csv_path=args.csv, duration=duration, stop=stop, quiet=args.quiet,
-                             drive=drive)
+            options = LogOptions(node_id=node, decode=args.decode, csv_path=args.csv,
+                                 duration=duration, drive=drive)
+            result = run_log(bus, path, options, stop=stop, quiet=args.quiet)
     finally:
         bus.shutdown()
     print(result.account())

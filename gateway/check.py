@@ -212,10 +212,11 @@ def _mappings(report: CheckReport, master: DriveMaster, pd: ProcessData, when: s
 
 
 def _roles(report: CheckReport, master: DriveMaster, pd: ProcessData) -> bool:
-    from gateway.runner import RunConfig, required_roles
+    from gateway.runner import required_roles
+    from gateway.spec import RunSpec
 
-    cfg = RunConfig(drive_mode=DriveMode.CURRENT_LOOP,
-                    sampling=Sampling(0.001, 1, pd.setpoint_frame))
+    cfg = RunSpec(drive_mode=DriveMode.CURRENT_LOOP,
+                  sampling=Sampling(0.001, 1, pd.setpoint_frame))
     try:
         pd.require(required_roles(cfg, pd), f"the {cfg.law} law with a {cfg.drive_mode} drive",
                    master.node.object_dictionary.indices)
@@ -261,9 +262,9 @@ def _sync_cycles(report: CheckReport, master: DriveMaster, pd: ProcessData, bus:
     every TPDO (at most the loop's ``tpdo_timeout``), the RPDOs, the next SYNC one period
     after the last; stops like a run after ``max_missed`` incomplete cycles in a row."""
     from gateway.loop import LoopConfig
-    from gateway.runner import RunConfig
+    from gateway.spec import RunSpec
 
-    tolerated = RunConfig()  # what a run tolerates before it stops
+    tolerated = RunSpec()  # what a run tolerates before it stops
     timeout = LoopConfig(n_cycles=1).tpdo_timeout
     cob_ids = {p.cob_id: p.name for p in pd.tpdos}
     arrivals = _Arrivals(set(cob_ids))

@@ -7,18 +7,14 @@ Every subcommand returns an exit status; bad input ends in one paragraph on stde
 from __future__ import annotations
 
 import argparse
-import itertools
 import logging
 import math
 import os
 import re
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager, suppress
+from collections.abc import Callable, Sequence
 from dataclasses import replace
-from datetime import datetime
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -41,83 +37,6 @@ examples:
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-#: The files a run writes into its directory (besides the bus log named by --log):
-#: what --force removes before it reuses a directory.
-RUN_FILES = ("summary.json", "signals.csv", "fig1_references.png", "fig2_errors.png",
-             "fig3_currents_voltages.png", "fig4_controller.png")
-
-
-def _out_dir(arg: str | None, kind: str, force: bool = False,
-             extra_files: Sequence[str] = ()) -> Path:
-    """The run directory, created: ``--out`` DIR, or a new ``runs/<time>-<kind>[-n]``.
-
-    A default directory is never reused: two runs started in the same second get ``-2``,
-    ``-3``… (created atomically). An existing non-empty ``--out`` is refused unless
-    ``force``; then the files of the earlier run (:data:`RUN_FILES`, ``extra_files``) are
-    removed first so that nothing stale is mixed with the new run (symbolic links are kept
-    and written through: someone put them there on purpose).
-    """
-    try:
-        if arg:
-            path = Path(arg)
-            if path.exists() and not path.is_dir():
-                raise UserError(f"--out {arg!r} is a file, not a directory: choose a new "
-                                "directory name")
-            if path.is_dir() and any(path.iterdir()):
-                if not force:
-                    names = sorted(p.name for p in path.iterdir())
-                    raise UserError(
-                        f"--out {arg!r} exists and is not empty ({', '.join(names[:4])}"
-                        f"{', …' if len(names) > 4 else ''}): a run never overwrites another; "
-                        "choose a new directory, or pass --force to reuse this one (the "
-                        "earlier run's files are removed)")
-                for name in (*RUN_FILES, *extra_files):
-                    old = path / name
-                    if not old.is_symlink():  # a link placed on purpose is written through
-                        old.unlink(missing_ok=True)
-            path.mkdir(parents=True, exist_ok=True)
-        else:
-            base = Path("runs") / f"{datetime.now():%Y%m%d-%H%M%S}-{kind}"
-            for n in itertools.count(1):
-                path = base if n == 1 else base.with_name(f"{base.name}-{n}")
-                try:
-                    path.mkdir(parents=True, exist_ok=False)
-                    break
-                except FileExistsError:
-                    continue
-        probe = path / ".write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as exc:
-        raise UserError(
-            f"cannot write the run directory {str(arg or 'runs/')!r}: "
-            f"{exc.strerror or exc}. Choose a writable place with --out DIR."
-        ) from exc
-    return path
-
-
-@contextmanager
-def _run_dir(arg: str | None, kind: str, force: bool = False,
-             extra_files: Sequence[str] = ()) -> Iterator[Path]:
-    """:func:`_out_dir`, removed again if the run fails to start (an error raised before it
-    wrote its results: a failed start leaves no directory, not even the bus log of its
-    configuration). A directory that existed before is left as it was."""
-    existed = bool(arg) and Path(arg).exists()
-    parent_existed = Path(arg).parent.exists() if arg else Path("runs").exists()
-    path = _out_dir(arg, kind, force, extra_files)
-    try:
-        yield path
-    except BaseException:
-        if not existed and not (path / "signals.csv").exists():
-            with suppress(OSError):
-                for name in (*RUN_FILES, *extra_files):
-                    (path / name).unlink(missing_ok=True)
-                path.rmdir()  # only when empty: nothing else of the user's is removed
-                if not parent_existed:
-                    path.parent.rmdir()
-        raise
 
 
 def _check_duration(duration: float, step: float, what: str) -> int:
@@ -336,19 +255,20 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
-    from gateway.runner import StopSignals
-    from gateway.simulate import SimConfig, emulator_rate, run
+    from gateway.session import Output, run
+    from gateway.simulate import emulator_rate
+    from gateway.spec import RunSpec
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     plant = _load_scenario(args.plant)
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
-    drive = args.drive_mode or args.law.drive_modes[0]
     duration = parse_duration(args.duration, "--duration") if args.duration else None
     load = _load_mode(args, plant)
-    cfg = SimConfig(
-        law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=drive,
+    spec = RunSpec(
+        law=args.law, flux=args.flux, estimator=args.estimator,
+        drive_mode=args.drive_mode or args.law.drive_modes[0],
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
@@ -356,100 +276,54 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     )
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
-    what = (f"--duration {args.duration}" if args.duration
-            else f"the profile's duration ({profile.duration:g} s)")
-    n_rows = _check_duration(total, period or cfg.record_step, what)
+    n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
     report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
                              f"simulating {total:g} s at {label}")
-    windows = report.profile_windows(profile, args.windows)
-    with _run_dir(args.out, f"simulate-{args.law}", args.force) as out:
-        return _simulate_into(out, args, profile, motor, cfg, label, windows, StopSignals,
-                              run)
-
-
-def _simulate_into(out: Path, args: argparse.Namespace, profile: Any, motor: Any, cfg: Any,
-                   label: str, windows: Any, stop_signals: Any, run: Any) -> int:
-    """The simulation proper, its files and the printout (the run directory exists)."""
-    from dbc.modes import DriveMode
-    from dbc.signals import SETPOINT_MESSAGE
-    from gateway import report
-    from gateway.guard import DivergenceWatch, profile_envelope
-    from gateway.results import write_results
-    from gateway.stop import StopReason
-
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
-    t0 = time.perf_counter()
-    signals = stop_signals()
-    stop = threading.Event()
-    signals.on_stop = lambda reason: stop.set()
-    # The handlers stay installed until every file is written: a second Ctrl-C (or one
-    # that comes while the figures are drawn) must not lose the run's files.
-    watch = DivergenceWatch(profile_envelope(profile, motor, cfg.gains.i_max))
-    with signals.installed():
-        try:
-            rec = run(profile, motor, cfg, progress, stop, watch)
-        except ValueError as exc:  # also a plant scenario's error (ScenarioError)
-            raise UserError(f"the simulation could not run: {exc}") from exc
-        finally:
-            progress.done(complete=not stop.is_set())
-        signals.shutting_down = True
-        signals.on_stop = lambda reason: print(
-            f"\n{reason}: writing the run's files first, please wait", file=sys.stderr,
-            flush=True)
-        wall = time.perf_counter() - t0
-        if not len(rec):
-            raise UserError(f"the simulation stopped before its first period "
-                            f"({signals.reason})", exit_code=130)
-        sig = rec.arrays()
-        summary: dict[str, Any] = report.metrics(sig, windows=windows)
-        summary["truth"] = report.TRUTH_MODEL
-        sampled = cfg.sampling is not None
-        summary["quantisation"] = report.quantisation(
-            cfg.quantize and sampled,
-            SETPOINT_MESSAGE[cfg.sampling.setpoint_frame] if sampled else None,
-            "--no-quantize" if sampled else "continuous time: no bus")
-        if stop.is_set():
-            summary["stopped_early"] = f"{signals.reason} at t = {sig['t'][-1]:.3f} s"
-        ended = (StopReason.DIVERGED if watch.reason else StopReason.INTERRUPTED
-                 if stop.is_set() else StopReason.END_OF_PROFILE)
-        summary["run"] = {"stop": ended.name,
-                          "stop_reason": watch.reason or summary.get("stopped_early")
-                          or ended.value,
-                          "exit_status": ended.exit_status, "cycles": len(rec)}
-        summary["configuration"] = {"command": "simulate", "profile": profile.source,
-                                    **cfg.describe()}
-        if rec.identification is not None:
-            summary["identification"] = rec.identification
-        summary["wall_time_s"] = wall
-        dp = cfg.drive_params
-        written = write_results(
-            out, sig, summary, figures=True,
-            limits=report.limits_for(cfg.gains, None if dp.mode is DriveMode.IDEAL
-                                     else dp.u_lim, dp.i_trip),
-            delay_s=cfg.sampling.delay * cfg.sampling.period if sampled else 0.0)
-    who = (f"law {args.law}, flux {args.flux}" if cfg.controller.is_paper
-           else f"controller {cfg.controller.name}")
-    print(f"{PROG} simulate: {profile.name}, {who}, drive "
-          f"{cfg.drive_mode}, plant {cfg.plant.name}, load {cfg.load}, period {label}"
-          + ("" if cfg.sampling is None else
-             f", delay {args.delay}, setpoints in ({args.setpoint_frame[0]}, "
-             f"{args.setpoint_frame[1]}), {cfg.discretisation} design"))
+    try:
+        result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
+                                                         args.force),
+                     windows=report.profile_windows(profile, args.windows), progress=progress)
+    except BaseException:
+        progress.done(complete=False)
+        raise
+    progress.done(complete=result.summary["run"]["stop"] == "END_OF_PROFILE")
+    _print_simulation(spec, profile, label, result)
+    return 1 if result.write_errors else result.exit_status
+
+
+def _duration_words(args: argparse.Namespace, profile: Any) -> str:
+    return (f"--duration {args.duration}" if args.duration
+            else f"the profile's duration ({profile.duration:g} s)")
+
+
+def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
+    """What `simulate` did: configuration, the metrics, the files, why it stopped early."""
+    from gateway import report
+
+    s, summary = spec.sampling, result.summary
+    print(f"{PROG} simulate: {profile.name}, {spec.who}, drive "
+          f"{spec.drive_mode}, plant {getattr(spec.plant, 'name', 'nominal')}, load "
+          f"{spec.load}, period {label}"
+          + ("" if s is None else
+             f", delay {s.delay}, setpoints in ({s.setpoint_frame[0]}, "
+             f"{s.setpoint_frame[1]}), {spec.discretisation} design"))
     print(report.summary_table(summary))
-    errors = summary.get("write_errors", [])
-    for e in errors:
+    for e in result.write_errors:
         print(f"{PROG}: {e}", file=sys.stderr)
-    drawn = any(p.suffix == ".png" for p in written)
-    print(f"{len(rec)} samples, {wall:.2f} s wall time; wrote {out}/"
-          + ", ".join(p.name for p in written) + ("" if drawn or errors else
-                                                  " (install matplotlib for the figures)"))
-    if ended is StopReason.DIVERGED:
-        print(f"{PROG}: the loop diverged and the simulation stopped: {watch.reason} (the "
-              "bus loop's divergence envelope, README \"Faults and the shutdown\"); the files "
-              "hold the run up to there", file=sys.stderr)
-    elif stop.is_set():
+    drawn = any(p.suffix == ".png" for p in result.files)
+    print(f"{summary['run']['cycles']} samples, {summary['wall_time_s']:.2f} s wall time; "
+          f"wrote {result.out}/" + ", ".join(p.name for p in result.files)
+          + ("" if drawn or result.write_errors else " (install matplotlib for the figures)"))
+    stop = summary["run"]["stop"]
+    if stop == "DIVERGED":
+        print(f"{PROG}: the loop diverged and the simulation stopped: "
+              f"{summary['run']['stop_reason']} (the bus loop's divergence envelope, README "
+              "\"Faults and the shutdown\"); the files hold the run up to there",
+              file=sys.stderr)
+    elif "stopped_early" in summary:
         print(f"{PROG}: stopped early ({summary['stopped_early']}); the files hold the run so "
               "far", file=sys.stderr)
-    return 1 if errors else ended.exit_status
 
 
 # ------------------------------------------------------------------------- run / sim
@@ -514,15 +388,15 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
 
 
-def _run_config(args: argparse.Namespace, drive: Any):
-    """The run's configuration, checked against what the drive can do."""
+def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
+    """The run's specification, checked against what the drive can do."""
     from dbc.modes import DriveMode
     from dbc.timing import Sampling
     from gateway.control.controller import FluxSource
     from gateway.control.interface import DEFAULT_CONTROLLER
     from gateway.loop import Timing
     from gateway.process_data import process_data
-    from gateway.runner import RunConfig
+    from gateway.spec import RunSpec
 
     law = args.law
     mode = args.drive_mode or law.drive_modes[0]
@@ -544,35 +418,37 @@ def _run_config(args: argparse.Namespace, drive: Any):
         period = parse_period(args.period, "--period", emulator_rate())
     else:
         period = parse_period(args.period, "--period")
-    if args.max_missed is not None and args.max_missed < 1:
-        raise UserError(f"--max-missed {args.max_missed}: give a number of cycles >= 1")
-    if not 0.0 < args.max_miss_rate <= 1.0:
-        raise UserError(f"--max-miss-rate {args.max_miss_rate}: give a fraction in (0, 1]")
-    return RunConfig(
+    load = _load_mode(args, plant, drive)
+    return RunSpec(
         law=law, flux=args.flux, estimator=args.estimator, drive_mode=mode,
         sampling=Sampling(period, args.delay, process_data(drive).setpoint_frame),
-        timing=args.timing,
-        gains=_gains(args), bus_log=args.log,
+        timing=args.timing, gains=_gains(args), bus_log=args.log,
         # real time: 50 ms worth of cycles; lockstep waits 1 s per cycle already: 5
-        max_missed=args.max_missed or (max(5, round(0.05 / period))
-                                       if args.timing is Timing.REALTIME else 5),
+        max_missed=(args.max_missed if args.max_missed is not None
+                    else max(5, round(0.05 / period)) if args.timing is Timing.REALTIME
+                    else 5),
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
-        discretisation=_design(args, "known"),
+        plant=plant, load=load, discretisation=_design(args, load), identify=args.identify,
+        controller=_controller_choice(args),
     )
 
 
-def _print_run(kind: str, summary: dict[str, Any], out: Path, profile: Any) -> None:
+def _print_run(result: Any) -> None:
     from gateway import report
     from gateway.runner import timing_table
 
+    summary = result.summary
     if "speed_error" in summary:
         print(report.summary_table(summary))
     elif summary.get("identification"):  # no truth from the drive: no table, but this
         print(report.identification_line(summary["identification"]))
     print(timing_table(summary))
-    print(f"wrote {out}/ (summary.json, signals.csv, {summary['run']['bus_log']}"
-          + (", figures" if (out / "fig2_errors.png").exists() else "") + ")")
+    run = summary["run"]
+    logged = [run["bus_log"]] if run.get("bus_log") and not run.get("bus_log_error") else []
+    print(f"wrote {result.out}/ ("
+          + ", ".join([p.name for p in result.files if p.suffix != ".png"] + logged)
+          + (", figures" if any(p.suffix == ".png" for p in result.files) else "") + ")")
 
 
 def _finish_run(summary: dict[str, Any]) -> int:
@@ -593,32 +469,17 @@ def _finish_run(summary: dict[str, Any]) -> int:
     return run["exit_status"]
 
 
-def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
-                     open_buses: Callable[[Any], tuple[Any, str, Callable[[], None]]],
-                     plant: Any = None, truth: Any = None) -> int:
-    """What `run` and `sim` share: inputs, signals, the run, the report, the exit status.
-
-    ``open_buses(cfg)`` → (gateway bus, bus label, close): opens whatever the command needs
-    (for `sim` also the emulated drive) and returns how to close it all. ``truth``: the
-    emulator's full-resolution record (:class:`gateway.sim.TruthRecorder`), `sim` only.
-    Every input is checked before the run directory is made.
-    """
+def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
+    """What `run` and `sim` share: inputs checked before the run directory is made, the
+    run (:func:`gateway.session.run`), the report, the exit status."""
     from gateway import report
     from gateway.loop import LoopRow
-    from gateway.results import Reporting
-    from gateway.runner import StopSignals, run_gateway
+    from gateway.session import Output, run
 
+    kind, drive = target.command, target.drive
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    cfg = _run_config(args, drive)
-    load = _load_mode(args, plant, drive)
-    try:
-        cfg = replace(cfg, plant_scenario=plant and plant.describe(), load=load,
-                      discretisation=_design(args, load), identify=args.identify,
-                      controller=_controller_choice(args))
-        cfg.controller_config()
-    except ValueError as exc:
-        raise UserError(str(exc)) from exc
+    spec = _run_spec(args, drive, plant)
     node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -626,65 +487,43 @@ def _gateway_session(args: argparse.Namespace, kind: str, drive: Any,
     if not 1 <= gateway_node <= 127 or gateway_node == node:
         raise UserError(f"--gateway-node {gateway_node}: the gateway's node id is 1..127 and "
                         f"not the drive's ({node})")
-    total = cfg.duration or profile.duration
-    what = (f"--duration {args.duration}" if args.duration
-            else f"the profile's duration ({profile.duration:g} s)")
-    n_rows = _check_duration(total, cfg.period, what)
+    total = spec.duration or profile.duration
+    n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
     report.check_record_size(n_rows, len(LoopRow._fields), args.allow_long,
-                             f"running {total:g} s at {format_duration(cfg.period)}")
-    windows = report.profile_windows(profile, args.windows)
-    with _run_dir(args.out, kind, args.force, (args.log,)) as out:
-        signals = StopSignals()
-        with signals.installed():
-            bus, label, close = open_buses((cfg, motor, node))
-            try:
-                progress = Progress(f"{kind} {label}", True if args.progress else None)
-                summary = run_gateway(bus, drive, profile, motor, cfg, out, node=node,
-                                      gateway_node=args.gateway_node,
-                                      own_echo=label.split(":")[0] in OWN_ECHO_INTERFACES,
-                                      progress=progress, signals=signals, bus_label=label,
-                                      reporting=Reporting(kind, windows, truth,
-                                                          _limits(cfg, drive)))
-                progress.done(complete=summary["run"]["exit_status"] == 0)
-            finally:
-                close()
-    who = (f"{cfg.law}, flux {cfg.flux}" if cfg.controller.is_paper
-           else f"controller {cfg.controller.name}")
-    print(f"{PROG} {kind}: {profile.name} on {label} node {node} ({drive.name}, "
-          f"{cfg.drive_mode}), {who}, load {cfg.load}, {cfg.timing}, "
-          f"period {format_duration(cfg.period)}, delay {cfg.sampling.delay}, "
-          f"{cfg.discretisation} design")
-    _print_run(kind, summary, out, profile)
-    return _finish_run(summary)
-
-
-def _limits(cfg: Any, drive: Any) -> dict[str, float]:
-    """The limits Fig. 3 draws: the controller's current limit, and the emulator's voltage
-    limit and over-current trip (a real drive's are its own)."""
-    from gateway import report
-    from gateway.sim import emulator_limits
-
-    i_trip, u_lim = emulator_limits() if drive.emulator else (None, None)
-    return report.limits_for(cfg.gains, None if cfg.drive_mode == "ideal" else u_lim, i_trip)
-
-
-#: Interfaces that deliver this process's own frames back when asked (receive_own_messages).
-OWN_ECHO_INTERFACES = ("socketcan", "virtual", "inprocess")
+                             f"running {total:g} s at {format_duration(spec.period)}")
+    target = replace(target, node=node, gateway_node=args.gateway_node)
+    progress = Progress(kind, True if args.progress else None)
+    try:
+        result = run(spec, profile, motor, target=target,
+                     output=Output(args.out, kind, args.force),
+                     windows=report.profile_windows(profile, args.windows), progress=progress)
+    except BaseException:
+        progress.done(complete=False)
+        raise
+    progress.done(complete=result.exit_status == 0)
+    conf = result.summary["configuration"]
+    print(f"{PROG} {kind}: {profile.name} on {conf['bus']} node {node} ({drive.name}, "
+          f"{spec.drive_mode}), {spec.who}, load {spec.load}, {spec.timing}, "
+          f"period {format_duration(spec.period)}, delay {spec.sampling.delay}, "
+          f"{spec.discretisation} design")
+    _print_run(result)
+    return _finish_run(result.summary)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """`hil-gateway run`: the loop against a drive on a CAN bus."""
     from dbc.bus import bus_config, open_bus
     from gateway.drive_profile import load_drive_profile
+    from gateway.runner import BusTarget
 
     drive = load_drive_profile(args.drive)
     bus_cfg = bus_config(args)
 
-    def open_buses(_: Any) -> tuple[Any, str, Callable[[], None]]:
+    def open_buses(*_: Any) -> tuple[Any, str, Callable[[], None]]:
         bus = open_bus(bus_cfg)
         return bus, bus_cfg.label(), bus.shutdown
 
-    return _gateway_session(args, "run", drive, open_buses)
+    return _gateway_session(args, BusTarget(drive, open_buses, command="run"))
 
 
 #: `sim`: how long the emulated drive waits for the gateway's heartbeat (0x1016), ms.
@@ -694,16 +533,15 @@ SIM_HEARTBEAT_TIMEOUT_MS = 1000
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
     from gateway.drive_profile import load_drive_profile
+    from gateway.runner import BusTarget
     from gateway.sim import TruthRecorder, open_emulator
 
     truth = TruthRecorder()
-
     plant = _load_scenario(args.plant)
     profile_load = _load_profile(args.profile).load
 
-    def open_buses(ctx: Any) -> tuple[Any, str, Callable[[], None]]:
-        cfg, motor, node = ctx
-        return open_emulator(args.transport, node, motor, cfg.drive_mode, plant,
+    def open_buses(spec: Any, motor: Any, node: int) -> tuple[Any, str, Callable[[], None]]:
+        return open_emulator(args.transport, node, motor, spec.drive_mode, plant,
                              profile_load, on_sample=truth)
 
     # The emulator runs in this interpreter: a stall of the process (a loaded host, the
@@ -713,7 +551,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     drive = load_drive_profile(None)
     drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
                                                     SIM_HEARTBEAT_TIMEOUT_MS))
-    return _gateway_session(args, "sim", drive, open_buses, plant, truth)
+    return _gateway_session(args, BusTarget(drive, open_buses, command="sim", truth=truth),
+                            plant)
 
 
 # ---------------------------------------------------------------------------- profile
@@ -866,6 +705,22 @@ def build_parser() -> argparse.ArgumentParser:
                         help="show tracebacks and debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    _add_simulate(sub)
+    _add_sim(sub)
+    _add_run(sub)
+    from gateway import buslog, check, scan
+
+    buslog.add_parser(sub)
+    scan.add_parser(sub)
+    check.add_parser(sub)
+    _add_compare(sub)
+    _add_reference(sub)
+    _debug_everywhere(parser)
+    return parser
+
+
+def _add_simulate(sub: Any) -> None:
+    """`simulate`: the closed loop without CAN."""
     p = sub.add_parser(
         "simulate", help="the closed loop without CAN (continuous or sampled); no bus at all",
         description="Run the closed loop without CAN: continuous time with scipy, or sampled "
@@ -901,6 +756,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_output_options(p, "runs/<time>-simulate-<law>")
     p.set_defaults(func=cmd_simulate)
 
+
+def _add_sim(sub: Any) -> None:
+    """`sim`: the loop over CANopen against the emulator in this process."""
     p = sub.add_parser(
         "sim", help="the loop over CANopen against the emulated drive, in one process",
         description="Run the sensorless loop over CANopen against the emulated CiA 402 drive "
@@ -918,6 +776,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plant_option(p)
     p.set_defaults(func=cmd_sim)
 
+
+def _add_run(sub: Any) -> None:
+    """`run`: the loop against a drive on a CAN bus."""
     from dbc.bus import add_bus_options
 
     p = sub.add_parser(
@@ -931,12 +792,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "emulator (gateway/drives/emulator.toml)")
     p.set_defaults(func=cmd_run)
 
-    from gateway import buslog, check, scan
 
-    buslog.add_parser(sub)
-    scan.add_parser(sub)
-    check.add_parser(sub)
-
+def _add_compare(sub: Any) -> None:
+    """`compare`: runs side by side."""
     p = sub.add_parser(
         "compare", help="compare runs: errors side by side, configuration differences, figure",
         description="Compare run directories (of simulate, sim or run): print the errors of "
@@ -949,6 +807,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="figure file, .png, .svg or .pdf (default ./compare.png)")
     p.set_defaults(func=cmd_compare)
 
+
+def _add_reference(sub: Any) -> None:
+    """`reference` (alias `profile`): check, plot, new-drive."""
     p = sub.add_parser("reference", aliases=["profile"],
                        help="check or plot a reference profile (alias: profile)",
                        description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
@@ -972,8 +833,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     newdrive.add_action(psub)
     p.set_defaults(func=lambda a: _usage(p))
-    _debug_everywhere(parser)
-    return parser
 
 
 def _debug_everywhere(parser: argparse.ArgumentParser) -> None:

@@ -39,14 +39,13 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any
 
 import can
 
 from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, NmtState, sync_counter
 from dbc.cia402 import SW_FAULT, State
-from dbc.timing import LOCKSTEP_BACKSTOP_S, Sampling
+from dbc.timing import LOCKSTEP_BACKSTOP_S, Sampling, Timing
 from gateway.control.controller import PAPER_SIGNALS
 from gateway.control.interface import DriveController
 from gateway.cycle import BUS_COLUMNS, ControlCycle, ReferenceProfile, row_type
@@ -56,14 +55,6 @@ from gateway.report import Record
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
-
-
-class Timing(StrEnum):
-    """LOCKSTEP: the next SYNC as soon as the RPDOs are out (deterministic); REALTIME: SYNC
-    on an absolute schedule."""
-
-    LOCKSTEP = "lockstep"
-    REALTIME = "realtime"
 
 
 #: The missed-cycle rate limit looks at windows of this length, s.

@@ -458,17 +458,29 @@ def _toml_str(s: str) -> str:
 
 def render_toml(eds: DriveEds, choices: dict[str, Choice], *, node: int = 1,
                 eds_ref: str | None = None, dbc_ref: str = "drive.dbc") -> str:
-    """The drive-profile skeleton (TOML)."""
-    from gateway.drive_profile import REQUIRED_OBJECTS
-
+    """The drive-profile skeleton (TOML): header comments, then one section after another."""
     setpoints, setpoints_ok = _setpoint_family(choices)
     layout = _layout(choices, setpoints)
     in_layout = {c.role.name for sigs in layout.values() for c in sigs}
-    currents_ok = choices["i_sa"].chosen is not None and choices["i_sb"].chosen is not None
-    voltages_ok = choices["u_sa"].chosen is not None and choices["u_sb"].chosen is not None
-    manuf_modes, cst = _modes(eds)
     name = eds.product or eds.path.stem
-    lines = [
+    return "\n".join([
+        *_toml_header(eds, name),
+        *_toml_missing(eds),
+        *_toml_refusal(eds, choices, setpoints_ok),
+        *_toml_drive(eds, name, node, eds_ref, dbc_ref),
+        *_toml_modes(eds),
+        *_toml_pdo(layout, in_layout, setpoints),
+        *_toml_timing(eds),
+        *_toml_limits(eds),
+        *_toml_roles(choices, in_layout, setpoints),
+        *_toml_signals(choices, in_layout, setpoints),
+    ])
+
+
+def _toml_header(eds: DriveEds, name: str) -> list[str]:
+    """The opening comment: the drive (product, vendor), the EDS it comes from, and that every
+    object and scaling is to be confirmed in the manual."""
+    return [
         f"# Drive profile skeleton for {name}"
         + (f" ({eds.vendor})" if eds.vendor else "") + ",",
         f"# written by `hil-gateway profile new-drive` from {eds.path.name}.",
@@ -476,80 +488,137 @@ def render_toml(eds: DriveEds, choices: dict[str, Choice], *, node: int = 1,
         "# the drive's manual (unit, scaling, sampling instant, frame) before a run, and the",
         "# scalings in the DBC next to this file (all 1 here).",
     ]
+
+
+def _toml_missing(eds: DriveEds) -> list[str]:
+    """A warning naming the objects of :data:`gateway.drive_profile.REQUIRED_OBJECTS` (0x6040
+    controlword, ...) the EDS lacks; nothing when it has them all."""
+    from gateway.drive_profile import REQUIRED_OBJECTS
+
     missing = [f"0x{i:04X} {what}" for i, what in REQUIRED_OBJECTS.items() if not eds.has(i)]
-    if missing:
-        lines += ["#", *_wrap(f"The EDS has no {', '.join(missing)}: the gateway needs them "
-                              "to run a CiA 402 drive (is it a CiA 402 drive's EDS?).", "# !! ")]
-    if not (currents_ok and setpoints_ok):
-        std = {0x6071: "0x6071 target torque", 0x6077: "0x6077 torque actual value",
-               0x6078: "0x6078 current actual value", 0x6079: "0x6079 DC link circuit voltage"}
-        has_std = [t for i, t in std.items() if eds.has(i)] + (
-            ["mode 10 cyclic synchronous torque"] if cst else [])
-        lines += ["#", "# !! THIS DRIVE CANNOT RUN THESE CONTROL LAWS as its EDS describes it."]
-        if has_std:
-            lines += _wrap(f"Its process data are the standard CiA 402 ones ("
-                           f"{', '.join(has_std)}): a torque demand to the drive's own "
-                           "current loop" + (" and a current magnitude" if eds.has(0x6078)
-                                             else "") + ".", "# !! ")
-        lines += [
-            "# !! The laws need the stator current vector in a fixed frame (i_sa, i_sb) and the",
-            "# !! applied voltage (u_sa, u_sb) every period, and a drive that takes current or",
-            "# !! voltage setpoints in a (d, q) frame it turns from eps_0/w_0 (or in the fixed",
-            "# !! frame). Missing here: " + ", ".join(
-                x for x, ok in (("phase/alpha-beta currents", currents_ok),
-                                ("vector setpoints", setpoints_ok),
-                                ("applied voltages", voltages_ok)) if not ok) + ".",
-            "# !! Look in the manual for manufacturer-specific objects (0x2000..0x5FFF) carrying:",
-            _LOOK_FOR,
-        ]
-    lines += ["", "[drive]", f"name = {_toml_str(name)}",
-              f"eds = {_toml_str(eds_ref or str(eds.path))}",
-              f"dbc = {_toml_str(dbc_ref)}              # written next to this file",
-              f"node = {node}"]
+    if not missing:
+        return []
+    return ["#", *_wrap(f"The EDS has no {', '.join(missing)}: the gateway needs them "
+                        "to run a CiA 402 drive (is it a CiA 402 drive's EDS?).", "# !! ")]
+
+
+def _toml_refusal(eds: DriveEds, choices: dict[str, Choice], setpoints_ok: bool) -> list[str]:
+    """The "cannot run these control laws" warning when the currents (i_sa, i_sb) or a
+    complete setpoint family are missing: the standard CiA 402 process data the drive has
+    instead (0x6071, 0x6077, 0x6078, 0x6079, mode 10), what is missing and what to look for;
+    nothing when the drive can run the laws."""
+    currents_ok = choices["i_sa"].chosen is not None and choices["i_sb"].chosen is not None
+    voltages_ok = choices["u_sa"].chosen is not None and choices["u_sb"].chosen is not None
+    if currents_ok and setpoints_ok:
+        return []
+    _, cst = _modes(eds)
+    std = {0x6071: "0x6071 target torque", 0x6077: "0x6077 torque actual value",
+           0x6078: "0x6078 current actual value", 0x6079: "0x6079 DC link circuit voltage"}
+    has_std = [t for i, t in std.items() if eds.has(i)] + (
+        ["mode 10 cyclic synchronous torque"] if cst else [])
+    lines = ["#", "# !! THIS DRIVE CANNOT RUN THESE CONTROL LAWS as its EDS describes it."]
+    if has_std:
+        lines += _wrap(f"Its process data are the standard CiA 402 ones ("
+                       f"{', '.join(has_std)}): a torque demand to the drive's own "
+                       "current loop" + (" and a current magnitude" if eds.has(0x6078)
+                                         else "") + ".", "# !! ")
+    return [
+        *lines,
+        "# !! The laws need the stator current vector in a fixed frame (i_sa, i_sb) and the",
+        "# !! applied voltage (u_sa, u_sb) every period, and a drive that takes current or",
+        "# !! voltage setpoints in a (d, q) frame it turns from eps_0/w_0 (or in the fixed",
+        "# !! frame). Missing here: " + ", ".join(
+            x for x, ok in (("phase/alpha-beta currents", currents_ok),
+                            ("vector setpoints", setpoints_ok),
+                            ("applied voltages", voltages_ok)) if not ok) + ".",
+        "# !! Look in the manual for manufacturer-specific objects (0x2000..0x5FFF) carrying:",
+        _LOOK_FOR,
+    ]
+
+
+def _toml_drive(eds: DriveEds, name: str, node: int, eds_ref: str | None,
+                dbc_ref: str) -> list[str]:
+    """[drive]: name, eds (``eds_ref``, else the EDS's path), dbc, node and device_type (the
+    EDS's 0x1000 default; commented out when it gives none)."""
+    lines = ["", "[drive]", f"name = {_toml_str(name)}",
+             f"eds = {_toml_str(eds_ref or str(eds.path))}",
+             f"dbc = {_toml_str(dbc_ref)}              # written next to this file",
+             f"node = {node}"]
     dt = eds.default(0x1000)
     if isinstance(dt, int):
         lines.append(f"device_type = 0x{dt:08X}       # 0x1000 default of the EDS")
     else:
         lines.append("# device_type = 0x00010192     # the EDS gives no 0x1000 default")
-    lines += ["", "[modes]                           # 0x6060 values"]
-    if manuf_modes:
-        lines.append(f"# 0x6502 lists manufacturer-specific modes {manuf_modes}: which one is "
-                     "current-vector\n# and which voltage-vector control is in the manual")
-        lines.append(f"current = {manuf_modes[0]}")
-        if len(manuf_modes) > 1:
-            lines.append(f"voltage = {manuf_modes[1]}")
-        else:
-            lines.append("# voltage = ?                  # only one manufacturer mode listed")
-    else:
-        lines += [*_wrap("0x6502 lists no manufacturer-specific mode" + (
+    return lines
+
+
+def _toml_modes(eds: DriveEds) -> list[str]:
+    """[modes] (0x6060 values): current and voltage from the manufacturer-specific modes
+    0x6502 lists, in that order; commented out (-1, -2) when it lists none."""
+    manuf_modes, cst = _modes(eds)
+    lines = ["", "[modes]                           # 0x6060 values"]
+    if not manuf_modes:
+        return [*lines, *_wrap("0x6502 lists no manufacturer-specific mode" + (
             " (it has mode 10, cyclic synchronous torque, which these laws cannot use)"
             if cst else "") + ": find the drive's vector mode in the manual", "# "),
             "# current = -1", "# voltage = -2"]
-    def pdo(key: str, msg: str, remark: str = "") -> str:
-        line = f'{key} = "{msg}"'
-        if msg not in layout:
-            remark = "no candidate for any of its signals: not in the DBC skeleton"
-        return (line.ljust(34) + f"# {remark}") if remark else line
+    lines.append(f"# 0x6502 lists manufacturer-specific modes {manuf_modes}: which one is "
+                 "current-vector\n# and which voltage-vector control is in the manual")
+    lines.append(f"current = {manuf_modes[0]}")
+    if len(manuf_modes) > 1:
+        lines.append(f"voltage = {manuf_modes[1]}")
+    else:
+        lines.append("# voltage = ?                  # only one manufacturer mode listed")
+    return lines
 
-    lines += ["", "[pdo]                             # messages of the DBC skeleton",
-              pdo("control", "RPDO1"),
-              pdo("setpoints", setpoints, "" if setpoints == "RPDO2" else "(alpha, beta)")]
+
+def _pdo_line(key: str, msg: str, layout: dict[str, list[Choice]], remark: str = "") -> str:
+    """One key of [pdo] (``key = "msg"``) with ``remark`` as a comment; the remark says so when
+    ``msg`` is not in the DBC skeleton (no candidate for any of its signals)."""
+    line = f'{key} = "{msg}"'
+    if msg not in layout:
+        remark = "no candidate for any of its signals: not in the DBC skeleton"
+    return (line.ljust(34) + f"# {remark}") if remark else line
+
+
+def _toml_pdo(layout: dict[str, list[Choice]], in_layout: set[str],
+              setpoints: str) -> list[str]:
+    """[pdo]: the messages of the DBC skeleton: control, setpoints (RPDO2 or RPDO2_AB), load
+    (when T_L is in it), currents, voltages, truth (when w_m, psi_ra, psi_rb or T_e is in
+    it), and remap = true."""
+    lines = ["", "[pdo]                             # messages of the DBC skeleton",
+             _pdo_line("control", "RPDO1", layout),
+             _pdo_line("setpoints", setpoints, layout,
+                       "" if setpoints == "RPDO2" else "(alpha, beta)")]
     if "T_L" in in_layout:
         lines.append('load = "RPDO3"')
-    lines += [pdo("currents", "TPDO1"), pdo("voltages", "TPDO2")]
+    lines += [_pdo_line("currents", "TPDO1", layout), _pdo_line("voltages", "TPDO2", layout)]
     if any(r in in_layout for r in ("w_m", "psi_ra", "psi_rb", "T_e")):
         lines.append('truth = "TPDO3"')
     lines.append("remap = true                      # write the PDO mappings by SDO")
+    return lines
+
+
+def _toml_timing(eds: DriveEds) -> list[str]:
+    """[timing]: heartbeat_ms (0x1017, with the EDS default), heartbeat_timeout_ms (0x1016,
+    noted when the EDS has none), drive_heartbeat_timeout_ms, rpdo_timeout_ms (0x1400.5),
+    boot_timeout_s and sdo_timeout_s."""
     hb = eds.default(0x1017)
-    lines += ["", "[timing]",
-              "heartbeat_ms = 50                 # 0x1017"
-              + (f" (EDS default {hb})" if isinstance(hb, int) else " (not in the EDS!)"),
-              "heartbeat_timeout_ms = 300        # 0x1016"
-              + ("" if eds.has(0x1016) else "; the EDS has none: the drive cannot\n"
-                 "                                  # watch the gateway's heartbeat"),
-              "drive_heartbeat_timeout_ms = 500",
-              "rpdo_timeout_ms = 300             # 0x1400.5 (RPDO deadline)",
-              "boot_timeout_s = 2.0", "sdo_timeout_s = 0.5", "", "[limits]"]
+    return ["", "[timing]",
+            "heartbeat_ms = 50                 # 0x1017"
+            + (f" (EDS default {hb})" if isinstance(hb, int) else " (not in the EDS!)"),
+            "heartbeat_timeout_ms = 300        # 0x1016"
+            + ("" if eds.has(0x1016) else "; the EDS has none: the drive cannot\n"
+               "                                  # watch the gateway's heartbeat"),
+            "drive_heartbeat_timeout_ms = 500",
+            "rpdo_timeout_ms = 300             # 0x1400.5 (RPDO deadline)",
+            "boot_timeout_s = 2.0", "sdo_timeout_s = 0.5"]
+
+
+def _toml_limits(eds: DriveEds) -> list[str]:
+    """[limits]: current_peak_a (A) = 0x6075 rated current (mA) × 0x6073 max current (per
+    mille) when the EDS gives both, else commented out; dc_link_v (V) commented out."""
+    lines = ["", "[limits]"]
     rated, peak = eds.default(0x6075), eds.default(0x6073)
     if isinstance(rated, int) and isinstance(peak, int) and rated > 0 and peak > 0:
         lines.append(f"current_peak_a = {rated * peak / 1e6:g}"
@@ -558,37 +627,59 @@ def render_toml(eds: DriveEds, choices: dict[str, Choice], *, node: int = 1,
         lines.append("# current_peak_a = 25.0         # A: the drive's peak/trip current "
                      "(manual)")
     lines.append("# dc_link_v = [400.0, 700.0]      # V: the drive's DC-link range (manual)")
-    # roles
-    lines += ["", "# ---- process-data roles ---------------------------------------------",
-              "# role = \"MESSAGE.signal\" of the DBC skeleton; candidates best first",
-              "# (index:sub, name, type, access, PDO mapping)."]
-    table: list[str] = []
-    unused = "RPDO2_AB" if setpoints == "RPDO2" else "RPDO2"
+    return lines
+
+
+def _unused_setpoints(setpoints: str) -> str:
+    """The setpoint message the skeleton does not use: RPDO2_AB when ``setpoints`` is RPDO2."""
+    return "RPDO2_AB" if setpoints == "RPDO2" else "RPDO2"
+
+
+def _toml_roles(choices: dict[str, Choice], in_layout: set[str], setpoints: str) -> list[str]:
+    """The process-data roles as comments, one block per role (:func:`_role_comment`); the
+    roles of the unused setpoint message are left out when they have no candidate."""
+    unused = _unused_setpoints(setpoints)
+    lines = ["", "# ---- process-data roles ---------------------------------------------",
+             "# role = \"MESSAGE.signal\" of the DBC skeleton; candidates best first",
+             "# (index:sub, name, type, access, PDO mapping)."]
     for c in choices.values():
-        role = c.role
-        if role.message == unused and not c.candidates:
+        if c.role.message == unused and not c.candidates:
             continue
-        arrow = "gateway -> drive" if role.direction == RX else "drive -> gateway"
-        opt = "" if role.required else ", optional"
-        lines.append(f"# {role.name} ({arrow}{opt}): {role.what}")
-        if not c.candidates and role.required:
-            lines += _wrap(f"none found: look in the manual for a manufacturer object "
-                           f"carrying {role.what}", "#   ")
-        elif not c.candidates:
-            lines.append("#   none found (optional: leave it out)")
-        for k, cand in enumerate(c.candidates, 1):
-            lines.append(_cand_line(k, cand, c.chosen))
-        if c.chosen is None:
-            continue
-        if role.name not in in_layout:
-            lines.append("#   (not in the DBC skeleton: " + (
-                "the other setpoint frame is used)" if role.message == unused
-                else f"{role.message} would exceed 8 bytes)"))
-            continue
-        table.append(f'{role.name} = "{role.message}.{role.name}"'.ljust(34)
-                     + f" # {c.chosen.obj.key} {c.chosen.obj.name}")
-    lines += ["", "[signals]                         # role = \"MESSAGE.signal\"", *table, ""]
-    return "\n".join(lines)
+        lines += _role_comment(c, in_layout, unused)
+    return lines
+
+
+def _role_comment(c: Choice, in_layout: set[str], unused: str) -> list[str]:
+    """One role's comment block: direction and meaning, candidates best first (or "none
+    found"), and why a chosen object is not in the DBC skeleton."""
+    role = c.role
+    arrow = "gateway -> drive" if role.direction == RX else "drive -> gateway"
+    opt = "" if role.required else ", optional"
+    lines = [f"# {role.name} ({arrow}{opt}): {role.what}"]
+    if not c.candidates and role.required:
+        lines += _wrap(f"none found: look in the manual for a manufacturer object "
+                       f"carrying {role.what}", "#   ")
+    elif not c.candidates:
+        lines.append("#   none found (optional: leave it out)")
+    lines += [_cand_line(k, cand, c.chosen) for k, cand in enumerate(c.candidates, 1)]
+    if c.chosen is not None and role.name not in in_layout:
+        lines.append("#   (not in the DBC skeleton: " + (
+            "the other setpoint frame is used)" if role.message == unused
+            else f"{role.message} would exceed 8 bytes)"))
+    return lines
+
+
+def _toml_signals(choices: dict[str, Choice], in_layout: set[str], setpoints: str
+                  ) -> list[str]:
+    """[signals]: ``role = "MESSAGE.signal"`` for every chosen object in the DBC skeleton,
+    with its index:sub and name as a comment."""
+    unused = _unused_setpoints(setpoints)
+    table = [f'{c.role.name} = "{c.role.message}.{c.role.name}"'.ljust(34)
+             + f" # {c.chosen.obj.key} {c.chosen.obj.name}"
+             for c in choices.values()
+             if not (c.role.message == unused and not c.candidates)
+             and c.chosen is not None and c.role.name in in_layout]
+    return ["", "[signals]                         # role = \"MESSAGE.signal\"", *table, ""]
 
 
 def render_dbc(eds: DriveEds, choices: dict[str, Choice], node: int = 1) -> str:

@@ -1,19 +1,16 @@
 """The one writer of a run's results: ``signals.csv``, the figures and ``summary.json``.
 
-`simulate`, `sim` and `run` all end here, each file written once: the record's columns
-(with the emulator's full-resolution truth merged in before anything is written, where a
-`sim` run has it), the metrics computed once from them, the figures drawn from the same
-columns, and the summary last, naming any file that could not be written
-(``write_errors``, exit status 1). Only `sim`/`run` write a ``summary.json`` before this, the
-``run.status = "running"`` marker that a crash leaves behind, which this replaces
-atomically.
+`simulate`, `sim` and `run` all end here (:func:`gateway.session.run`), each file written
+once: the record's columns (with the emulator's full-resolution truth merged in before
+anything is written, where a `sim` run has it), the metrics computed once from them, the
+figures drawn from the same columns, and the summary last, naming any file that could not
+be written (``write_errors``, exit status 1).
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -28,18 +25,6 @@ class TruthColumns(Protocol):
     """The emulator's state at full resolution by cycle (:class:`gateway.sim.TruthRecorder`)."""
 
     def columns(self, cycles: np.ndarray) -> dict[str, np.ndarray] | None: ...
-
-
-@dataclass(frozen=True)
-class Reporting:
-    """How a bus run reports: the command's name (``sim``, ``run``), the metric windows
-    (:func:`gateway.report.profile_windows`), the emulator's full-resolution truth (`sim`),
-    and the limits Fig. 3 draws (:func:`gateway.report.limits_for`)."""
-
-    command: str = "run"
-    windows: tuple = report.DEFAULT_WINDOWS
-    truth: TruthColumns | None = None
-    limits: Mapping[str, float] = field(default_factory=dict)
 
 
 def merge_truth(sig: dict[str, np.ndarray], truth: TruthColumns | None, period: float,

@@ -16,7 +16,7 @@ import cmath
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,30 +25,25 @@ from dbc.cia301 import sync_counter
 from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, State
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
-from dbc.timing import Sampling, internal_rate
+from dbc.timing import internal_rate
+from gateway import report
 from gateway.control.controller import (
     PAPER_SIGNALS,
-    ControllerConfig,
-    Discretisation,
-    EstimatorKind,
     FluxSource,
     Law,
     LoadSource,
-    as_enum,
-    euler_only,
     paper_logged,
     untold,
 )
-from gateway.control.interface import ControllerChoice, ControllerContext, summary_of
-from gateway.control.laws import Gains, current_fed, full_order
-from gateway.control.load_observer import load_config
+from gateway.control.interface import ControllerContext, summary_of
+from gateway.control.laws import current_fed, full_order
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import load_drive_profile
-from gateway.errors import UserError
 from gateway.guard import DivergenceWatch
 from gateway.process_data import process_data
 from gateway.reference import Profile
 from gateway.report import Record
+from gateway.spec import RunSpec
 from plant.drive import Drive, Measurement, MotorState
 from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams
@@ -57,136 +52,22 @@ from plant.scenario import PlantScenario
 from plant.timing import sync_cycle
 
 
-@dataclass(frozen=True)
-class SimConfig:
-    """One simulation's configuration.
+def _plant(spec: RunSpec) -> PlantScenario:
+    """The spec's plant scenario; the nominal plant when it names none."""
+    return spec.plant if isinstance(spec.plant, PlantScenario) else PlantScenario()
 
-    law, flux, estimator: the controller's (:class:`Law`, :class:`FluxSource`,
-        :class:`EstimatorKind`); drive_mode: the emulated drive's :class:`DriveMode`.
-    sampling: period, delay and setpoint frame (:class:`dbc.timing.Sampling`), or None
-        for continuous time.
-    quantize: pass the PDO signals through the INT16 codec of dbc/drive.dbc.
-    record_step: sampling of the continuous-time record, s.
-    initial: the motor's state at t = 0 (the paper: all zero).
-    w_hat_0, eps_0: the controller's speed estimate and frame angle at t = 0.
-    discretisation: sampled runs only: "exact" (the sampled-data design,
-        docs/sampled-control.md) or "euler" (the laws sampled with forward Euler).
-    load: "known" (the paper), "observed" or "untold" (T_L = 0): the controller's T_L.
-    identify: R_s and R_r identified during the standstill magnetisation (sampled runs;
-        :mod:`gateway.control.commissioning`).
-    plant: how the plant differs from the controller's model
-        (:mod:`plant.scenario`); the default is the nominal plant. Continuous time takes the
-        motor factors and the load only.
-    """
 
-    law: Law = Law.CURRENT_FED
-    flux: FluxSource = FluxSource.ESTIMATED
-    estimator: EstimatorKind = EstimatorKind.OPEN_LOOP
-    drive_mode: DriveMode = DriveMode.IDEAL
-    sampling: Sampling | None = field(default_factory=Sampling)
-    quantize: bool = True
-    gains: Gains = field(default_factory=Gains)
-    drive_params: DriveParams = field(default_factory=DriveParams)
-    w_c: float = 2.0
-    record_step: float = 1e-3
-    duration: float | None = None
-    initial: MotorState = field(default_factory=MotorState)
-    w_hat_0: float = 0.0
-    eps_0: float = 0.0
-    discretisation: Discretisation = Discretisation.EXACT
-    plant: PlantScenario = field(default_factory=PlantScenario)
-    load: LoadSource = LoadSource.KNOWN
-    identify: bool = False
-    controller: ControllerChoice = field(default_factory=ControllerChoice)
+def _initial(spec: RunSpec) -> MotorState:
+    """The motor's state at t = 0; at rest when the spec names none."""
+    return spec.initial if spec.initial is not None else MotorState()
 
-    @classmethod
-    def from_words(cls, period: float | None = 1e-3, delay: int = 1,
-                   setpoint_frame: str = "dq", drive: str | None = None,
-                   **kw: Any) -> SimConfig:
-        """A SimConfig from the command line's words: sampled with ``period`` (s; None:
-        continuous time), ``delay`` periods of SYNC delay, the ``setpoint_frame``, and
-        ``drive`` as the drive mode; the other keywords are fields."""
-        if drive is not None:
-            kw["drive_mode"] = drive
-        sampling = None if period is None else Sampling(period, delay, setpoint_frame)
-        return cls(sampling=sampling, **kw)
 
-    def __post_init__(self) -> None:
-        try:
-            for name, enum, what in (("law", Law, "law"), ("flux", FluxSource, "flux source"),
-                                     ("estimator", EstimatorKind, "estimator"),
-                                     ("drive_mode", DriveMode, "drive mode"),
-                                     ("discretisation", Discretisation, "discretisation"),
-                                     ("load", LoadSource, "load mode")):
-                object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        if self.sampling is None and not self.controller.is_paper:
-            raise UserError(f"continuous time (--period continuous) integrates the paper's laws "
-                            f"only; controller {self.controller.name!r} runs sampled: choose "
-                            "a --period such as 1ms")
-        if self.controller.is_paper and self.drive_mode not in self.law.drive_modes:
-            raise UserError(
-                f"the {self.law} law does not drive a '{self.drive_mode}' drive: use "
-                f"--drive-mode {' or '.join(self.law.drive_modes)} (the current-fed law sends "
-                "currents, the full-order law voltages)"
-            )
-        if self.drive_params.mode is not self.drive_mode:
-            object.__setattr__(self, "drive_params", replace(self.drive_params,
-                                                             mode=self.drive_mode))
-        if self.sampling is None and self.drive_mode is DriveMode.CURRENT_LOOP:
-            raise UserError("continuous time models the drive as ideal (current-fed law) or "
-                            "voltage-fed (full-order law): choose --drive-mode ideal or "
-                            "voltage, or a sampling --period such as 1ms for the current-loop "
-                            "drive")
-        try:
-            euler_only(self.discretisation, self.load)
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        if self.identify and self.sampling is None:
-            raise UserError("--identify runs in the sampled controller: choose a sampling "
-                            "--period such as 1ms")
-        if self.load is LoadSource.OBSERVED:
-            if self.sampling is None:
-                raise UserError("the load observer is discrete-time: with the load observed "
-                                "(--load observed, or a plant scenario with [load].known = "
-                                "false) choose a sampling --period such as 1ms, or --load known")
-            try:
-                load_config(self.load, self.drive_mode)
-            except ValueError as exc:
-                raise UserError(str(exc)) from None
-        if self.sampling is None and not self.plant.continuous_time_ok:
-            raise UserError(f"plant scenario {self.plant.source}: continuous time models the "
-                            "motor factors and the load only (no sensors, inverter or drifts); "
-                            "choose a sampling --period such as 1ms")
-
-    def controller_config(self) -> ControllerConfig:
-        """The controller's part of this configuration (continuous time: the record step
-        stands in for the period, unused)."""
-        return ControllerConfig(
-            law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,
-            sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
-            discretisation=self.discretisation,
-            current_lag=current_lag(self.drive_mode, self.drive_params),
-            load=self.load, **load_config(self.load, self.drive_mode),
-            identify=self.identify,
-        )
-
-    def describe(self) -> dict[str, Any]:
-        """A JSON-able description (for summary.json)."""
-        d = asdict(self)
-        del d["sampling"]
-        s = self.sampling
-        d["period"] = "continuous" if s is None else s.period
-        if s is not None:
-            d["delay"], d["setpoint_frame"] = s.delay, s.setpoint_frame
-        d["initial"] = {k: (str(v) if isinstance(v, complex) else v)
-                        for k, v in asdict(self.initial).items()}
-        d["drive_params"] = {k: (str(v) if isinstance(v, complex) else v)
-                             for k, v in asdict(self.drive_params).items()}
-        del d["plant"]
-        d["plant_scenario"] = self.plant.describe()
-        return d
+def figure_limits(spec: RunSpec) -> dict[str, float]:
+    """The limits Fig. 3 draws: the controller's current limit, the simulated drive's
+    voltage limit (none for an ideal current source) and over-current trip."""
+    dp = DriveParams()
+    return report.limits_for(spec.gains, None if spec.drive_mode is DriveMode.IDEAL
+                             else dp.u_lim, dp.i_trip)
 
 
 def current_lag(drive: DriveMode, params: DriveParams) -> float:
@@ -203,7 +84,7 @@ def emulator_rate() -> float:
     return DriveParams().f_pwm
 
 
-def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
+def run(profile: Profile, motor: MotorParams, spec: RunSpec,
         progress: Progress | None = None, stop: threading.Event | None = None,
         watch: DivergenceWatch | None = None) -> Record:
     """Simulate the profile; the record holds one row per period (or record step).
@@ -214,9 +95,9 @@ def run(profile: Profile, motor: MotorParams, cfg: SimConfig,
     ends with the cycle (continuous time: the record step) that tripped it and
     ``watch.reason`` says why. None (the benchmarks): the run goes on whatever happens.
     """
-    if cfg.sampling is None:
-        return run_continuous(profile, motor, cfg, progress, stop, watch)
-    return run_sampled(profile, motor, cfg, progress, stop, watch)
+    if spec.sampling is None:
+        return run_continuous(profile, motor, spec, progress, stop, watch)
+    return run_sampled(profile, motor, spec, progress, stop, watch)
 
 
 # --------------------------------------------------------------------------- sampled
@@ -248,29 +129,29 @@ def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> D
     return replace(params, mode=mode, f_pwm=internal_rate(params.f_pwm, T))
 
 
-def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
+def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
                 progress: Progress | None = None, stop: threading.Event | None = None,
                 watch: DivergenceWatch | None = None) -> Record:
     """The sampled loop, cycle by cycle exactly as on the bus (docs/ARCHITECTURE.md): the
     drive's timing rule (:func:`plant.timing.sync_cycle`) and the gateway's cycle
     (:class:`gateway.cycle.ControlCycle`), with the PDO codec between them."""
-    sampling = cfg.sampling
+    sampling = spec.sampling
     assert sampling is not None
     T = sampling.period
-    duration = cfg.duration or profile.duration
+    duration = spec.duration or profile.duration
     n_cycles = round(duration / T)
-    plant = cfg.plant  # the plant is the controller's model × the scenario
+    plant = _plant(spec)  # the plant is the controller's model × the scenario
     drive = Drive(plant.plant_motor(motor),
-                  plant.drive_params(drive_params_for_period(cfg.drive_params, T,
-                                                             cfg.drive_mode)),
-                  cfg.initial, **plant.drive_options(lambda t: profile.load.at(t)[0]))
+                  plant.drive_params(drive_params_for_period(DriveParams(), T,
+                                                             spec.drive_mode)),
+                  _initial(spec), **plant.drive_options(lambda t: profile.load.at(t)[0]))
     drive.enable(True)
-    paper = cfg.controller_config()
-    ctl = cfg.controller.make(ControllerContext(
-        motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=cfg.drive_mode,
-        current_lag=paper.current_lag, paper=paper, eps_0=cfg.eps_0, w_hat_0=cfg.w_hat_0))
+    paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
+    ctl = spec.controller.make(ControllerContext(
+        motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
+        current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0))
     cycle = ControlCycle(ctl, profile, sampling)
-    link = PdoLink(cfg.quantize, sampling.setpoint_frame)
+    link = PdoLink(spec.quantize, sampling.setpoint_frame)
     rec = Record(cycle.row_type)
     apply = sampling.apply
     pending: dict[str, float] = {}
@@ -305,7 +186,7 @@ def run_sampled(profile: Profile, motor: MotorParams, cfg: SimConfig,
 # ------------------------------------------------------------------------ continuous
 
 
-def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
+def run_continuous(profile: Profile, motor: MotorParams, spec: RunSpec,
                    progress: Progress | None = None, stop: threading.Event | None = None,
                    watch: DivergenceWatch | None = None) -> Record:
     """The paper's continuous-time closed loop, integrated by scipy (LSODA, tight tolerances).
@@ -322,95 +203,122 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
     """
     from scipy.integrate import solve_ivp
 
-    duration = cfg.duration or profile.duration
-    h = cfg.record_step
-    n = round(duration / h)
-    t_eval = np.arange(n + 1) * h
-    m, g = motor, cfg.gains
-    pm = cfg.plant.plant_motor(motor)  # the plant's motor; m is the controller's
-    load = cfg.plant.load_function(lambda t: profile.load.at(t)[0])
-    k_r = m.M / m.L_r
-    pk_r = pm.M / pm.L_r
-    full = cfg.law is Law.FULL_ORDER
-    estimated = full and cfg.flux is FluxSource.ESTIMATED
-    last = [0.0]
-
-    def psi_r_used(x: np.ndarray) -> complex:
-        if estimated:  # (24), §E1: ψ_r = (L_r/M)(ψ_s − σ i_s)
-            return (complex(x[7], x[8]) - m.sigma * complex(x[3], x[4])) / k_r
-        return complex(x[1], x[2])
-
-    def law(t: float, x: np.ndarray):
-        r = profile.at(t)  # the plant's load is the profile's; the laws' may be untold
-        told = untold(r) if cfg.load is LoadSource.UNTOLD else r
-        to_dq = cmath.exp(-1j * x[5 if full else 3])
-        w_hat = x[6 if full else 4]
-        psi_dq = psi_r_used(x) * to_dq
-        if full:
-            i_dq = complex(x[3], x[4]) * to_dq
-            return r, full_order(told, w_hat, psi_dq.real, psi_dq.imag, i_dq.real, i_dq.imag,
-                                 m, g)
-        return r, current_fed(told, w_hat, psi_dq.real, psi_dq.imag, m, g)
-
-    def rhs(t: float, x: np.ndarray) -> list[float]:
-        r, out = law(t, x)
-        to_ab = cmath.exp(1j * x[5 if full else 3])
-        if progress is not None and t - last[0] > duration / 100:
-            last[0] = t
-            progress(min(t / duration, 1.0))
-        T_L = r.T_L if load is None else load(t, r.T_L)
-        if full:
-            u = complex(out.u_sd_ref, out.u_sq_ref) * to_ab
-            dx = rhs_full(t, x[:5], pm, u, T_L)
-            dx += [out.w_0, out.dw_hat]
-            if estimated:
-                dx += [u.real - m.R_s * x[3], u.imag - m.R_s * x[4]]  # (24)
-            return dx
-        i = complex(out.i_sd_ref, out.i_sq_ref) * to_ab
-        return [*rhs_current_fed(t, x[:3], pm, i, T_L), out.w_0, out.dw_hat]
-
-    x0 = np.zeros((9 if estimated else 7) if full else 5)
-    s0 = cfg.initial
-    x0[:3] = (s0.w_m, s0.psi_r_ab.real, s0.psi_r_ab.imag)
-    if full:
-        x0[3:7] = (s0.i_s_ab.real, s0.i_s_ab.imag, cfg.eps_0, cfg.w_hat_0)
-        if estimated:  # the integrator starts from the true stator flux
-            psi_s0 = pm.sigma * s0.i_s_ab + pk_r * s0.psi_r_ab
-            x0[7:9] = (psi_s0.real, psi_s0.imag)
-    else:
-        x0[3:5] = (cfg.eps_0, cfg.w_hat_0)
-    t_stop: list[float] = []
-
-    def stopped(t: float, x: np.ndarray) -> float:
-        """Terminal event: +1 until ``stop`` is seen, −1 from the time it was first seen
-        (never at the start, which would leave no sign change: a stop requested before the
-        integration begins ends it after the first step)."""
-        if not t_stop and stop is not None and stop.is_set() and t > 0.0:
-            t_stop.append(t)
-        return 1.0 if not t_stop or t < t_stop[0] else -1.0
-
-    stopped.terminal = True  # type: ignore[attr-defined]
-    sol = solve_ivp(rhs, (0.0, t_eval[-1]), x0, method="LSODA", t_eval=t_eval,
+    duration = spec.duration or profile.duration
+    h = spec.record_step
+    t_eval = np.arange(round(duration / h) + 1) * h
+    loop = _ContinuousLoop(profile, motor, spec, progress, duration)
+    stopped = _stop_event(stop)
+    sol = solve_ivp(loop.rhs, (0.0, t_eval[-1]), loop.x0(), method="LSODA", t_eval=t_eval,
                     rtol=1e-9, atol=1e-10, max_step=h,
                     events=stopped if stop is not None else None)
     if not sol.success:
         raise RuntimeError(f"continuous simulation failed: {sol.message}")
     rec = Record(CycleRow)
-    psi_s_prev = i_prev = None
+    prev: tuple[complex, complex] | None = None
     for j, t in enumerate(sol.t):
-        x = sol.y[:, j]
-        r, out = law(t, x)
-        eps = x[5 if full else 3]
+        row, prev = loop.row(t, sol.y[:, j], prev, h)
+        rec.append(row)
+        if watch is not None and watch.check(row, j):
+            break  # the rows after the trip are not kept (the solver ran on)
+    return rec
+
+
+def _stop_event(stop: threading.Event | None) -> Callable[[float, np.ndarray], float]:
+    """solve_ivp's terminal event for ``stop``: +1 until it is seen, −1 from the time it
+    was first seen (never at the start, which would leave no sign change: a stop requested
+    before the integration begins ends it after the first step)."""
+    t_stop: list[float] = []
+
+    def stopped(t: float, x: np.ndarray) -> float:
+        if not t_stop and stop is not None and stop.is_set() and t > 0.0:
+            t_stop.append(t)
+        return 1.0 if not t_stop or t < t_stop[0] else -1.0
+
+    stopped.terminal = True  # type: ignore[attr-defined]
+    return stopped
+
+
+class _ContinuousLoop:
+    """The paper's laws and the motor of (1) as one ODE (:func:`run_continuous`): the
+    controller sees ``motor``, the plant is ``motor`` × the spec's plant scenario."""
+
+    def __init__(self, profile: Profile, motor: MotorParams, spec: RunSpec,
+                 progress: Progress | None, duration: float) -> None:
+        plant = _plant(spec)
+        self.profile, self.m, self.g, self.spec = profile, motor, spec.gains, spec
+        self.pm = plant.plant_motor(motor)  # the plant's motor; m is the controller's
+        self.load = plant.load_function(lambda t: profile.load.at(t)[0])
+        self.k_r = motor.M / motor.L_r
+        self.pk_r = self.pm.M / self.pm.L_r
+        self.full = spec.law is Law.FULL_ORDER
+        self.estimated = self.full and spec.flux is FluxSource.ESTIMATED
+        self.eps_i, self.w_hat_i = (5, 6) if self.full else (3, 4)
+        self.progress, self.duration, self._last = progress, duration, 0.0
+
+    def x0(self) -> np.ndarray:
+        """The state at t = 0: the motor's initial state, ε0 and ω̂ of the spec, and the
+        stator-flux integrator from the true stator flux."""
+        x0 = np.zeros((9 if self.estimated else 7) if self.full else 5)
+        s0 = _initial(self.spec)
+        x0[:3] = (s0.w_m, s0.psi_r_ab.real, s0.psi_r_ab.imag)
+        x0[self.eps_i], x0[self.w_hat_i] = self.spec.eps_0, self.spec.w_hat_0
+        if self.full:
+            x0[3:5] = (s0.i_s_ab.real, s0.i_s_ab.imag)
+        if self.estimated:
+            psi_s0 = self.pm.sigma * s0.i_s_ab + self.pk_r * s0.psi_r_ab
+            x0[7:9] = (psi_s0.real, psi_s0.imag)
+        return x0
+
+    def psi_r_used(self, x: np.ndarray) -> complex:
+        """The rotor flux the laws use, α-β: (24), §E1, ψ_r = (L_r/M)(ψ_s − σ i_s), or
+        the true flux."""
+        if self.estimated:
+            return (complex(x[7], x[8]) - self.m.sigma * complex(x[3], x[4])) / self.k_r
+        return complex(x[1], x[2])
+
+    def law(self, t: float, x: np.ndarray) -> tuple[Any, Any]:
+        """The reference at t and the law's output (15)-(16),(20) or (25)-(27),(32)."""
+        r = self.profile.at(t)  # the plant's load is the profile's; the laws' may be untold
+        told = untold(r) if self.spec.load is LoadSource.UNTOLD else r
+        to_dq = cmath.exp(-1j * x[self.eps_i])
+        w_hat = x[self.w_hat_i]
+        psi_dq = self.psi_r_used(x) * to_dq
+        if self.full:
+            i_dq = complex(x[3], x[4]) * to_dq
+            return r, full_order(told, w_hat, psi_dq.real, psi_dq.imag, i_dq.real, i_dq.imag,
+                                 self.m, self.g)
+        return r, current_fed(told, w_hat, psi_dq.real, psi_dq.imag, self.m, self.g)
+
+    def rhs(self, t: float, x: np.ndarray) -> list[float]:
+        r, out = self.law(t, x)
+        to_ab = cmath.exp(1j * x[self.eps_i])
+        if self.progress is not None and t - self._last > self.duration / 100:
+            self._last = t
+            self.progress(min(t / self.duration, 1.0))
+        T_L = r.T_L if self.load is None else self.load(t, r.T_L)
+        if self.full:
+            u = complex(out.u_sd_ref, out.u_sq_ref) * to_ab
+            dx = rhs_full(t, x[:5], self.pm, u, T_L)
+            dx += [out.w_0, out.dw_hat]
+            if self.estimated:
+                dx += [u.real - self.m.R_s * x[3], u.imag - self.m.R_s * x[4]]  # (24)
+            return dx
+        i = complex(out.i_sd_ref, out.i_sq_ref) * to_ab
+        return [*rhs_current_fed(t, x[:3], self.pm, i, T_L), out.w_0, out.dw_hat]
+
+    def row(self, t: float, x: np.ndarray, prev: tuple[complex, complex] | None, h: float
+            ) -> tuple[CycleRow, tuple[complex, complex]]:
+        """The record's row at t and (ψ_s, i_s) for the next row's average voltage."""
+        r, out = self.law(t, x)
+        pm = self.pm
+        eps = x[self.eps_i]
         to_ab = cmath.exp(1j * eps)
         psi_r = complex(x[1], x[2])
-        i = complex(x[3], x[4]) if full else complex(out.i_sd_ref, out.i_sq_ref) * to_ab
-        psi_s = pm.sigma * i + pk_r * psi_r
-        if psi_s_prev is None:
-            u = 0j
-        else:
-            u = (psi_s - psi_s_prev) / h + pm.R_s * 0.5 * (i + i_prev)
-        psi_s_prev, i_prev = psi_s, i
-        psi_hat = psi_r_used(x) * cmath.exp(-1j * eps)
+        i = (complex(x[3], x[4]) if self.full
+             else complex(out.i_sd_ref, out.i_sq_ref) * to_ab)
+        psi_s = pm.sigma * i + self.pk_r * psi_r
+        u = 0j if prev is None else (psi_s - prev[0]) / h + pm.R_s * 0.5 * (i + prev[1])
+        psi_hat = self.psi_r_used(x) * cmath.exp(-1j * eps)
         T_e = pm.J * pm.mu * (psi_r.real * i.imag - psi_r.imag * i.real)
         row = CycleRow(
             t=t, w_ref=r.w_ref, psi_ref=r.psi_ref, T_L=r.T_L, w_m=x[0], psi_r_mod=abs(psi_r),
@@ -418,9 +326,6 @@ def run_continuous(profile: Profile, motor: MotorParams, cfg: SimConfig,
             i_sq_ref=out.i_sq_ref, u_sd_ref=out.u_sd_ref, u_sq_ref=out.u_sq_ref,
             eps_0=math.remainder(eps, 2 * math.pi), w_0=out.w_0, T_e=T_e,
             i_limited=float(out.i_limited), u_limit_active=0.0,
-            **dict(zip(PAPER_SIGNALS, paper_logged(x[6 if full else 4], psi_hat), strict=True)),
+            **dict(zip(PAPER_SIGNALS, paper_logged(x[self.w_hat_i], psi_hat), strict=True)),
         )
-        rec.append(row)
-        if watch is not None and watch.check(row, j):
-            break  # the rows after the trip are not kept (the solver ran on)
-    return rec
+        return row, (psi_s, i)

@@ -1,8 +1,13 @@
-"""Why a run stopped, and the exit status that follows from it."""
+"""Why a run stopped, the exit status that follows from it, and the signals that stop it."""
 
 from __future__ import annotations
 
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from enum import StrEnum
+from typing import Any
 
 
 class StopReason(StrEnum):
@@ -30,3 +35,43 @@ class StopReason(StrEnum):
         if self is StopReason.END_OF_PROFILE:
             return 0
         return 130 if self is StopReason.INTERRUPTED else 1
+
+
+class StopSignals:
+    """SIGINT/SIGTERM → a stop request; a second signal during shutdown is refused politely.
+
+    The drive is brought down by the normal shutdown path; a second Ctrl-C cannot skip it
+    and leave the drive enabled.
+    """
+
+    def __init__(self) -> None:
+        self.requested = threading.Event()
+        self.reason = ""
+        self.on_stop: Callable[[str], None] | None = None
+        self.shutting_down = False
+        self._old: dict[int, Any] = {}
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.requested.is_set():
+            print(f"\n{name} again: shutting the drive down safely, please wait", flush=True)
+            return
+        self.reason = f"{name} received"
+        self.requested.set()
+        if self.on_stop is not None:
+            self.on_stop(self.reason)
+        elif not self.shutting_down:
+            raise KeyboardInterrupt  # start-up: abort into the shutdown path
+
+    @contextmanager
+    def installed(self) -> Iterator[StopSignals]:
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._old[sig] = signal.signal(sig, self._handler)
+        try:
+            yield self
+        finally:
+            for sig, old in self._old.items():
+                signal.signal(sig, old)

@@ -294,25 +294,50 @@ def _table(src: str, data: Mapping[str, Any], name: str) -> dict[str, Any]:
 
 def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
     """A :class:`PlantScenario` from TOML text; ``source`` names it in error messages."""
-    src = source
+    data = _parse_toml(text, source)
+    _check_tables(source, data)
+    kw: dict[str, Any] = {"source": source}
+    kw |= _scenario_part(source, data)
+    kw |= _motor_part(source, data)
+    kw |= _sensors_part(source, data)
+    kw |= _inverter_part(source, data)
+    kw |= _load_part(source, data)
+    return PlantScenario(**kw)
+
+
+def _parse_toml(text: str, src: str) -> dict[str, Any]:
+    """The TOML document; ScenarioError when it is not valid TOML."""
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{src}: not valid TOML ({exc}); fix the syntax") from None
+
+
+def _check_tables(src: str, data: Mapping[str, Any]) -> None:
+    """ScenarioError unless every top-level key is one of :data:`TABLES`."""
     for key in data:
         if key not in TABLES:
             raise _fail(src, f"[{key}]", f"unknown table; valid tables are "
                         f"{', '.join(TABLES)} (fix the spelling or remove it)")
-    kw: dict[str, Any] = {"source": source}
 
+
+def _scenario_part(src: str, data: Mapping[str, Any]) -> dict[str, Any]:
+    """``name`` and ``description`` from [scenario] (strings); the name defaults to the file's
+    stem ("scenario" for a text without a file)."""
     sc = _table(src, data, "scenario")
     _keys(src, "scenario", sc, ("name", "description"))
-    kw["name"] = sc.get("name", Path(source).stem if not source.startswith("<") else "scenario")
-    kw["description"] = sc.get("description", "")
+    kw = {"name": sc.get("name", Path(src).stem if not src.startswith("<") else "scenario"),
+          "description": sc.get("description", "")}
     for key in ("name", "description"):
         if not isinstance(kw[key], str):
             raise _fail(src, f"[scenario].{key} = {kw[key]!r}", "must be a string")
+    return kw
 
+
+def _motor_part(src: str, data: Mapping[str, Any]) -> dict[str, Any]:
+    """``motor_factors`` and ``motor_drift`` (MotorParams field → value) from [motor]: a factor
+    (> 0, plant value = controller's value × factor) per key of :data:`MOTOR_KEYS`, a drift
+    (relative change per second) per ``<key>_drift``; zero drifts are left out."""
     mo = _table(src, data, "motor")
     valid = (*MOTOR_KEYS, *(f"{k}_drift" for k in MOTOR_KEYS))
     _keys(src, "motor", mo, valid)
@@ -331,11 +356,15 @@ def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
             target[name] = _num(src, f"[motor].{key}", value,
                                 "factor: plant value = controller's value × factor", 0.0,
                                 lo_open=True)
-    kw["motor_factors"] = factors
-    kw["motor_drift"] = {k: v for k, v in drift.items() if v}
+    return {"motor_factors": factors, "motor_drift": {k: v for k, v in drift.items() if v}}
 
+
+def _sensors_part(src: str, data: Mapping[str, Any]) -> dict[str, Any]:
+    """The keys of [sensors] it sets: ``offset_a``, ``offset_b`` (A), ``gain_a``, ``gain_b``
+    (reading / true current, in (0, 2)), ``noise`` (A rms, ≥ 0), ``seed`` (an integer)."""
     se = _table(src, data, "sensors")
     _keys(src, "sensors", se, SENSOR_KEYS)
+    kw: dict[str, Any] = {}
     for key in ("offset_a", "offset_b"):
         if key in se:
             kw[key] = _num(src, f"[sensors].{key}", se[key], "A")
@@ -349,9 +378,15 @@ def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
         if isinstance(se["seed"], bool) or not isinstance(se["seed"], int):
             raise _fail(src, f"[sensors].seed = {se['seed']!r}", "must be an integer")
         kw["seed"] = se["seed"]
+    return kw
 
+
+def _inverter_part(src: str, data: Mapping[str, Any]) -> dict[str, Any]:
+    """The keys of [inverter] it sets: ``dead_time`` (s, in [0, 50 µs)), ``dc_ripple``
+    (relative amplitude, in [0, 1)), ``dc_ripple_hz`` (Hz, > 0)."""
     inv = _table(src, data, "inverter")
     _keys(src, "inverter", inv, INVERTER_KEYS)
+    kw: dict[str, Any] = {}
     if "dead_time" in inv:
         kw["dead_time"] = _num(src, "[inverter].dead_time", inv["dead_time"],
                                "s, e.g. 2e-6", 0.0, 5e-5)
@@ -361,9 +396,16 @@ def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
     if "dc_ripple_hz" in inv:
         kw["dc_ripple_hz"] = _num(src, "[inverter].dc_ripple_hz", inv["dc_ripple_hz"], "Hz",
                                   0.0, lo_open=True)
+    return kw
 
+
+def _load_part(src: str, data: Mapping[str, Any]) -> dict[str, Any]:
+    """From [load]: ``load_known`` (``known``, a boolean), ``load_torque`` (``torque``, one of
+    :data:`LOAD_SOURCES`), ``load_initial`` (``initial``, N·m) where given, and
+    ``load_steps`` (``steps``, see :func:`_load_steps`)."""
     lo = _table(src, data, "load")
     _keys(src, "load", lo, LOAD_KEYS)
+    kw: dict[str, Any] = {}
     if "known" in lo:
         if not isinstance(lo["known"], bool):
             raise _fail(src, f"[load].known = {lo['known']!r}",
@@ -378,7 +420,13 @@ def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
         kw["load_torque"] = lo["torque"]
     if "initial" in lo:
         kw["load_initial"] = _num(src, "[load].initial", lo["initial"], "N·m")
-    steps = lo.get("steps", [])
+    kw["load_steps"] = _load_steps(src, lo.get("steps", []))
+    return kw
+
+
+def _load_steps(src: str, steps: Any) -> tuple[TorqueStep, ...]:
+    """[load].steps: an array of tables { t (s, ≥ 0), value (N·m), ramp (s, > 0) }, each
+    starting at or after the end (t + ramp) of the one before."""
     if not isinstance(steps, list):
         raise _fail(src, f"[load].steps = {steps!r}",
                     "must be an array of tables, e.g. steps = [{ t = 1.2, value = 1.0, "
@@ -404,8 +452,7 @@ def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
                         f"{prev_end:g} s; move t to ≥ {prev_end:g} or shorten the previous ramp")
         out.append(TorqueStep(t, _num(src, f"{w}.value", st["value"], "N·m"), ramp))
         prev_end = t + ramp
-    kw["load_steps"] = tuple(out)
-    return PlantScenario(**kw)
+    return tuple(out)
 
 
 def load_scenario(path: str | Path) -> PlantScenario:

@@ -21,7 +21,11 @@ from dbc.motor import MotorParams
 from gateway.cli import SIM_HEARTBEAT_TIMEOUT_MS, main
 from gateway.drive_profile import load_drive_profile
 from gateway.reference import paper_profile
-from gateway.runner import RunConfig, StopSignals, run_gateway
+from gateway.runner import BusTarget
+from gateway.session import Output
+from gateway.session import run as session_run
+from gateway.spec import RunSpec
+from gateway.stop import StopSignals
 from plant.device import DriveDevice
 from plant.params import DriveParams
 
@@ -96,7 +100,16 @@ def assert_disabled(emu: Emulator) -> None:
     assert dev.nmt_state != "OPERATIONAL", dev.account()
 
 
-def run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals):
+def bus_run(bus: can.BusABC, drive, out: Path, spec: RunSpec, signals: StopSignals,
+            profile=None) -> dict:
+    """One gateway run on ``bus`` (left open) through :func:`gateway.session.run`, writing
+    into ``out`` (reused); returns the summary."""
+    target = BusTarget(drive, lambda *_: (bus, "virtual:test", lambda: None))
+    return session_run(spec, profile or paper_profile(), MOTOR, target=target,
+                       output=Output(str(out), force=True), signals=signals).summary
+
+
+def run_in_thread(emu: Emulator, out: Path, cfg: RunSpec, signals: StopSignals):
     """A gateway run in a thread of this process, against ``emu``, with the drive profile of
     :func:`_patient_drive_profile`."""
     result: dict = {}
@@ -106,8 +119,7 @@ def run_in_thread(emu: Emulator, out: Path, cfg: RunConfig, signals: StopSignals
 
     def target() -> None:
         try:
-            result["summary"] = run_gateway(bus, drive, paper_profile(),
-                                            MOTOR, cfg, out, signals=signals)
+            result["summary"] = bus_run(bus, drive, out, cfg, signals)
         except BaseException as exc:
             result["error"] = exc
         finally:

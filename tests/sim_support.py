@@ -1,14 +1,14 @@
-"""SimConfig from the command line's words, for tests written against them."""
+"""RunSpec from the command line's words, for tests written against them."""
 
 from __future__ import annotations
 
-from gateway.simulate import SimConfig
+from gateway.spec import RunSpec
 
 
 def sim_config(period: float | None = 1e-3, delay: int = 1, setpoint_frame: str = "dq",
-               drive: str | None = None, discretisation: str = "euler", **kw) -> SimConfig:
-    """A SimConfig (period None: continuous time). The Euler design by default: the plant
+               drive: str | None = None, discretisation: str = "euler", **kw) -> RunSpec:
+    """A RunSpec (period None: continuous time). The Euler design by default: the plant
     scenario and robustness figures (docs/robustness.md) were first measured with it, and the
     load observer exists in it only."""
-    return SimConfig.from_words(period, delay, setpoint_frame, drive,
+    return RunSpec.from_words(period, delay, setpoint_frame, drive,
                                 discretisation=discretisation, **kw)

@@ -23,7 +23,7 @@ import pytest
 
 from dbc import DBC_PATH
 from gateway import buslog
-from gateway.buslog import LOG_SUFFIXES, decode_frames, read_log, run_log
+from gateway.buslog import LOG_SUFFIXES, LogOptions, decode_frames, read_log, run_log
 from gateway.errors import UserError
 
 #: Signal values (SI) per message; not all on the integer grid, so the codec must round.
@@ -82,16 +82,17 @@ def buses(channel: str) -> Iterator[tuple[can.BusABC, can.BusABC]]:
 class Background:
     """run_log in a thread, stopped by its event; join with a timeout (tests never hang)."""
 
-    def __init__(self, bus: can.BusABC, path: Path, **kw: Any) -> None:
+    def __init__(self, bus: can.BusABC, path: Path, options: LogOptions | None = None,
+                 **kw: Any) -> None:
         self.stop = threading.Event()
         self.result: buslog.LogResult | None = None
         self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, args=(bus, path), kwargs=kw,
+        self.thread = threading.Thread(target=self._run, args=(bus, path, options), kwargs=kw,
                                        daemon=True)
 
-    def _run(self, bus: can.BusABC, path: Path, **kw: Any) -> None:
+    def _run(self, bus: can.BusABC, path: Path, options: LogOptions | None, **kw: Any) -> None:
         try:
-            self.result = run_log(bus, path, stop=self.stop, **kw)
+            self.result = run_log(bus, path, options, stop=self.stop, **kw)
         except BaseException as exc:  # reported by finish()
             self.error = exc
 
@@ -150,8 +151,9 @@ def test_decoded_csv_and_live_lines(db, buses, tmp_path: Path) -> None:
     tx, rx = buses
     sent = frames(db, node_id=3)
     out = _Out()
-    with Background(rx, tmp_path / "run.asc", node_id=3, decode=True,
-                    csv_path=tmp_path / "sig.csv", out=out, tty=False) as bg:
+    with Background(rx, tmp_path / "run.asc",
+                    LogOptions(node_id=3, decode=True, csv_path=tmp_path / "sig.csv"),
+                    out=out, tty=False) as bg:
         for _, msg in sent:
             tx.send(msg)
         # node 1's frames are logged but not decoded for node 3
@@ -200,7 +202,7 @@ class _Out:
 def test_duration_stops(buses, tmp_path: Path) -> None:
     _, rx = buses
     t0 = time.monotonic()
-    result = run_log(rx, tmp_path / "run.blf", duration=0.3, quiet=True)
+    result = run_log(rx, tmp_path / "run.blf", LogOptions(duration=0.3), quiet=True)
     wall = time.monotonic() - t0
     # at least the duration; at most late by what a loaded host holds a thread, not 10×
     assert 0.29 <= result.duration < 3.0
@@ -227,7 +229,7 @@ def test_interrupt_leaves_a_complete_file(suffix: str, db, buses, tmp_path: Path
                 time.sleep(0.001)
 
     th = threading.Thread(target=sender, daemon=True)
-    with Background(rx, path, decode=True, quiet=True) as bg:
+    with Background(rx, path, LogOptions(decode=True), quiet=True) as bg:
         th.start()
         time.sleep(0.3)
         result = bg.finish()  # stop set from this thread while the sender keeps going
@@ -267,9 +269,10 @@ def test_bad_paths(name: str, match: str, buses, tmp_path: Path) -> None:
     _, rx = buses
     (tmp_path / "adir.blf").mkdir()
     with pytest.raises(UserError, match=match):
-        run_log(rx, tmp_path / name, duration=0.1, quiet=True)
+        run_log(rx, tmp_path / name, LogOptions(duration=0.1), quiet=True)
     with pytest.raises(UserError, match="the raw log file itself"):
-        run_log(rx, tmp_path / "a.csv", csv_path=tmp_path / "a.csv", duration=0.1, quiet=True)
+        run_log(rx, tmp_path / "a.csv", LogOptions(csv_path=tmp_path / "a.csv", duration=0.1),
+                quiet=True)
 
 
 def test_read_log_errors(tmp_path: Path) -> None:

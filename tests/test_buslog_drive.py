@@ -14,7 +14,7 @@ import can
 import pytest
 from foreign_drive import write_files
 
-from gateway.buslog import LOG_SUFFIXES, decode_frames, read_log, run_log
+from gateway.buslog import LOG_SUFFIXES, LogOptions, decode_frames, read_log, run_log
 from gateway.cli import main
 from gateway.drive_profile import load_drive_profile
 from gateway.process_data import process_data
@@ -72,8 +72,9 @@ def test_log_with_the_drive_profile_every_format(suffix: str, foreign_profile, t
     stop = threading.Event()
 
     def target() -> None:
-        result["r"] = run_log(rx, path, decode=True, csv_path=csv_path, stop=stop,
-                              quiet=True, drive=load_drive_profile(foreign_profile))
+        options = LogOptions(decode=True, csv_path=csv_path,
+                             drive=load_drive_profile(foreign_profile))
+        result["r"] = run_log(rx, path, options, stop=stop, quiet=True)
 
     th = threading.Thread(target=target)
     th.start()

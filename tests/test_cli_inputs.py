@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway import cli
+from gateway import cli, rundir
 from gateway.cli import Progress, main
 from gateway.errors import UserError
 from gateway.reference import demand, load_profile, paper_profile, sample_times
@@ -190,7 +190,7 @@ def test_default_run_directories_are_unique_in_the_same_second(tmp_path, monkeyp
             return datetime(2026, 1, 2, 3, 4, 5)
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(cli, "datetime", Frozen)
+    monkeypatch.setattr(rundir, "datetime", Frozen)
     for _ in range(3):
         assert main(["simulate", "--duration", "20ms"]) == 0
     dirs = sorted(p.name for p in (tmp_path / "runs").iterdir())
@@ -246,14 +246,15 @@ def test_progress_does_not_jump_to_100_percent_when_stopped(capsys):
 
 @pytest.mark.parametrize("period", ["1ms", "continuous"])
 def test_simulate_stops_within_half_a_second_of_the_request(period):
-    from gateway.simulate import SimConfig, run
+    from gateway.simulate import run
+    from gateway.spec import RunSpec
 
     if period == "continuous":
-        cfg = SimConfig(sampling=None, duration=3600.0)
+        cfg = RunSpec(sampling=None, duration=3600.0)
     else:
         from dbc.timing import Sampling
 
-        cfg = SimConfig(sampling=Sampling(1e-3), duration=3600.0)
+        cfg = RunSpec(sampling=Sampling(1e-3), duration=3600.0)
     stop = threading.Event()
     t_set: list[float] = []
 

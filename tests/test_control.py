@@ -16,7 +16,8 @@ from dbc.timing import Sampling
 from gateway.control.controller import Controller, ControllerConfig, Sample, wrap_angle
 from gateway.control.estimator import DriftFreeFluxEstimator, OpenLoopFluxEstimator
 from gateway.control.laws import Gains, current_fed, dsat_tanh, full_order, sat_tanh
-from gateway.simulate import SimConfig, run
+from gateway.simulate import run
+from gateway.spec import RunSpec
 from plant.drive import Drive, MotorState, Setpoints
 from plant.params import DriveParams
 
@@ -125,7 +126,7 @@ def test_full_order_law_zeroes_current_error_dynamics():
 def paper_continuous():
     from gateway.reference import paper_profile
 
-    rec = run(paper_profile(), MOTOR, SimConfig(flux="true", sampling=None, drive_mode="ideal"))
+    rec = run(paper_profile(), MOTOR, RunSpec(flux="true", sampling=None, drive_mode="ideal"))
     return rec.arrays()
 
 
@@ -155,7 +156,7 @@ def test_converges_from_other_initial_conditions():
     """ω(0) = 50 rad/s, ω̂(0) = 0, rotor flux at a random angle (§E12: slow modes)."""
     rng = random.Random(7)
     angle = rng.uniform(-math.pi, math.pi)
-    cfg = SimConfig(
+    cfg = RunSpec(
         flux="true", sampling=None, drive_mode="ideal", record_step=2e-3,
         initial=MotorState(w_m=50.0, psi_r_ab=0.8 * cmath.exp(1j * angle)),
     )
@@ -171,7 +172,7 @@ def test_converges_from_other_initial_conditions():
 def test_full_order_continuous_with_estimated_flux_converges():
     from gateway.reference import paper_profile
 
-    cfg = SimConfig(law="full-order", flux="estimated", drive_mode="voltage", sampling=None)
+    cfg = RunSpec(law="full-order", flux="estimated", drive_mode="voltage", sampling=None)
     s = run(paper_profile(), MOTOR, cfg).arrays()
     assert np.max(np.abs(s["w_m"] - s["w_ref"])) < 5e-3
     assert abs(s["w_m"][-1] - 200.0) < 1e-3
@@ -185,10 +186,10 @@ def test_sampled_approaches_continuous_as_period_shrinks():
     prof = ConstProfile(0.6, w_ref=100.0, psi_ref=1.16)
     init = MotorState(w_m=90.0, psi_r_ab=1.16 + 0j)
     common = dict(flux="true", drive_mode="ideal", initial=init, w_hat_0=90.0, quantize=False)
-    ref = run(prof, MOTOR, SimConfig(sampling=None, record_step=1e-3, **common)).arrays()
+    ref = run(prof, MOTOR, RunSpec(sampling=None, record_step=1e-3, **common)).arrays()
     errs = []
     for T in (1e-3, 5e-4, 2.5e-4):
-        s = run(prof, MOTOR, SimConfig(sampling=Sampling(T, delay=0), **common)).arrays()
+        s = run(prof, MOTOR, RunSpec(sampling=Sampling(T, delay=0), **common)).arrays()
         step = round(1e-3 / T)
         w = s["w_m"][step - 1::step]  # samples at the continuous record's times
         errs.append(np.max(np.abs(w - ref["w_m"][1:len(w) + 1])))
@@ -205,7 +206,7 @@ def test_sampled_paper_run_shows_delay_and_frame_effects():
     rms = {}
     for key, kw in {"dq0": dict(delay=0), "dq1": dict(delay=1),
                     "ab1": dict(delay=1, setpoint_frame="ab")}.items():
-        s = run(paper_profile(), MOTOR, SimConfig(**base, sampling=Sampling(1e-3, **kw))).arrays()
+        s = run(paper_profile(), MOTOR, RunSpec(**base, sampling=Sampling(1e-3, **kw))).arrays()
         e = s["w_m"] - s["w_ref"]
         rms[key] = float(np.sqrt(np.mean(e * e)))
         assert abs(e[-1]) < 0.5  # converges in every case
@@ -275,8 +276,8 @@ def test_full_order_sampled_needs_larger_gamma_2():
     from gateway.reference import paper_profile
 
     base = dict(law="full-order", drive_mode="voltage", sampling=Sampling(1e-3, delay=1))
-    bad = run(paper_profile(), MOTOR, SimConfig(**base, gains=Gains(gamma_2=0.0008))).arrays()
-    good = run(paper_profile(), MOTOR, SimConfig(**base)).arrays()
+    bad = run(paper_profile(), MOTOR, RunSpec(**base, gains=Gains(gamma_2=0.0008))).arrays()
+    good = run(paper_profile(), MOTOR, RunSpec(**base)).arrays()
     e_bad = np.max(np.abs(bad["w_m"] - bad["w_ref"]))
     e_good = np.max(np.abs(good["w_m"] - good["w_ref"]))
     assert e_good < 2.0

@@ -30,8 +30,8 @@ from gateway.guard import Envelope, Plausibility
 from gateway.master import DriveMaster
 from gateway.process_data import ProcessData
 from gateway.report import read_csv
-from gateway.runner import RunConfig, StopSignals
-from gateway.stop import StopReason
+from gateway.spec import RunSpec
+from gateway.stop import StopReason, StopSignals
 from plant.device import DriveDevice
 from plant.params import DriveParams
 
@@ -46,9 +46,9 @@ def _summary(out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 
 
-def _run_until(emu: Emulator, out: Path, cycles: int, cfg: RunConfig | None = None):
+def _run_until(emu: Emulator, out: Path, cycles: int, cfg: RunSpec | None = None):
     """A gateway run in a thread, started and past ``cycles`` cycles of the drive."""
-    th, result = run_in_thread(emu, out, cfg or RunConfig(duration=30.0), StopSignals())
+    th, result = run_in_thread(emu, out, cfg or RunSpec(duration=30.0), StopSignals())
     wait_cycles(emu.device, cycles)
     return th, result
 
@@ -187,7 +187,7 @@ def test_bus_fault_stops_the_run_with_its_name(emulator, tmp_path, frames, stop,
 
 def test_emcy_stops_a_lockstep_run_within_one_cycle(emulator, tmp_path):
     emu = emulator()
-    th, result = _run_until(emu, tmp_path, 300, RunConfig(duration=30.0))
+    th, result = _run_until(emu, tmp_path, 300, RunSpec(duration=30.0))
     _intrude(emu, (0x081, bytes([0x10, 0x23, 0x03, 0, 0, 0, 0, 0])))
     at = emu.device.account()["cycles"]
     s = _finished(th, result)
@@ -290,7 +290,7 @@ def test_missed_cycle_rate_stops_the_run(emulator, tmp_path):
 
     CycleLoop._on_tpdo = flaky
     try:
-        th, result = run_in_thread(emu, tmp_path, RunConfig(timing="realtime",
+        th, result = run_in_thread(emu, tmp_path, RunSpec(timing="realtime",
                                                             max_missed=1000), StopSignals())
         s = _finished(th, result)
     finally:
@@ -533,11 +533,9 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     it: counted (``run.rpdo_after_sync``) and the controller told the drive held its
     setpoints (a withhold after the step; a wrong call would stop the run with
     CONTROL_ERROR)."""
-    from gw_support import MOTOR, _patient_drive_profile
+    from gw_support import _patient_drive_profile, bus_run
 
     from dbc.timing import Sampling
-    from gateway.reference import paper_profile
-    from gateway.runner import run_gateway
 
     emu = emulator()
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
@@ -557,11 +555,10 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
 
     bus.send = send
     drive = load_drive_profile(str(_patient_drive_profile()))
-    cfg = RunConfig(timing="realtime", sampling=Sampling(2e-3, 1), duration=1.2,
+    cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), duration=1.2,
                     max_missed=1000, max_miss_rate=1.0)
     try:
-        s = run_gateway(bus, drive, paper_profile(), MOTOR, cfg, tmp_path,
-                        signals=StopSignals())
+        s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
     finally:
         bus.shutdown()
     assert not held and n_rpdo2[0] > 300

@@ -24,8 +24,9 @@ from gateway.cli import main
 from gateway.errors import UserError
 from gateway.reference import paper_profile
 from gateway.report import read_csv
-from gateway.runner import RunConfig, StopSignals
-from gateway.simulate import SimConfig, run
+from gateway.simulate import run
+from gateway.spec import RunSpec
+from gateway.stop import StopSignals
 
 #: Columns that cross the bus or come from the controller: equal to the last bit.
 EXACT = ("t", "i_sa", "i_sb", "u_sa", "u_sb", "i_sd_ref", "i_sq_ref", "u_sd_ref", "u_sq_ref",
@@ -51,7 +52,7 @@ def test_lockstep_equals_simulate_bit_for_bit(emulator, tmp_path, sim_kwargs, cl
     emu = emulator(sim_kwargs.get("drive_mode", "ideal"))
     assert gateway_run(emu, tmp_path, "--duration", "0.6s", *cli_args) == 0
     bus = read_csv(tmp_path / "signals.csv")
-    sim = run(paper_profile(), MOTOR, SimConfig(duration=0.6, **sim_kwargs)).arrays()
+    sim = run(paper_profile(), MOTOR, RunSpec(duration=0.6, **sim_kwargs)).arrays()
     assert len(bus["t"]) == len(sim["t"]) == 600
     for col in EXACT:
         np.testing.assert_array_equal(bus[col], sim[col], err_msg=col)
@@ -65,7 +66,7 @@ def test_paper_scenario_lockstep_converges_like_simulate(emulator, tmp_path):
     emu = emulator()
     assert gateway_run(emu, tmp_path) == 0
     s = json.loads((tmp_path / "summary.json").read_text())
-    ref = run(paper_profile(), MOTOR, SimConfig()).arrays()
+    ref = run(paper_profile(), MOTOR, RunSpec()).arrays()
     e_ref = ref["w_m"] - ref["w_ref"]
     # same run; the bus carries the truth at 1/32 rad/s, so metrics agree to that
     assert s["speed_error"]["max"] == pytest.approx(np.max(np.abs(e_ref)), abs=0.032)
@@ -162,7 +163,7 @@ def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     """What Ctrl-C and SIGTERM do: a stop request ends the loop and the drive is disabled."""
     emu = emulator()
     signals = StopSignals()
-    cfg = RunConfig(timing="realtime", max_missed=1000, max_miss_rate=1.0)
+    cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
     th, result = run_in_thread(emu, tmp_path, cfg, signals)
     wait_cycles(emu.device, 200)
     signals.requested.set()
@@ -190,7 +191,7 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     """An EMCY (here: a PDO of wrong length, 0x8210) stops the run and is reported."""
     emu = emulator()
     signals = StopSignals()
-    cfg = RunConfig(timing="realtime", max_missed=1000, max_miss_rate=1.0)
+    cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
     th, result = run_in_thread(emu, tmp_path, cfg, signals)
     wait_cycles(emu.device, 100)
     with can.Bus(interface="virtual", channel=emu.channel) as intruder:
@@ -207,7 +208,7 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
 def test_lost_drive_stops_the_loop(emulator, tmp_path):
     emu = emulator()
     signals = StopSignals()
-    th, result = run_in_thread(emu, tmp_path, RunConfig(timing="lockstep", duration=30.0),
+    th, result = run_in_thread(emu, tmp_path, RunSpec(timing="lockstep", duration=30.0),
                                 signals)
     wait_cycles(emu.device, 100)
     emu.device.stop()  # the drive goes silent: no TPDOs, no heartbeat
@@ -285,7 +286,7 @@ def test_unwritable_out_dir(emulator, capsys):
 
 def test_bad_log_suffix():
     with pytest.raises(UserError, match="must end in one of"):
-        RunConfig(bus_log="bus.txt")
+        RunSpec(bus_log="bus.txt")
 
 
 def test_sim_command_is_the_quick_start(tmp_path, capsys):

@@ -114,7 +114,8 @@ def test_a_drive_that_answers_with_an_abort_is_not_reset(emulator, tmp_path, mon
     from gw_support import run_in_thread, wait_cycles
 
     from gateway.buslog import read_log
-    from gateway.runner import RunConfig, StopSignals
+    from gateway.spec import RunSpec
+    from gateway.stop import StopSignals
     from plant import od as odm
 
     refuse = threading.Event()
@@ -128,7 +129,7 @@ def test_a_drive_that_answers_with_an_abort_is_not_reset(emulator, tmp_path, mon
     monkeypatch.setattr(odm.ObjectStore, "check_write", check_write)
     emu = emulator()
     signals = StopSignals()
-    th, result = run_in_thread(emu, tmp_path, RunConfig(duration=30.0), signals)
+    th, result = run_in_thread(emu, tmp_path, RunSpec(duration=30.0), signals)
     wait_cycles(emu.device, 100)
     refuse.set()
     signals.requested.set()

@@ -1,8 +1,9 @@
 """One writer of a run's results (gateway/results.py): `simulate`, `sim` and `run` write
 signals.csv, every figure and the final summary.json once each, with the metrics computed
 once (in `sim` from the emulator's full-resolution truth, merged before the first write).
-`sim`/`run` also write the summary's "running" marker before the loop, which a crash leaves
-behind (README, "Faults and the shutdown")."""
+`sim`/`run` also write the marker running.json before the loop, which a crash leaves behind
+and a finished run removes once summary.json is written (README, "Faults and the
+shutdown")."""
 
 from __future__ import annotations
 
@@ -65,14 +66,16 @@ def _once(seen: Counter, *extra: str) -> None:
 def test_simulate_writes_each_file_once(tmp_path, writes):
     assert main(["simulate", "--reference", QUICK, "--out", str(tmp_path / "o")]) == 0
     _once(writes)
-    assert writes["summary.json running"] == 0
+    assert writes["running.json running"] == 0
 
 
 def test_sim_writes_each_file_once_with_the_truth_merged_first(tmp_path, writes):
     out = tmp_path / "o"
     assert main(["sim", "--reference", QUICK, "--out", str(out)]) == 0
     _once(writes)
-    assert writes["summary.json running"] == 1  # the crash marker before the loop
+    assert writes["running.json running"] == 1  # the crash marker before the loop
+    assert writes["summary.json running"] == 0
+    assert not (out / "running.json").exists()  # the run finished: no marker left
     s = json.loads((out / "summary.json").read_text())
     assert s["truth"] == report.TRUTH_FULL and s["configuration"]["command"] == "sim"
 

@@ -23,11 +23,12 @@ from gateway.control.sampled import (
     make_controller,
 )
 from gateway.reference import paper_profile
-from gateway.simulate import SimConfig, run
+from gateway.simulate import run
+from gateway.spec import RunSpec
 from plant.drive import Drive, Setpoints
 from plant.params import DriveParams
 
-sim_config = SimConfig.from_words  # SimConfig from the command line's words
+sim_config = RunSpec.from_words  # RunSpec from the command line's words
 
 
 MOTOR = MotorParams.paper()
@@ -60,13 +61,13 @@ def exact_1ms() -> dict[str, dict[str, float]]:
 
 
 def test_exact_is_the_default_for_sampled_runs():
-    assert SimConfig().discretisation == "exact"
-    cfg = SimConfig().controller_config()
+    assert RunSpec().discretisation == "exact"
+    cfg = RunSpec().controller_config()
     assert isinstance(make_controller(MOTOR, cfg, paper_profile().at), SampledController)
     fo = sim_config(law="full-order", drive="voltage").controller_config()
     assert isinstance(make_controller(MOTOR, fo, paper_profile().at),
                       FullOrderSampledController)
-    euler = SimConfig(discretisation="euler").controller_config()
+    euler = RunSpec(discretisation="euler").controller_config()
     assert type(make_controller(MOTOR, euler, paper_profile().at)) is Controller
 
 

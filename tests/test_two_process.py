@@ -269,7 +269,7 @@ def test_sigkill_gateway_emcy_power_off_then_restart(candump_channel, tmp_path):
         assert 3000 <= n_sync_run1 < 20000  # killed mid-run
 
         # nothing lost: the killed run's bus log is readable up to the last flush (1 s), and
-        # its summary says it was running
+        # its marker says it was running
         from gateway.buslog import read_log
 
         logged = read_log(tmp_path / "run1" / "bus.blf")
@@ -279,7 +279,9 @@ def test_sigkill_gateway_emcy_power_off_then_restart(candump_channel, tmp_path):
         t_first = logged[0].timestamp
         seen = [f for f in candump_lines(dump.text()) if t_first <= f[0] <= t_kill - 1.5]
         assert len(logged) >= len(seen), (len(logged), len(seen))
-        assert summary(tmp_path / "run1")["run"]["status"] == "running"
+        marker = json.loads((tmp_path / "run1" / "running.json").read_text())
+        assert marker["run"]["status"] == "running"
+        assert not (tmp_path / "run1" / "summary.json").exists()
 
         # the power stage is off: CiA 402 Fault, seen by a third-party SDO client
         sw = int.from_bytes(sdo_upload(ch, NODE, 0x6041), "little")

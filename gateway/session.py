@@ -1,0 +1,205 @@
+"""One home for a run: :func:`run` carries out a :class:`gateway.spec.RunSpec`.
+
+In this process (`simulate`: the sampled loop or the paper's continuous time,
+:mod:`gateway.simulate`) or over a bus (`sim`, `run`: :func:`gateway.runner.run_gateway`
+against a :class:`gateway.runner.BusTarget`), it ends the same way: the record's columns,
+with the emulator's full-resolution truth merged in where a `sim` run has it, the metrics
+computed once from them, and ``signals.csv``, the figures and ``summary.json`` written
+once each by :func:`gateway.results.write_results`. SIGINT/SIGTERM stop the run (the bus's
+shutdown path first) and never lose its files. The command line, the benchmarks and the
+tests all come here; the CLI only parses and prints.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dbc.modes import DriveMode
+from dbc.motor import MotorParams
+from dbc.signals import SETPOINT_MESSAGE
+from gateway import report
+from gateway.errors import UserError
+from gateway.guard import DivergenceWatch, profile_envelope
+from gateway.reference import Profile
+from gateway.results import merge_truth, write_results
+from gateway.rundir import run_dir
+from gateway.spec import RunSpec
+from gateway.stop import StopReason, StopSignals
+
+Progress = Callable[[float], None]
+
+@dataclass(frozen=True)
+class Output:
+    """Where a run writes: ``dir`` (``--out``; None: a new ``runs/<time>-<name>``),
+    ``force`` (reuse a non-empty ``dir``)."""
+
+    dir: str | None = None
+    name: str = "run"
+    force: bool = False
+
+
+@dataclass
+class RunResult:
+    """What a run leaves: the record's columns (None: no cycle ran), the summary (as in
+    summary.json), the run directory (None: nothing written) and the files written there."""
+
+    sig: dict[str, np.ndarray] | None
+    summary: dict[str, Any]
+    out: Path | None = None
+    files: list[Path] = field(default_factory=list)
+
+    @property
+    def exit_status(self) -> int:
+        return int(self.summary["run"]["exit_status"])
+
+    @property
+    def write_errors(self) -> list[str]:
+        return list(self.summary.get("write_errors", []))
+
+
+def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = None,
+        output: Output | None = None, windows: tuple = report.DEFAULT_WINDOWS,
+        progress: Progress | None = None, signals: StopSignals | None = None) -> RunResult:
+    """Run ``spec`` on ``profile`` with the controller's ``motor``: in this process
+    (``target`` None) or against ``target`` (:class:`gateway.runner.BusTarget`) on its bus.
+
+    ``output``: the run directory to make and write (None: a simulation writes nothing and
+    returns the record and summary; a bus run needs one, for its bus log). ``windows``: the
+    metric windows (:func:`gateway.report.profile_windows`). ``progress``: called with the
+    fraction done. ``signals``: the stop requests (SIGINT/SIGTERM, installed here when
+    this is the main thread; a caller may request a stop through it too)."""
+    signals = signals or StopSignals()
+    if target is None:
+        if output is None:
+            return _simulate(spec, profile, motor, None, windows, progress, signals)
+        with run_dir(output.dir, output.name, output.force) as out:
+            return _simulate(spec, profile, motor, out, windows, progress, signals)
+    if output is None:
+        raise ValueError("a bus run writes its bus log: give it an Output")
+    with run_dir(output.dir, output.name, output.force, (spec.bus_log,)) as out:
+        return _on_bus(spec, profile, motor, target, out, windows, progress, signals)
+
+
+def _writing_politely(signals: StopSignals) -> None:
+    """From here on a signal does not interrupt: the run's files are written first."""
+    signals.shutting_down = True
+    signals.on_stop = lambda reason: print(
+        f"\n{reason}: writing the run's files first, please wait", file=sys.stderr,
+        flush=True)
+
+
+# --------------------------------------------------------------------------- in process
+
+
+def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
+              windows: tuple, progress: Progress | None, signals: StopSignals) -> RunResult:
+    """The simulation, its summary and (``out``) its files. The signal handlers stay
+    installed until every file is written: a second Ctrl-C (or one that comes while the
+    figures are drawn) must not lose the run's files."""
+    from gateway import simulate
+
+    stop = threading.Event()
+    signals.on_stop = lambda reason: stop.set()
+    watch = DivergenceWatch(profile_envelope(profile, motor, spec.gains.i_max))
+    installed: AbstractContextManager[Any] = (signals.installed() if out is not None
+                                              else nullcontext())
+    t0 = time.perf_counter()
+    with installed:
+        try:
+            rec = simulate.run(profile, motor, spec, progress, stop, watch)
+        except ValueError as exc:  # also a plant scenario's error (ScenarioError)
+            raise UserError(f"the simulation could not run: {exc}") from exc
+        _writing_politely(signals)
+        wall = time.perf_counter() - t0
+        if not len(rec):
+            raise UserError(f"the simulation stopped before its first period "
+                            f"({signals.reason})", exit_code=130)
+        sig = rec.arrays()
+        summary = _simulation_summary(spec, profile, sig, windows, watch,
+                                      signals.reason if stop.is_set() else "", wall)
+        if rec.identification is not None:
+            summary["identification"] = rec.identification
+        if out is None:
+            return RunResult(sig, summary)
+        files = write_results(out, sig, summary, figures=True,
+                              limits=simulate.figure_limits(spec), delay_s=_delay_s(spec))
+    return RunResult(sig, summary, out, files)
+
+
+def _simulation_summary(spec: RunSpec, profile: Profile, sig: dict[str, np.ndarray],
+                        windows: tuple, watch: DivergenceWatch, stopped: str, wall: float
+                        ) -> dict[str, Any]:
+    """summary.json of a simulation: the metrics against the model's own truth, the
+    quantisation, why it ended, the configuration."""
+    summary: dict[str, Any] = report.metrics(sig, windows=windows)
+    summary["truth"] = report.TRUTH_MODEL
+    sampled = spec.sampling is not None
+    summary["quantisation"] = report.quantisation(
+        spec.quantize and sampled,
+        SETPOINT_MESSAGE[spec.sampling.setpoint_frame] if spec.sampling else None,
+        "--no-quantize" if sampled else "continuous time: no bus")
+    if stopped:
+        summary["stopped_early"] = f"{stopped} at t = {sig['t'][-1]:.3f} s"
+    ended = (StopReason.DIVERGED if watch.reason else StopReason.INTERRUPTED
+             if stopped else StopReason.END_OF_PROFILE)
+    summary["run"] = {"stop": ended.name,
+                      "stop_reason": watch.reason or summary.get("stopped_early")
+                      or ended.value,
+                      "exit_status": ended.exit_status, "cycles": len(sig["t"])}
+    summary["configuration"] = {"command": "simulate", "profile": profile.source,
+                                **spec.describe()}
+    summary["wall_time_s"] = wall
+    return summary
+
+
+def _delay_s(spec: RunSpec) -> float:
+    """The time from a sample to the interval its setpoints act on (Fig. 3's shift), s."""
+    return 0.0 if spec.sampling is None else spec.sampling.delay * spec.sampling.period
+
+
+# --------------------------------------------------------------------------------- bus
+
+
+def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, out: Path,
+            windows: tuple, progress: Progress | None, signals: StopSignals) -> RunResult:
+    """The loop on the target's bus (opened and closed here), then its results, written
+    once with the emulator's truth merged first."""
+    from gateway.runner import RUNNING_MARKER, run_gateway
+
+    with signals.installed():
+        done = run_gateway(target, profile, motor, spec, out, progress, signals)
+        _writing_politely(signals)
+        summary = done.summary
+        summary["quantisation"] = report.quantisation(True, target.drive.setpoints)
+        if done.sig is not None and target.drive.truth:  # tracking errors need the truth
+            lsb = summary["quantisation"]["signals"]["w_m"]["lsb"]
+            summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb)
+            summary.update(report.metrics(done.sig, windows))
+        files = write_results(out, done.sig, summary, figures=bool(target.drive.truth),
+                              limits=_bus_limits(spec, target.drive), delay_s=_delay_s(spec),
+                              errors=summary.pop("write_errors", []))
+        if out / "summary.json" in files:
+            (out / RUNNING_MARKER).unlink(missing_ok=True)
+    return RunResult(done.sig, summary, out, files)
+
+
+def _bus_limits(spec: RunSpec, drive: Any) -> dict[str, float]:
+    """The limits Fig. 3 draws: the controller's current limit, and the emulator's voltage
+    limit and over-current trip (a real drive's are its own)."""
+    if drive.emulator:
+        from gateway.sim import emulator_limits
+
+        i_trip, u_lim = emulator_limits()
+    else:
+        i_trip, u_lim = None, None
+    return report.limits_for(spec.gains, None if spec.drive_mode is DriveMode.IDEAL else u_lim,
+                             i_trip)
