@@ -110,3 +110,41 @@ STATUSWORD = 0x6041
 MODES_OF_OPERATION = 0x6060
 MODES_OF_OPERATION_DISPLAY = 0x6061
 ERROR_CODE = 0x603F
+
+
+class OperationMode(IntEnum):
+    """Modes of operation (0x6060) the emulated drive offers. The negative ones are the
+    emulator's manufacturer-specific vector modes (what the paper's laws need); the others
+    are CiA 402's standard cyclic synchronous modes, in which the drive runs its own field
+    orientation (and speed loop)."""
+
+    VOLTAGE_VECTOR = -2
+    CURRENT_VECTOR = -1
+    CYCLIC_SYNC_VELOCITY = 9  #: CSV: target velocity 0x60FF every SYNC
+    CYCLIC_SYNC_TORQUE = 10  #: CST: target torque 0x6071 every SYNC
+
+    @property
+    def supported_bit(self) -> int:
+        """Its bit in 0x6502 (CiA 402: bit 8 CSV, bit 9 CST; bits 16.. manufacturer)."""
+        return {OperationMode.VOLTAGE_VECTOR: 1 << 17, OperationMode.CURRENT_VECTOR: 1 << 16,
+                OperationMode.CYCLIC_SYNC_VELOCITY: 1 << 8,
+                OperationMode.CYCLIC_SYNC_TORQUE: 1 << 9}[self]
+
+    @property
+    def standard(self) -> bool:
+        """A CiA 402 standard mode (the drive's own control), not a vector mode."""
+        return self > 0
+
+
+#: 0x6502 of the emulated drive: every :class:`OperationMode`.
+SUPPORTED_DRIVE_MODES = sum(m.supported_bit for m in OperationMode)
+
+#: Standard objects of the cyclic modes (CiA 402).
+TARGET_TORQUE = 0x6071  #: INTEGER16, per mille of the rated torque 0x6076
+MAX_TORQUE = 0x6072  #: UNSIGNED16, per mille of the rated torque
+MOTOR_RATED_TORQUE = 0x6076  #: UNSIGNED32, mN·m
+TORQUE_ACTUAL = 0x6077  #: INTEGER16, per mille of the rated torque
+VELOCITY_ACTUAL = 0x606C  #: INTEGER32, velocity units
+TARGET_VELOCITY = 0x60FF  #: INTEGER32, velocity units
+#: The emulated drive's velocity unit (0x606C, 0x60FF): 0.001 rev/min, in rad/s.
+VELOCITY_UNIT = 2.0 * 3.141592653589793 / 60000.0

@@ -30,7 +30,7 @@ from collections import Counter, deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NamedTuple, TextIO
 
 import can
 
@@ -192,14 +192,25 @@ class BusRecorder(can.Listener):
 
 class Frames(list):
     """The frames of a log; :attr:`damaged` counts what could not be read (lines of a text
-    log, or the unreadable tail of a binary one)."""
+    log, or the unreadable tail of a binary one), :attr:`damage` says what and where ("" when
+    the log is whole)."""
 
     damaged: int = 0
+    damage: str = ""
+
+    def note(self, what: str, count: int = 1) -> None:
+        """Count ``count`` damaged records, described by ``what``."""
+        self.damaged += count
+        self.damage = f"{self.damage}; {what}" if self.damage else what
 
 
 #: The text readers, for reading a damaged log line by line.
 _TEXT_READERS = {".asc": can.ASCReader, ".csv": can.CSVReader,
                  ".log": can.CanutilsLogReader, ".trc": can.TRCReader}
+
+#: How the end of a log cut short is described, and what to do about it.
+_CUT_HINT = ("the frames before it are kept, the rest is lost (a run killed mid-write or a copy "
+             "cut short: copy the log again if its original is whole)")
 
 
 def _is_header(suffix: str, line: str, index: int) -> bool:
@@ -216,18 +227,48 @@ def _is_event(suffix: str, line: str) -> bool:
                                                       or line.startswith("End")))
 
 
-def _frame_lines(p: Path, suffix: str) -> tuple[str, list[str]]:
-    """The header of a text log and its lines that should each be a frame."""
+class _TextLog(NamedTuple):
+    """A text log split for reading line by line."""
+
+    header: str  # the lines every frame line is read with
+    body: list[str]  # the lines that should each be a frame
+    end: str  # why the end of the file is damaged; "" if it is not
+    cut: bool  # the last line was cut mid-line: it is not in ``body``
+
+
+def _text_end(suffix: str, lines: list[str]) -> tuple[str, bool]:
+    """Why the end of a text log is damaged ("" if it is not), and whether its last line was
+    cut mid-line. python-can's writers end every line, so a last line without its line end
+    was cut; an ASC log ends with "End TriggerBlock"."""
+    last = lines[-1] if lines else ""
+    if suffix == ".asc" and last.strip().lower() == "end triggerblock":
+        return "", False
+    if last and not last.endswith(("\n", "\r")):
+        return (f"the last line is cut mid-line (no line end): {last.strip()[:40]!r} is not "
+                f"read; {_CUT_HINT}. A log edited by hand: end its last line"), True
+    tail = next((line for line in reversed(lines) if line.strip()), "")
+    if suffix == ".asc" and lines and tail.strip().lower() != "end triggerblock":
+        return ("it ends without \"End TriggerBlock\": its writer never closed it; "
+                f"{_CUT_HINT}"), False
+    return "", False
+
+
+def _frame_lines(p: Path, suffix: str) -> _TextLog:
+    """The header of a text log, its lines that should each be a frame, and its end."""
     lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+    end, cut = _text_end(suffix, lines)
+    if cut:
+        lines = lines[:-1]
     if suffix == ".asc":  # the header ends with "Begin Triggerblock"
-        end = next((i + 1 for i, line in enumerate(lines)
-                    if line.lower().startswith("begin triggerblock")), 0)
-        header, rest = "".join(lines[:end]), lines[end:]
-        return header, [line for line in rest if not _is_event(suffix, line)]
+        first = next((i + 1 for i, line in enumerate(lines)
+                      if line.lower().startswith("begin triggerblock")), 0)
+        header, rest = "".join(lines[:first]), lines[first:]
+        return _TextLog(header, [line for line in rest if not _is_event(suffix, line)], end,
+                        cut)
     header = "".join(line for i, line in enumerate(lines) if _is_header(suffix, line, i))
     body = [line for i, line in enumerate(lines)
             if not _is_header(suffix, line, i) and not _is_event(suffix, line)]
-    return header, body
+    return _TextLog(header, body, end, cut)
 
 
 def _read_lines(header: str, body: list[str], suffix: str) -> Frames:
@@ -235,6 +276,7 @@ def _read_lines(header: str, body: list[str], suffix: str) -> Frames:
     line that gives no frame is damaged."""
     reader = _TEXT_READERS[suffix]
     out = Frames()
+    bad: list[str] = []
     for line in body:
         try:
             got = list(reader(io.StringIO(header + line)))
@@ -243,14 +285,55 @@ def _read_lines(header: str, body: list[str], suffix: str) -> Frames:
         if got:
             out.extend(got)
         else:
-            out.damaged += 1
+            bad.append(line)
+    if bad:
+        out.note(f"{len(bad)} line(s) give no frame, the first: {bad[0].strip()[:40]!r}",
+                 len(bad))
     return out
+
+
+def _blf_damage(p: Path) -> str:
+    """Why the BLF log ``p`` is damaged, "" if it is whole: its objects (log containers) are
+    walked by their headers, and the file's size is compared with the one its file header
+    names (written when the log is closed)."""
+    from can.io.blf import FILE_HEADER_STRUCT, OBJ_HEADER_BASE_STRUCT
+
+    size = p.stat().st_size
+    with p.open("rb") as f:
+        head = f.read(FILE_HEADER_STRUCT.size)
+        if len(head) < FILE_HEADER_STRUCT.size:
+            return f"the file header is cut (the file has {size} bytes)"
+        fields = FILE_HEADER_STRUCT.unpack(head)
+        if fields[0] != b"LOGG":
+            return "no BLF file header (it does not start with 'LOGG')"
+        header_size, file_size = fields[1], fields[10]
+        pos = header_size
+        while pos < size:
+            f.seek(pos)
+            base = f.read(OBJ_HEADER_BASE_STRUCT.size)
+            if len(base) < OBJ_HEADER_BASE_STRUCT.size:
+                return f"cut inside the object header at byte {pos}"
+            signature, _, _, obj_size, _ = OBJ_HEADER_BASE_STRUCT.unpack(base)
+            if signature != b"LOBJ" or obj_size < OBJ_HEADER_BASE_STRUCT.size:
+                return f"no valid object at byte {pos} (overwritten or not a BLF log)"
+            if pos + obj_size > size:
+                return (f"the log container at byte {pos} is cut: {size - pos} of its "
+                        f"{obj_size} bytes are in the file")
+            pos += obj_size + obj_size % 4  # the padding
+    if file_size > size:
+        return f"cut short: {size} of the {file_size} bytes its header names"
+    if file_size < size:
+        return (f"never closed: its header names {file_size} of its {size} bytes (its writer "
+                "was killed or failed before closing it); frames after its last flush are "
+                "missing")
+    return ""
 
 
 def read_log(path: str | Path) -> Frames:
     """All frames of a log written by `hil-gateway log` or a run (any python-can-readable
-    log). Damaged lines are skipped and counted (:attr:`Frames.damaged`); a binary log is
-    read up to its damage (e.g. the tail of a log cut by kill -9)."""
+    log). Damaged lines are skipped and counted (:attr:`Frames.damaged`, described by
+    :attr:`Frames.damage`), so is a last line cut mid-line; a binary log is read up to its
+    damage (e.g. the tail of a log cut by kill -9, or a file cut short), which counts 1."""
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in LOG_SUFFIXES:
@@ -259,22 +342,35 @@ def read_log(path: str | Path) -> Frames:
     if not p.is_file():
         raise UserError(f"cannot read the log {str(p)!r}: no such file")
     out = Frames()
+    failed = ""
     try:
         with can.LogReader(p) as reader:
             for msg in reader:
                 out.append(msg)
     except OSError as exc:
         raise UserError(f"cannot read the log {str(p)!r}: {exc.strerror or exc}") from exc
-    except Exception:  # a damaged record: the text readers retry line by line below
-        if suffix not in _TEXT_READERS:
-            out.damaged += 1  # the rest of a binary log
-            log.warning("%s: unreadable after %d frames", p, len(out))
-            return out
-        out.damaged = -1
+    except Exception as exc:  # a damaged record: the text readers retry line by line below
+        name = type(exc).__name__
+        if name == "error":  # struct.error, zlib.error
+            name = f"{type(exc).__module__}.error"
+        failed = f"{name}: {exc}" if str(exc) else name
     if suffix in _TEXT_READERS:
-        header, body = _frame_lines(p, suffix)
-        if out.damaged or len(out) != len(body):  # some line was skipped or failed
-            return _read_lines(header, body, suffix)
+        text = _frame_lines(p, suffix)
+        if failed or text.cut or len(out) != len(text.body):  # a line skipped or failed
+            out = _read_lines(text.header, text.body, suffix)
+        if text.end:
+            out.note(text.end)
+    elif suffix == ".blf":
+        why = _blf_damage(p)
+        if failed:
+            why = f"{why or f'unreadable after {len(out)} frames'} ({failed})"
+        if why:
+            out.note(f"{why}; {_CUT_HINT}")
+    elif failed:
+        out.note(f"unreadable after {len(out)} frames ({failed}); {_CUT_HINT}")
+    if out.damaged:
+        log.warning("%s: %d damaged, %d frames read: %s", p, out.damaged, len(out),
+                    out.damage)
     return out
 
 

@@ -48,11 +48,14 @@ def _check_duration(duration: float, step: float, what: str) -> int:
     return max(1, round(duration / step))
 
 
-def _load_profile(path: str | None):
+def _load_profile(path: str | None, drive: Any = None):
+    """``--reference``, checked against the emulated drive's limits (the PDO signals' ranges,
+    its over-speed limit), or against none for another ``drive`` (its own are its own)."""
     from gateway.reference import ProfileError, load_profile, paper_profile
 
+    limits = None if drive is None or drive.emulator else {}
     try:
-        return paper_profile() if path is None else load_profile(path)
+        return paper_profile() if path is None else load_profile(path, limits)
     except ProfileError as exc:
         raise UserError(str(exc)) from exc
 
@@ -289,7 +292,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise
     progress.done(complete=result.summary["run"]["stop"] == "END_OF_PROFILE")
     _print_simulation(spec, profile, label, result)
+    _print_next(result)
     return 1 if result.write_errors else result.exit_status
+
+
+def _print_next(result: Any) -> None:
+    """What to look at and run next, after a run that drew its figures."""
+    names = {p.name for p in result.files}
+    if "fig2_errors.png" not in names:
+        return
+    print(f"next: look at {result.out}/fig2_errors.png (the tracking errors) and "
+          "fig3_currents_voltages.png; change one thing (--plant rs+10, --controller ifoc, "
+          f"--period 2ms, ...) and put the runs side by side: {PROG} compare "
+          f"{result.out} <other run>")
 
 
 def _duration_words(args: argparse.Namespace, profile: Any) -> str:
@@ -477,7 +492,7 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     from gateway.session import Output, run
 
     kind, drive = target.command, target.drive
-    profile = _load_profile(args.profile)
+    profile = _load_profile(args.profile, drive)
     motor = _load_motor(args.motor)
     spec = _run_spec(args, drive, plant)
     node = args.node if args.node is not None else drive.node
@@ -507,6 +522,7 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
           f"period {format_duration(spec.period)}, delay {spec.sampling.delay}, "
           f"{spec.discretisation} design")
     _print_run(result)
+    _print_next(result)
     return _finish_run(result.summary)
 
 
@@ -559,14 +575,23 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_profile_check(args: argparse.Namespace) -> int:
-    """`hil-gateway profile check FILE`: validate and show the set points and demands."""
-    from gateway.reference import demand
+    """`hil-gateway profile check FILE`: validate and show the set points and demands.
+
+    What cannot run (a value beyond the PDO signals' range or the emulated drive's
+    over-speed limit) is refused by the loader, as for every command that loads a profile:
+    exit status 2 with the file, the key and the limit. Merely high demands are warnings."""
+    from gateway.reference import demand, reference_limits
 
     profile = _load_profile(args.file)
     motor = _load_motor(args.motor)
     print(f"{args.file}: profile {profile.name!r} is valid, duration {profile.duration:g} s")
     for line in profile.set_points():
         print(f"  {line}")
+    ranges = {name: (max(lim.lo for lim in lims), min(lim.hi for lim in lims))
+              for name, lims in reference_limits().items()}
+    (_, w_hi), (_, psi_hi), (tl_lo, tl_hi) = (ranges[k] for k in ("speed", "flux", "load"))
+    print(f"within the limits (beyond them a profile is refused): |ω*| ≤ {w_hi:g} rad/s, "
+          f"ψ* ≤ {psi_hi:g} Wb, T_L {tl_lo:g} to {tl_hi:g} N·m")
     d = demand(profile, motor)
     from gateway.sim import emulator_limits
 

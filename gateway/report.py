@@ -552,6 +552,17 @@ def _plot_fig4(plt: Any, sig: Mapping[str, np.ndarray], names: list[str], out_di
     return p
 
 
+def fig3_limits_text(limits: Mapping[str, float]) -> str:
+    """What Fig. 3's title says of the limits it draws: the ones drawn, and that no voltage
+    limit is known when none is (an ideal current source has none; a real drive's is its
+    own)."""
+    drawn = [text for key, text in (("i_max", "the current limit i_max"),
+                                     ("i_trip", "the over-current trip"),
+                                     ("u_lim", "the voltage limit u_dc/√3")) if key in limits]
+    out = f", with {', '.join(drawn)}" if drawn else ""
+    return out + ("" if "u_lim" in limits else " (no voltage limit known)")
+
+
 def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
                windows: list, limits: Mapping[str, float], delay_s: float,
                suptitle: Callable[[Any, str], None]) -> Path:
@@ -609,7 +620,7 @@ def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
             ai.legend(loc="upper right", fontsize="x-small")
             au.legend(loc="upper right", fontsize="x-small")
     suptitle(fig, "Fig. 3 — stator currents (solid: measured, dashed: setpoints) and "
-                  "average voltages, with limits")
+                  f"average voltages{fig3_limits_text(limits)}")
     p = out_dir / "fig3_currents_voltages.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
@@ -730,9 +741,39 @@ def compare_table(runs: list[Run]) -> str:
     return text
 
 
+def profile_name(source: Any) -> str:
+    """A run's reference profile, compactly: the built-in one ("<embedded>") is "paper", a
+    file its stem ("profiles/quick.toml" → "quick"); "" when the summary does not say."""
+    if not source:
+        return ""
+    text = str(source)
+    if text == "<embedded>":
+        return "paper"
+    return text if text.startswith("<") else (Path(text).stem or text)
+
+
+def compare_labels(runs: list[Run]) -> list[str]:
+    """The legend entry of each run in the comparison figure: its name, then the reference
+    profile it ran and the configuration keys that differ (at most three), e.g.
+    "A (paper, law current-fed)". Two different profile files of the same name are named
+    by their whole paths."""
+    diffs = config_differences(runs)
+    shown = [k for k in diffs if not k.endswith(("bus", "profile", "duration"))][:3]
+    sources = [r.summary.get("configuration", {}).get("profile") for r in runs]
+    names = [profile_name(s) for s in sources]
+    labels = []
+    for j, r in enumerate(runs):
+        clash = any(n == names[j] and s != sources[j] for n, s in zip(names, sources, strict=True))
+        extra = [str(sources[j]) if clash else names[j]] if names[j] else []
+        extra += [f"{k.split('.')[-1]} {diffs[k][j]}" for k in shown]
+        labels.append(r.name + (f" ({', '.join(extra)})" if extra else ""))
+    return labels
+
+
 def plot_compare(runs: list[Run], out: Path) -> Path | None:
-    """Speed and flux errors of every run overlaid, labelled by run and by the
-    configuration keys that differ; None when matplotlib is not installed."""
+    """Speed and flux errors of every run overlaid, labelled by run, by the reference
+    profile it ran and by the configuration keys that differ (:func:`compare_labels`); None
+    when matplotlib is not installed."""
     try:
         import matplotlib
 
@@ -741,14 +782,13 @@ def plot_compare(runs: list[Run], out: Path) -> Path | None:
     except ImportError:
         return None
     diffs = config_differences(runs)
-    shown = [k for k in diffs if not k.endswith(("bus", "profile", "duration"))][:3]
+    labels = compare_labels(runs)
     fig, ax = plt.subplots(2, 1, sharex=True, figsize=(9, 6.5), layout="constrained")
     for j, r in enumerate(runs):
         sig = r.signals
         if not sig or "w_m" not in sig or not np.any(np.isfinite(sig["w_m"])):
             continue
-        extra = ", ".join(f"{k.split('.')[-1]} {diffs[k][j]}" for k in shown)
-        label = r.name + (f" ({extra})" if extra else "")
+        label = labels[j]
         style = ("-", "--", ":", "-.")[j % 4]  # identical runs stay visible
         ax[0].plot(sig["t"], sig["w_m"] - sig["w_ref"], style, lw=1, label=label)
         ax[1].plot(sig["t"], sig["psi_r_mod"] - sig["psi_ref"], style, lw=1, label=label)

@@ -59,8 +59,17 @@ from typing import Any
 
 import can
 
-from dbc import scaling
+from dbc import scaling, signal_specs
 from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState
+from dbc.cia402 import (
+    MAX_TORQUE,
+    TARGET_TORQUE,
+    TARGET_VELOCITY,
+    TORQUE_ACTUAL,
+    VELOCITY_ACTUAL,
+    VELOCITY_UNIT,
+    OperationMode,
+)
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from plant import od as odm
@@ -72,6 +81,7 @@ from plant.params import DriveParams
 from plant.pdo import SETPOINT_SIGNALS, PdoRuntime, Rpdo
 from plant.rpdo import setpoints_from_rpdos
 from plant.sdo import SdoHooks, SdoServer, Sender
+from plant.servo import T_RATED, Servo, ServoParams
 from plant.timing import sync_cycle
 
 log = logging.getLogger(__name__)
@@ -131,7 +141,7 @@ class DriveDevice:
             clear_error_history=self.emcy.clear_history, clear_account=self._clear_account,
             signal=self._signal_written))
         self._sm = PowerStateMachine()
-        self._factor = {n: scaling(n)[0] for n in self._store.by_name}
+        self._factor = {n: scaling(n)[0] for n in self._store.by_name if n in signal_specs()}
         self._k = {n: self._store.by_name[n] for n in self._store.by_name}
         self._setpoint_keys = tuple(k for n, k in self._k.items() if n in SETPOINT_SIGNALS)
         self._logged: set[tuple[str, type]] = set()  # internal errors logged with traceback
@@ -246,11 +256,22 @@ class DriveDevice:
             seed=v[(odm.SEED, 0)])
         return motor, params
 
+    def _make_servo(self, motor: MotorParams, params: DriveParams) -> Servo | None:
+        """The drive's own control in a standard cyclic mode (0x6060 9 or 10), else None."""
+        v = self._values
+        if not OperationMode(v[(0x6060, 0)]).standard:
+            return None
+        i_max = 0.8 * params.i_trip if math.isfinite(params.i_trip) else 20.0
+        return Servo(motor, ServoParams(i_max=i_max, T_max=v[(MAX_TORQUE, 0)] * T_RATED / 1000),
+                     v[(0x1006, 0)] / 1e6)
+
     def _reset_application(self) -> None:
         """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
         self._store.reset()
         motor, params = self._drive_params()
         self._drive = Drive(motor, params, **self._drive_options)
+        self._servo = self._make_servo(motor, params)
+        self._w_enc = 0.0  # the encoder's speed at the last sample, rad/s
         self._params_dirty = False
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
@@ -292,6 +313,7 @@ class DriveDevice:
         new.set_setpoints(old.setpoints)
         new.enable(self._sm.power)
         self._drive = new
+        self._servo = self._make_servo(motor, params)
         self._params_dirty = False
 
     # ---- SDO write effects ------------------------------------------------------------------
@@ -396,7 +418,8 @@ class DriveDevice:
         self._tl_fresh |= r.load
 
     def _latch(self) -> None:
-        """Make the data received since the last latch active (controlword, setpoints, T_L)."""
+        """Make the data received since the last latch active (controlword, setpoints, T_L);
+        in a standard cyclic mode the drive's own control turns the target into setpoints."""
         v, k, f = self._values, self._k, self._factor
         if self._cw_fresh:
             self._cw_fresh = False
@@ -417,6 +440,22 @@ class DriveDevice:
             if (self._sm.power and self._drive.params.mode is not DriveMode.VOLTAGE
                     and abs(sp.i_s_ref) > self._drive.params.i_trip):
                 self._fault(Emcy.OVERCURRENT)
+        if self._servo is not None:
+            self._servo_step()
+
+    def _servo_step(self) -> None:
+        """CSV or CST: the target of 0x60FF or 0x6071 → (d, q) setpoints for this period
+        (:mod:`plant.servo`); with the power stage off the drive's control starts over."""
+        servo, v = self._servo, self._values
+        assert servo is not None
+        if not self._sm.power:
+            servo.reset()
+            return
+        if v[(0x6060, 0)] == OperationMode.CYCLIC_SYNC_TORQUE:
+            sp = servo.torque(v[(TARGET_TORQUE, 0)] * T_RATED / 1000, self._w_enc)
+        else:
+            sp = servo.velocity(v[(TARGET_VELOCITY, 0)] * VELOCITY_UNIT, self._w_enc)
+        self._drive.set_setpoints(sp)
 
     def _on_sync(self, data: bytes) -> None:
         n = len(data)
@@ -469,7 +508,11 @@ class DriveDevice:
         if self.on_sample is not None:  # what the TPDOs carry: the at-rest sample after a
             self.on_sample(m, meas)     # non-finite model, not its NaNs
         self._limit = meas.limit_active
+        self._w_enc = meas.w_m
         self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
+        v = self._values  # the standard actual values, in the units of the EDS
+        v[(VELOCITY_ACTUAL, 0)] = _saturate(round(meas.w_m / VELOCITY_UNIT), 32)
+        v[(TORQUE_ACTUAL, 0)] = _saturate(round(meas.T_e / T_RATED * 1000), 16)
         self.pdo.transmit(m)
         return meas
 
@@ -536,6 +579,12 @@ class DriveDevice:
     def _timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""
         return self.nmt.timers(now)
+
+
+def _saturate(x: int, bits: int) -> int:
+    """``x`` within a signed integer of ``bits`` bits."""
+    hi = (1 << (bits - 1)) - 1
+    return max(-hi - 1, min(hi, x))
 
 
 def _finite(meas: Measurement) -> bool:

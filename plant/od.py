@@ -28,6 +28,7 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 from canopen.sdo import SdoAbortedError
 
 from dbc import EDS_PATH
+from dbc.cia402 import OperationMode
 
 Key = tuple[int, int]
 
@@ -221,6 +222,8 @@ class ObjectStore:
 
     def _check_specific(self, index: int, subindex: int, value: Any) -> None:
         v = self.values
+        if index == 0x6060 and value not in {int(m) for m in OperationMode}:
+            raise SdoAbortedError(ABORT_RANGE)  # a mode this drive does not have (0x6502)
         if (index in (0x1005, 0x1014) and value & 0x7FFFF800) or (index == 0x1019
                                                                     and value == 1):
             raise SdoAbortedError(ABORT_RANGE)  # 29-bit ids, SYNC production, counter 1

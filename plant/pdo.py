@@ -24,11 +24,18 @@ from typing import Any
 import can
 
 from dbc import MessageCodec, message_codec
+from dbc.codec import SignalSpec, signal_specs
 from dbc.modes import RpdoApply, SetpointFrame
 from dbc.signals import FRAME, LOAD, SETPOINTS, TX, setpoint_frame_of
 from plant import od as odm
 from plant.drive import Measurement
 from plant.rpdo import tpdo_signals
+
+
+def raw_spec(name: str, var: Any) -> SignalSpec:
+    """A raw integer signal (factor 1) of an object's data type (an ODVariable)."""
+    return SignalSpec(name, 1.0, len(var), var.data_type in (0x2, 0x3, 0x4))
+
 
 SETPOINT_SIGNALS = frozenset({*FRAME, *(n for names in SETPOINTS.values() for n in names)})
 
@@ -99,7 +106,7 @@ class PdoRuntime:
             names = set(cfg.names)
             mapped |= names
             self.rpdos[cfg.cob_id] = Rpdo(
-                cfg, message_codec(f"RPDO{cfg.number}", cfg.cob_id, cfg.names),
+                cfg, self._codec(f"RPDO{cfg.number}", cfg),
                 timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
                 setpoints=bool(names & SETPOINT_SIGNALS),
                 frame=bool(names & {"eps_0", "w_0"}), load=bool(names & set(LOAD)))
@@ -107,8 +114,16 @@ class PdoRuntime:
         for comm in odm.TPDO_COMM:
             cfg = self._store.pdo(comm)
             if cfg.valid and cfg.entries:
-                self.tpdos.append(Tpdo(cfg, message_codec(f"TPDO{cfg.number}", cfg.cob_id,
-                                                          cfg.names)))
+                self.tpdos.append(Tpdo(cfg, self._codec(f"TPDO{cfg.number}", cfg)))
+
+    def _codec(self, name: str, cfg: odm.PdoConfig) -> MessageCodec:
+        """The layout of a mapping: each object's DBC signal where ``dbc/drive.dbc`` has
+        one (the emulator's own signals, scaled), else its raw integer of the size and
+        sign of its data type (the standard objects, in the units of the drive's EDS)."""
+        specs = signal_specs()
+        return MessageCodec(name, cfg.cob_id, [
+            specs.get(n) or raw_spec(n, self._store.vars[key])
+            for n, key in zip(cfg.names, cfg.entries, strict=True)])
 
     def receive(self, r: Rpdo, data: bytes, cycles: int) -> bool:
         """An RPDO frame after ``cycles`` completed cycles; False if its length is wrong."""

@@ -345,3 +345,151 @@ def test_cli_on_a_full_disk_says_what_was_kept(suffix: str, channel: str, db, tm
     assert "No space left on device" in str(err.value) and "Free space" in str(err.value)
     out = capsys.readouterr().out
     assert "NOT written" in out
+
+
+# ------------------------------------------------------------------- logs cut short
+
+
+def _numbered(n: int) -> list[can.Message]:
+    """``n`` frames each telling its index (id and data), 1 ms apart."""
+    return [can.Message(arbitration_id=0x181 + i % 3, data=i.to_bytes(4, "little") + b"\x02",
+                        timestamp=1000.0 + i * 1e-3, is_extended_id=False) for i in range(n)]
+
+
+def _is_prefix(got: list[can.Message], sent: list[can.Message]) -> bool:
+    """``got`` are the first ``len(got)`` frames of ``sent``, ids and data exact."""
+    return [(m.arbitration_id, bytes(m.data)) for m in got] == [
+        (m.arbitration_id, bytes(m.data)) for m in sent[:len(got)]]
+
+
+def _cut_offsets(data: bytes) -> list[int]:
+    """Where to cut a log: its last byte, inside its last object/line, mid-file, early."""
+    return sorted({len(data) - 1, len(data) - 3, len(data) - 100, len(data) // 2, 200,
+                   100, 50}, reverse=True)
+
+
+@pytest.mark.parametrize("writer", ["BLFWriter", "BusRecorder"])
+def test_blf_cut_short_is_damaged_and_read_up_to_the_cut(writer: str, tmp_path: Path) -> None:
+    """A whole BLF log reads back undamaged; the same log cut anywhere (in its last
+    container, between containers, in its file header) counts as damaged, with the frames
+    before the cut kept exactly."""
+    sent = _numbered(3000)
+    path = tmp_path / "whole.blf"
+    if writer == "BLFWriter":  # many containers, so cuts also fall between them
+        w = can.BLFWriter(str(path), max_container_size=4096)
+        for m in sent:
+            w.on_message_received(m)
+        w.stop()
+    else:
+        rec = buslog.BusRecorder(path)
+        for m in sent:
+            rec.on_message_received(m)
+        rec.stop()
+        assert rec.account()["bus_frames_logged"] == len(sent)
+    whole = read_log(path)
+    assert whole.damaged == 0 and whole.damage == ""
+    assert _is_prefix(whole, sent) and len(whole) == len(sent)
+    data = path.read_bytes()
+    for cut in _cut_offsets(data):
+        short = tmp_path / f"cut{cut}.blf"
+        short.write_bytes(data[:cut])
+        frames_read = read_log(short)
+        assert frames_read.damaged >= 1, (cut, len(data))
+        assert "cut" in frames_read.damage and "kept" in frames_read.damage
+        assert _is_prefix(frames_read, sent), cut
+        assert len(frames_read) < len(sent) or cut >= len(data) - 100
+    # a cut exactly between two containers (only the file header knows the size)
+    if writer == "BLFWriter":
+        from can.io.blf import FILE_HEADER_SIZE, OBJ_HEADER_BASE_STRUCT
+
+        first = OBJ_HEADER_BASE_STRUCT.unpack_from(data, FILE_HEADER_SIZE)[3]
+        cut = FILE_HEADER_SIZE + first + first % 4
+        short = tmp_path / "between.blf"
+        short.write_bytes(data[:cut])
+        frames_read = read_log(short)
+        assert frames_read.damaged == 1 and 0 < len(frames_read) < len(sent)
+        assert _is_prefix(frames_read, sent)
+        assert f"{cut} of the {len(data)} bytes" in frames_read.damage
+
+
+def test_blf_of_a_killed_run_is_damaged_not_closed(tmp_path: Path) -> None:
+    """The bus log of a run killed after a flush (its header never written at the end):
+    every flushed frame is read, and it counts as damaged ("never closed"); once closed it
+    is whole."""
+    sent = _numbered(500)
+    path = tmp_path / "killed.blf"
+    rec = buslog.BusRecorder(path)
+    try:
+        for m in sent:
+            rec.on_message_received(m)
+        with rec._lock:  # what the writer thread does every second
+            rec._drain()
+            rec._flush()
+        killed = read_log(path)
+        assert killed.damaged == 1 and "never closed" in killed.damage
+        assert len(killed) == len(sent) and _is_prefix(killed, sent)
+    finally:
+        rec.stop()
+    closed = read_log(path)
+    assert closed.damaged == 0 and len(closed) == len(sent)
+
+
+def test_blf_with_a_damaged_container_keeps_the_frames_before(tmp_path: Path) -> None:
+    """A container overwritten in the middle (zlib cannot inflate it): damaged, the frames
+    of the containers before it kept."""
+    sent = _numbered(3000)
+    path = tmp_path / "run.blf"
+    w = can.BLFWriter(str(path), max_container_size=4096)
+    for m in sent:
+        w.on_message_received(m)
+    w.stop()
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 64] = b"\xff" * 64
+    path.write_bytes(bytes(data))
+    got = read_log(path)
+    assert got.damaged >= 1 and got.damage
+    assert 0 < len(got) < len(sent) and _is_prefix(got, sent)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".csv", ".log", ".trc"])
+def test_text_log_cut_mid_line_is_damaged(suffix: str, tmp_path: Path) -> None:
+    """A text log whose last line is cut mid-line: damaged, that line's frame (its data may
+    be short) left out, the frames before it exact; a whole log is not damaged."""
+    sent = _numbered(300)
+    path = tmp_path / f"whole{suffix}"
+    w = can.Logger(str(path))
+    for m in sent:
+        w.on_message_received(m)
+    w.stop()
+    whole = read_log(path)
+    assert whole.damaged == 0 and whole.damage == ""
+    assert len(whole) == len(sent) and _is_prefix(whole, sent)
+    data = path.read_bytes()
+    for cut in (len(data) - 5, len(data) - 12, len(data) - 100, len(data) // 2):
+        while data[cut - 1:cut] in (b"\n", b"\r"):  # mid-line, not on a line end
+            cut -= 1
+        short = tmp_path / f"cut{cut}{suffix}"
+        short.write_bytes(data[:cut])
+        got = read_log(short)
+        assert got.damaged >= 1, (cut, data[cut - 40:cut])
+        assert "cut mid-line" in got.damage
+        assert _is_prefix(got, sent), cut
+        assert len(got) < len(sent) or (suffix == ".asc" and cut > len(data) - 20)
+
+
+def test_asc_log_never_closed_is_damaged(tmp_path: Path) -> None:
+    """An ASC log without its closing "End TriggerBlock" (its writer was killed) counts as
+    damaged; all its frames are read."""
+    sent = _numbered(50)
+    path = tmp_path / "run.asc"
+    w = can.Logger(str(path))
+    for m in sent:
+        w.on_message_received(m)
+    w.stop()
+    text = path.read_text()
+    assert text.rstrip().endswith("End TriggerBlock")
+    path.write_text(text[:text.rindex("End TriggerBlock")])
+    got = read_log(path)
+    assert got.damaged == 1 and "End TriggerBlock" in got.damage
+    assert len(got) == len(sent) and _is_prefix(got, sent)

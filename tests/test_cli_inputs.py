@@ -437,3 +437,11 @@ def test_compare_names_a_truncated_signals_file(tmp_path, capsys):
     assert main(["compare", str(run), "-o", str(tmp_path / "c.png")]) == 2
     err = capsys.readouterr().err
     assert "signals.csv, line" in err and "truncated" in err and "Traceback" not in err, err
+
+
+def test_after_a_run_the_cli_says_what_to_look_at_next(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["simulate", "--duration", "20ms", "--out", str(out)]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith("next:") and f"{out}/fig2_errors.png" in line
+    assert f"hil-gateway compare {out}" in line

@@ -357,6 +357,163 @@ def test_programmatic_construction_is_checked() -> None:
         Signal(1.0, (Step(0.0, 2.0, 0.2), Step(0.1, 3.0, 0.1)))
 
 
+# ------------------------------------------------------- limits: what cannot run is refused
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _limited(speed: float | str, flux: float = 1.16, load: float = 2.0,
+             speed_unit: str = "rad/s") -> str:
+    """A profile with one speed, flux and load set point each."""
+    return SI_TEXT.replace('speed = "rad/s"', f'speed = "{speed_unit}"').replace(
+        "value = 104.71975511965977", f"value = {speed}").replace(
+        "value = 0.9", f"value = {flux}").replace("value = 2.0", f"value = {load}")
+
+
+def _cli(*args: str) -> tuple[int, str, str]:
+    """``hil-gateway ARGS`` in a subprocess, as a user runs it: (status, stdout, stderr)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "gateway", *args], capture_output=True,
+                       text=True, cwd=ROOT, timeout=120)
+    return r.returncode, r.stdout, r.stderr
+
+
+def _refusal(capsys: pytest.CaptureFixture[str], *args: str) -> str:
+    """Run the CLI in this process; it must refuse with status 2 and one paragraph."""
+    from gateway.cli import main
+
+    assert main(list(args)) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith("hil-gateway: error: ") and "Traceback" not in err, err
+    assert err.strip().count("\n") == 0, err  # one paragraph
+    assert "is valid" not in out
+    return err
+
+
+def test_limits_come_from_the_dbc_and_the_eds() -> None:
+    """The ranges are the DBC's (INT16 × factor) and the over-speed limit is the EDS default,
+    which is the emulated drive's w_max."""
+    from dbc import signal_specs
+    from gateway.reference import reference_limits
+    from plant.params import DriveParams
+
+    specs = signal_specs()
+    limits = reference_limits()
+    bus, overspeed = limits["speed"]
+    for sig in ("w_0", "w_m"):
+        assert bus.hi <= specs[sig].hi * specs[sig].factor
+        assert bus.lo >= specs[sig].lo * specs[sig].factor
+    assert bus.hi == pytest.approx(1024.0, abs=0.04) and bus.lo == pytest.approx(-1024.0)
+    assert (overspeed.lo, overspeed.hi) == (-DriveParams().w_max, DriveParams().w_max)
+    assert "0x2201:9" in overspeed.what and "drive.eds" in overspeed.what
+    (flux,) = limits["flux"]
+    assert flux.hi == pytest.approx(specs["psi_ra"].hi * specs["psi_ra"].factor)
+    (load,) = limits["load"]
+    assert load.hi == pytest.approx(specs["T_L"].hi * specs["T_L"].factor)
+    assert load.lo == pytest.approx(specs["T_L"].lo * specs["T_L"].factor)
+
+
+def test_a_speed_of_1e6_is_refused_naming_the_limit_and_the_file(tmp_path: Path) -> None:
+    path = _write(tmp_path, _limited("1e6"), "fast.toml")
+    status, out, err = _cli("reference", "check", str(path))
+    assert status == 2, (out, err)
+    assert out == "" and "Traceback" not in err
+    assert err.startswith(f"hil-gateway: error: {path}: [speed].steps[0].value = 1000000.0: ")
+    assert err.strip().count("\n") == 0, err
+    assert "w_max = 600 rad/s" in err and "0x2201:9" in err  # the drive's over-speed limit
+    assert "w_0 in RPDO1 and w_m in TPDO3" in err             # and the bus range
+    assert "|ω*| ≤ 600 rad/s" in err                          # the fix
+    with pytest.raises(ProfileError, match=r"fast\.toml: \[speed\]\.steps\[0\]\.value"):
+        load_profile(path)
+
+
+def test_a_speed_beyond_the_bus_range_is_refused(tmp_path: Path, capsys) -> None:
+    path = _write(tmp_path, _limited(2000), "bus.toml")
+    err = _refusal(capsys, "profile", "check", str(path))
+    assert str(path) in err and "[speed].steps[0].value = 2000" in err
+    assert "the range the bus carries it in" in err and "INT16 at 0.03125 rad/s per bit" in err
+    assert "-1024 to 1023.97 rad/s" in err
+
+
+def test_a_speed_beyond_the_over_speed_limit_alone_is_refused(tmp_path: Path, capsys) -> None:
+    path = _write(tmp_path, _limited(-700), "over.toml")
+    err = _refusal(capsys, "reference", "check", str(path))
+    assert "[speed].steps[0].value = -700" in err and "w_max = 600 rad/s" in err
+    assert "EMCY 0x8400" in err and "the range the bus carries" not in err
+
+
+def test_limits_are_given_in_the_files_unit(tmp_path: Path, capsys) -> None:
+    path = _write(tmp_path, _limited(10000, speed_unit="rpm"), "rpm.toml")
+    err = _refusal(capsys, "reference", "check", str(path))
+    assert "10000 rpm (1047.2 rad/s)" in err and "|ω*| ≤ 5729.58 rpm (600 rad/s)" in err
+
+
+@pytest.mark.parametrize(("flux", "load", "where", "needles"), [
+    (5.0, 2.0, "[flux].steps[0].value = 5.0", ["psi_ra and psi_rb in TPDO3", "ψ* ≤ 3.2767 Wb"]),
+    (1.16, 400.0, "[load].steps[0].value = 400.0", ["T_L in RPDO3", "-327.68 to 327.67 N·m"]),
+    (1.16, -1000.0, "[load].steps[0].value = -1000.0", ["T_L in RPDO3"]),
+])
+def test_flux_and_load_beyond_the_bus_range_are_refused(tmp_path: Path, capsys, flux, load,
+                                                        where, needles) -> None:
+    path = _write(tmp_path, _limited(100, flux=flux, load=load))
+    err = _refusal(capsys, "reference", "check", str(path))
+    assert f"{path}: {where}: " in err
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+def test_a_speed_within_the_limits_is_accepted_with_warnings(tmp_path: Path, capsys) -> None:
+    """500 rad/s fits the bus and the over-speed limit: valid; its high demand is a warning."""
+    from gateway.cli import main
+
+    path = _write(tmp_path, _limited(500), "ok.toml")
+    assert main(["reference", "check", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "is valid" in out and "0 → 500 rad/s" in out and "|ω*| ≤ 600 rad/s" in out
+    assert "warning:" in out  # the voltage it would need: a warning, not a refusal
+    assert load_profile(path).speed.final == 500.0
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "profiles").glob("*.toml")),
+                         ids=lambda p: p.stem)
+def test_shipped_profiles_pass_the_check(path: Path, capsys) -> None:
+    from gateway.cli import main
+
+    assert main(["reference", "check", str(path)]) == 0
+    assert "is valid" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", ["simulate", "sim"])
+def test_a_run_is_refused_before_anything_runs(tmp_path: Path, capsys, command) -> None:
+    path = _write(tmp_path, _limited("1e6"), "fast.toml")
+    out = tmp_path / "run"
+    err = _refusal(capsys, command, "--reference", str(path), "--out", str(out))
+    assert f"{path}: [speed].steps[0].value" in err and "w_max = 600 rad/s" in err
+    assert not out.exists()
+
+
+def test_simulate_continuous_runs_a_profile_within_the_limits(tmp_path: Path, capsys) -> None:
+    from gateway.cli import main
+
+    path = _write(tmp_path, _limited(500), "ok.toml")
+    out = tmp_path / "run"
+    assert main(["simulate", "--period", "continuous", "--reference", str(path),
+                 "--duration", "20ms", "--out", str(out)]) == 0
+    assert (out / "summary.json").is_file()
+
+
+def test_limits_can_be_given_or_waived() -> None:
+    """A caller that knows its drive passes its own limits; ``{}`` checks none."""
+    from gateway.reference import ReferenceLimit
+
+    assert parse_profile(_limited("1e6"), limits={}).speed.final == 1e6
+    tight = {"speed": (ReferenceLimit(-50.0, 50.0, "a test limit"),)}
+    with pytest.raises(ProfileError, match=r"beyond a test limit; .*\|ω\*\| ≤ 50 rad/s"):
+        parse_profile(_limited(100), "<t>", limits=tight)
+
+
 # ---------------------------------------------------------------------------- demand
 
 # Hand values for the paper's motor (section 6): J = 0.0075, R_s = 5.3, R_r = 3.3,
@@ -450,3 +607,21 @@ class _StandInMotor:
 def test_demand_needs_only_the_motor_attributes() -> None:
     p = load_profile(PROFILES / "quick.toml")
     assert demand(p, _StandInMotor()) == demand(p, MotorParams())
+
+
+def test_a_real_drives_run_is_not_held_to_the_emulators_limits(tmp_path: Path) -> None:
+    """`run --drive OTHER.toml`: another drive's limits are its own; the emulator's
+    over-speed limit (600 rad/s) does not refuse a 700 rad/s profile there, while `sim`
+    (the emulator) does."""
+    from dataclasses import replace
+
+    from gateway.cli import _load_profile
+    from gateway.drive_profile import load_drive_profile
+    from gateway.errors import UserError
+
+    path = _write(tmp_path, _limited("700"), "fast.toml")
+    emulator = load_drive_profile(None)
+    other = replace(emulator, emulator=False)
+    assert _load_profile(str(path), other).speed.final == 700.0
+    with pytest.raises(UserError, match="w_max"):
+        _load_profile(str(path), emulator)

@@ -108,3 +108,14 @@ def test_the_figures_of_a_run_that_stopped_early_say_so(tmp_path, monkeypatch):
     assert main(["simulate", "--plant", "rs-10", "--out", str(tmp_path / "o")]) == 1
     assert seen["stopped"].startswith("DIVERGED")
     assert (tmp_path / "o" / "fig1_references.png").is_file()
+
+
+def test_fig3_says_which_limits_it_draws():
+    """Fig. 3's title names the limits drawn, and says when no voltage limit is known (an
+    ideal current source has none) instead of claiming 'with limits'."""
+    text = report.fig3_limits_text(report.limits_for(type("G", (), {"i_max": 10.0})(), 200.0,
+                                                     30.0))
+    assert "i_max" in text and "over-current trip" in text and "u_dc/√3" in text
+    assert "no voltage limit" not in text
+    ideal = report.fig3_limits_text({"i_max": 10.0})
+    assert "i_max" in ideal and "no voltage limit known" in ideal

@@ -87,11 +87,13 @@ def _real32_limits(objs: list[Obj]) -> None:
 
 
 def _objects() -> list[Obj]:
+    from dbc.cia402 import SUPPORTED_DRIVE_MODES
     from dbc.motor import MotorParams
     from plant.params import DriveParams
+    from plant.servo import T_RATED, ServoParams
 
     messages, specs = _parse_dbc()
-    m, d = MotorParams(), DriveParams()
+    m, d, sv = MotorParams(), DriveParams(), ServoParams()
     objs: list[Obj] = []
 
     def var(index: int, name: str, dtype: int, access: str, default: str | None = None,
@@ -227,13 +229,27 @@ def _objects() -> list[Obj]:
     var(0x603F, "Error code", UNSIGNED16, "ro", "0", desc="last EMCY error code")
     var(0x6040, "controlword", UNSIGNED16, "rw", "0", pdo=True, desc="CiA 402 controlword")
     var(0x6041, "statusword", UNSIGNED16, "ro", "0", pdo=True, desc="CiA 402 statusword")
-    var(0x6060, "Modes of operation", INTEGER8, "rw", "-1", low="-2", high="-1",
-        desc="-1 current vector, -2 voltage vector (manufacturer-specific)")
+    var(0x6060, "Modes of operation", INTEGER8, "rw", "-1", low="-2", high="10",
+        desc="-1 current vector, -2 voltage vector (manufacturer-specific), 9 cyclic "
+             "synchronous velocity, 10 cyclic synchronous torque")
     var(0x6061, "Modes of operation display", INTEGER8, "ro", "-1")
+    var(0x606C, "Velocity actual value", INTEGER32, "ro", "0", pdo=True,
+        desc="0.001 rev/min (the encoder)")
+    var(0x6071, "Target torque", INTEGER16, "rw", "0", pdo=True,
+        desc="per mille of the motor rated torque 0x6076 (CST)")
+    var(0x6072, "Max torque", UNSIGNED16, "rw", str(round(1000 * sv.T_max / T_RATED)),
+        low="1", high="32767", desc="per mille of the motor rated torque 0x6076")
+    var(0x6076, "Motor rated torque", UNSIGNED32, "ro", str(round(1000 * T_RATED)),
+        desc="mN.m")
+    var(0x6077, "Torque actual value", INTEGER16, "ro", "0", pdo=True,
+        desc="per mille of the motor rated torque 0x6076")
     var(0x6079, "DC link circuit voltage", UNSIGNED32, "ro", str(round(d.u_dc * 1000)),
         desc="mV")
-    var(0x6502, "Supported drive modes", UNSIGNED32, "ro", "0x00030000",
-        desc="bit 16: -1 current vector, bit 17: -2 voltage vector")
+    var(0x60FF, "Target velocity", INTEGER32, "rw", "0", pdo=True,
+        desc="0.001 rev/min (CSV)")
+    var(0x6502, "Supported drive modes", UNSIGNED32, "ro", f"0x{SUPPORTED_DRIVE_MODES:08X}",
+        desc="bit 8: 9 CSV, bit 9: 10 CST, bit 16: -1 current vector, bit 17: -2 voltage "
+             "vector")
     _real32_limits(objs)
     return sorted(objs, key=lambda o: o.index)
 

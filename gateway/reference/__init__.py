@@ -4,7 +4,9 @@
 * :mod:`gateway.reference.signals`: the C² reference signals ω*(t), ψ*(t), T_L(t) and their
   derivatives (``Signal``, ``Step``, ``Profile``, ``References``, ``SetPoint``); pure.
 * :mod:`gateway.reference.toml`: the TOML file format (``parse_profile``, ``load_profile``,
-  ``paper_profile``, line-precise ``ProfileError`` messages).
+  ``paper_profile``, line-precise ``ProfileError`` messages) and what a reference must stay
+  within to run (``reference_limits``, ``ReferenceLimit``: the PDO ranges of ``drive.dbc``,
+  the emulated drive's over-speed limit).
 * :mod:`gateway.reference.demand`: the peaks a reference profile demands of a motor
   (``demand``, ``demand_trace``, ``Demand``); pure.
 """
@@ -19,7 +21,13 @@ from gateway.reference.signals import (
     Signal,
     Step,
 )
-from gateway.reference.toml import load_profile, paper_profile, parse_profile
+from gateway.reference.toml import (
+    ReferenceLimit,
+    load_profile,
+    paper_profile,
+    parse_profile,
+    reference_limits,
+)
 
 __all__ = [
     "REFERENCE_KEYS",
@@ -27,6 +35,7 @@ __all__ = [
     "MotorLike",
     "Profile",
     "ProfileError",
+    "ReferenceLimit",
     "References",
     "SetPoint",
     "Signal",
@@ -36,5 +45,6 @@ __all__ = [
     "load_profile",
     "paper_profile",
     "parse_profile",
+    "reference_limits",
     "sample_times",
 ]

@@ -31,15 +31,27 @@ t_{i−1} + ramp_{i−1}, so start times are strictly increasing); every ramp en
 Any mistake raises :class:`ProfileError` (a :class:`ValueError`) naming the file, the key
 path, what is wrong and how to fix it.
 
+Limits (:func:`reference_limits`): a value that cannot run is refused the same way. ω*
+must fit the speed signals of the bus (``w_0`` in RPDO1, ``w_m`` in TPDO3 of ``drive.dbc``)
+and stay within the emulated drive's over-speed limit ``w_max`` (0x2201:9 of ``drive.eds``,
+beyond which it faults); ψ* must fit the rotor-flux signals (``psi_ra``, ``psi_rb``) and
+T_L the load-torque signal (``T_L``). A transition stays between its end values, so checking
+the initial value and every set point suffices. The numbers come from the DBC's scalings
+and the EDS's default, not from this file. Demands that are merely high (current, voltage)
+are not refused here: ``hil-gateway reference check`` warns about them.
+
 The bundled reference profiles are package data in ``gateway/profiles/``
 (:func:`paper_profile` reads ``paper.toml``). Values are converted to SI units.
 """
 
 from __future__ import annotations
 
+import configparser
+import functools
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
@@ -47,7 +59,8 @@ from typing import Any
 
 from gateway.reference.signals import Profile, ProfileError, Signal, Step
 
-__all__ = ["load_profile", "paper_profile", "parse_profile"]
+__all__ = ["ReferenceLimit", "load_profile", "paper_profile", "parse_profile",
+           "reference_limits"]
 
 
 _TIME_UNITS = MappingProxyType({"s": 1.0, "ms": 1e-3})
@@ -60,6 +73,113 @@ _UNIT_TABLES = MappingProxyType({
 _TABLES = ("units", "profile", "speed", "flux", "load")
 _SIGNAL_UNIT = MappingProxyType({"speed": "speed", "flux": "flux", "load": "torque"})
 _SI_NAME = MappingProxyType({"speed": "rad/s", "flux": "Wb", "load": "N·m"})
+
+
+_SYMBOL = MappingProxyType({"speed": "ω*", "flux": "ψ*", "load": "T_L"})
+_LABEL = MappingProxyType({"speed": "speed reference", "flux": "flux reference",
+                           "load": "load torque"})
+#: The PDO signals (roles of ``drive.dbc``) that carry each reference or its consequence:
+#: the frame speed and the measured speed, the rotor-flux components, the load torque.
+_CARRIERS = MappingProxyType({"speed": ("w_0", "w_m"), "flux": ("psi_ra", "psi_rb"),
+                              "load": ("T_L",)})
+
+
+# ---------------------------------------------------------------------------------- limits
+
+
+@dataclass(frozen=True, slots=True)
+class ReferenceLimit:
+    """A range a reference's values must stay within to run, SI units, and why.
+
+    lo, hi: the range (SI: rad/s, Wb, N·m); what: the limit, for messages ("the range the
+    bus carries it in (...)").
+    """
+
+    lo: float
+    hi: float
+    what: str
+
+    def holds(self, x: float) -> bool:
+        """Whether ``x`` (SI) is within the range."""
+        return self.lo <= x <= self.hi
+
+
+def _bus_limit(name: str) -> ReferenceLimit:
+    """The range the PDO signals carrying reference ``name`` can represent (``drive.dbc``)."""
+    from dbc.codec import DBC_PATH, parse_dbc
+
+    messages, specs = parse_dbc(DBC_PATH)
+    by_message: dict[str, list[str]] = {}
+    lo, hi = -math.inf, math.inf
+    for sig in _CARRIERS[name]:
+        spec = specs[sig]
+        lo, hi = max(lo, spec.lo * spec.factor), min(hi, spec.hi * spec.factor)
+        for m in messages.values():
+            if any(s.name == sig for s in m.signals):
+                by_message.setdefault(m.name, []).append(sig)
+    if name == "flux":  # a modulus: its components swing through ±ψ*
+        hi = min(hi, -lo)
+        lo = -hi
+    carried = " and ".join(f"{' and '.join(sigs)} in {msg}" for msg, sigs in by_message.items())
+    spec = specs[_CARRIERS[name][0]]
+    unit = _SI_NAME[name]
+    span = f"up to {hi:g} {unit}" if name == "flux" else f"{lo:g} to {hi:g} {unit}"
+    return ReferenceLimit(lo, hi, (
+        f"the range the bus carries it in ({carried} of {DBC_PATH.name}: "
+        f"{'' if spec.signed else 'U'}INT{spec.bits} at {spec.factor:g} {unit} per bit, "
+        f"{span})"))
+
+
+def _eds_default(eds: Path, parameter: str) -> tuple[str, float] | None:
+    """(object as "0xIIII:S", DefaultValue) of the EDS entry named ``parameter``; None if the
+    EDS has none or cannot be read."""
+    cp = configparser.ConfigParser(interpolation=None, strict=False)
+    try:
+        cp.read(eds, encoding="utf-8")
+    except (OSError, configparser.Error, UnicodeDecodeError):
+        return None
+    for section in cp.sections():
+        if cp[section].get("ParameterName", "").strip() != parameter:
+            continue
+        index, _, sub = section.lower().partition("sub")
+        try:
+            value = float(cp[section].get("DefaultValue", ""))
+            where = f"0x{int(index, 16):04X}" + (f":{int(sub, 16)}" if sub else "")
+        except ValueError:
+            return None
+        return where, value
+    return None
+
+
+def _overspeed_limit() -> ReferenceLimit | None:
+    """The emulated drive's over-speed limit w_max (its EDS default), or None without one."""
+    from dbc.cia301 import Emcy
+    from dbc.codec import EDS_PATH
+
+    found = _eds_default(EDS_PATH, "w_max")
+    if found is None or not found[1] > 0.0:
+        return None
+    where, w_max = found
+    return ReferenceLimit(-w_max, w_max, (
+        f"the emulated drive's over-speed limit (w_max = {w_max:g} rad/s, {where} in "
+        f"{EDS_PATH.name}: beyond it the drive faults with EMCY 0x{int(Emcy.OVERSPEED):04X})"))
+
+
+@functools.cache
+def reference_limits() -> Mapping[str, tuple[ReferenceLimit, ...]]:
+    """What each reference ("speed", "flux", "load") must stay within to run on the
+    emulated drive: the range of its PDO signals in ``drive.dbc`` and, for ω*, the drive's
+    over-speed limit ``w_max`` from ``drive.eds``. Read once per process."""
+    out: dict[str, tuple[ReferenceLimit, ...]] = {}
+    for name in _CARRIERS:
+        limits = [_bus_limit(name)]
+        if name == "speed" and (overspeed := _overspeed_limit()) is not None:
+            limits.append(overspeed)
+        out[name] = tuple(limits)
+    return MappingProxyType(out)
+
+
+# ---------------------------------------------------------------------------------- parsing
 
 
 def _fail(src: str, where: str, msg: str) -> ProfileError:
@@ -121,8 +241,34 @@ def _units(src: str, data: Mapping[str, Any], need_torque: bool) -> dict[str, fl
     return out
 
 
+def _beyond(src: str, w: str, raw: Any, name: str, x: float, vunit_name: str, vscale: float,
+            limits: Sequence[ReferenceLimit]) -> ProfileError | None:
+    """The refusal of value ``x`` (SI) of reference ``name`` at ``w`` if it breaks one of
+    ``limits``, else None."""
+    broken = [lim for lim in limits if not lim.holds(x)]
+    if not broken:
+        return None
+    si = _SI_NAME[name]
+
+    def show(v: float) -> str:
+        return f"{v:g} {si}" if vscale == 1.0 else f"{v / vscale:g} {vunit_name} ({v:g} {si})"
+
+    lo, hi = max(lim.lo for lim in limits), min(lim.hi for lim in limits)
+    sym = _SYMBOL[name]
+    keep = (f"|{sym}| ≤ {show(hi)}" if lo == -hi and name != "flux"
+            else f"{sym} ≤ {show(hi)}" if name == "flux"
+            else f"{sym} within {lo / vscale:g} to {show(hi)}")
+    return _fail(
+        src, f"{w} = {raw!r}",
+        f"the {_LABEL[name]} {sym} = {show(x)} cannot run: it is beyond "
+        f"{' and beyond '.join(lim.what for lim in broken)}; every value of [{name}] "
+        f"must have {keep}: change this one",
+    )
+
+
 def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any],
-            raw_units: Mapping[str, Any], duration: float, positive: bool) -> Signal:
+            raw_units: Mapping[str, Any], duration: float, positive: bool,
+            limits: Sequence[ReferenceLimit] = ()) -> Signal:
     where = f"[{name}]"
     _keys(src, where, tab, ("initial", "steps"))
     vunit_name = str(raw_units.get(_SIGNAL_UNIT[name], _SI_NAME[name]))
@@ -138,6 +284,9 @@ def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any
                 f"the flux reference must stay > 0 (ψ* > 0 is required by (15)); "
                 f"use a positive value in {vunit_name}",
             )
+        refusal = _beyond(src, w, raw, name, x, vunit_name, vscale, limits)
+        if refusal is not None:
+            raise refusal
         return x
 
     if "initial" in tab:
@@ -200,12 +349,17 @@ def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any
     return Signal(initial, tuple(steps))
 
 
-def parse_profile(text: str, source: str = "<string>") -> Profile:
+def parse_profile(text: str, source: str = "<string>",
+                  limits: Mapping[str, Sequence[ReferenceLimit]] | None = None) -> Profile:
     """A reference :class:`Profile` from TOML text (see the module docstring for the format).
 
     ``source`` names the text in error messages and becomes :attr:`Profile.source`.
+    ``limits``: what each reference ("speed", "flux", "load") must stay within; None gives
+    :func:`reference_limits` (the emulated drive on the built-in ``drive.dbc``).
     """
     src = source
+    if limits is None:
+        limits = reference_limits()
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -239,14 +393,16 @@ def parse_profile(text: str, source: str = "<string>") -> Profile:
         if tab is None:
             signals[sig] = Signal(0.0)
             continue
-        signals[sig] = _signal(src, sig, tab, units, raw_units, duration, positive=sig == "flux")
+        signals[sig] = _signal(src, sig, tab, units, raw_units, duration,
+                               positive=sig == "flux", limits=tuple(limits.get(sig, ())))
     return Profile(name, duration, signals["speed"], signals["flux"], signals["load"],
                    source=source, description=description)
 
 
-def load_profile(path: str | Path) -> Profile:
+def load_profile(path: str | Path,
+                 limits: Mapping[str, Sequence[ReferenceLimit]] | None = None) -> Profile:
     """Read a reference profile TOML file; :class:`ProfileError` (naming the file) on any
-    problem."""
+    problem, a value beyond ``limits`` included (see :func:`parse_profile`)."""
     src = str(path)
     try:
         text = Path(path).read_bytes().decode("utf-8")
@@ -259,7 +415,7 @@ def load_profile(path: str | Path) -> Profile:
         raise ProfileError(f"{src}: cannot read the file ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
         raise ProfileError(f"{src}: not UTF-8 text ({exc.reason}); save it as UTF-8") from None
-    return parse_profile(text, src)
+    return parse_profile(text, src, limits)
 
 
 def paper_profile() -> Profile:

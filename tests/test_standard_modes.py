@@ -1,0 +1,179 @@
+"""The emulated drive in CiA 402's standard cyclic modes (CSV 9, CST 10), driven by a master
+we did not write: python-canopen's BaseNode402 built from dbc/drive.eds. It sets the mode
+(checked against 0x6502), remaps the PDOs through its own PDO API, walks the power state
+machine, then streams the target every SYNC and reads the actual values back over PDO
+(plant/servo.py is the drive's own field orientation and speed loop)."""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+
+import can
+import canopen
+import pytest
+from canopen.profiles.p402 import BaseNode402
+
+from dbc import EDS_PATH
+from dbc.cia402 import VELOCITY_UNIT
+from dbc.motor import MotorParams
+from plant.device import DriveDevice
+from plant.servo import T_RATED, Servo, ServoParams
+
+NODE = 5
+T = 1e-3
+
+
+class Master:
+    """The emulator at node 5 on a virtual bus; a BaseNode402 master on another Bus object."""
+
+    def __init__(self) -> None:
+        channel = f"test-std-{uuid.uuid4().hex}"
+        self.dev_bus = can.Bus(interface="virtual", channel=channel)
+        self.dev = DriveDevice(self.dev_bus, NODE)
+        self.net = canopen.Network()
+        self.net.NOTIFIER_CYCLE = 0.05
+        self.net.connect(interface="virtual", channel=channel)
+        self.node = BaseNode402(NODE, str(EDS_PATH))
+        self.net.add_node(self.node)
+        self.node.sdo.RESPONSE_TIMEOUT = 0.5
+        # a loaded host may hold either side for a while: the state walk waits, not fails
+        self.node.TIMEOUT_SWITCH_STATE_FINAL = 20.0
+        self.node.TIMEOUT_SWITCH_STATE_SINGLE = 5.0
+        self.node.TIMEOUT_SWITCH_OP_MODE = 5.0
+        self.node.TIMEOUT_CHECK_TPDO = 5.0
+        booted: list[int] = []
+        self.node.nmt.add_heartbeat_callback(booted.append)  # before the device boots
+        self.dev.start()
+        deadline = time.monotonic() + 5.0
+        while 0 not in booted:
+            assert time.monotonic() < deadline, "no boot-up from the emulator"
+            time.sleep(0.005)
+
+    def close(self) -> None:
+        self.net.sync.stop()
+        self.dev.stop()
+        self.net.disconnect()
+        self.dev_bus.shutdown()
+
+    def configure(self, mode: str, target: int) -> None:
+        """Mode, PDOs (RPDO1: controlword + target; TPDO1: statusword + velocity actual +
+        torque actual, on every SYNC), operational, Operation enabled."""
+        node = self.node
+        node.nmt.state = "PRE-OPERATIONAL"
+        node.sdo[0x1006].raw = round(T * 1e6)
+        node.op_mode = mode
+        assert node.sdo[0x6061].raw == node.sdo[0x6060].raw
+        node.tpdo.read()
+        node.rpdo.read()
+        for pdo in (*node.rpdo.values(), *node.tpdo.values()):
+            pdo.clear()
+            pdo.enabled = False
+        node.rpdo[1].add_variable(0x6040)
+        node.rpdo[1].add_variable(target)
+        node.tpdo[1].add_variable(0x6041)
+        node.tpdo[1].add_variable(0x606C)
+        node.tpdo[1].add_variable(0x6077)
+        for pdo in (node.rpdo[1], node.tpdo[1]):
+            pdo.trans_type = 1
+            pdo.enabled = True
+        node.rpdo.save()
+        node.tpdo.save()
+        node.setup_402_state_machine(read_pdos=False)
+        node.nmt.state = "OPERATIONAL"
+        # the state machine is walked while SYNCs and the synchronous RPDO1 run
+        node.rpdo[1][target].raw = 0
+        node.rpdo[1].start(0.005)
+        self.net.sync.start(0.005)
+        node.state = "OPERATION ENABLED"
+        self.net.sync.stop()
+        node.rpdo[1].stop()
+        self.target = target
+
+    def cycle(self, value: int) -> tuple[int, float, float]:
+        """One lockstep cycle: the target in RPDO1, SYNC, wait for TPDO1 → (statusword,
+        velocity in rad/s, torque in N·m)."""
+        node = self.node
+        node.rpdo[1][self.target].raw = value
+        node.rpdo[1].transmit()
+        self.net.sync.transmit()
+        assert node.tpdo[1].wait_for_reception(10.0) is not None, "no TPDO1"
+        t = node.tpdo[1]
+        return (t[0x6041].raw, t[0x606C].raw * VELOCITY_UNIT,
+                t[0x6077].raw * T_RATED / 1000)
+
+
+@pytest.fixture
+def master():
+    m = Master()
+    yield m
+    m.close()
+
+
+def test_csv_tracks_a_ramp_within_the_speed_loop_bandwidth(master):
+    """Magnetise 0.5 s at standstill, ramp to 100 rad/s at 100 rad/s², hold 0.5 s: a type-2
+    loop follows the ramp with a lag that dies out (w_bw 60 rad/s)."""
+    master.configure("CYCLIC SYNCHRONOUS VELOCITY", 0x60FF)
+    errors, w = [], 0.0
+    for k in range(2000):
+        t = k * T
+        w_ref = min(max(t - 0.5, 0.0), 1.0) * 100.0
+        sw, w, torque = master.cycle(round(w_ref / VELOCITY_UNIT))
+        assert sw & 0x6F == 0x27, f"left Operation enabled at {t:.3f} s: 0x{sw:04X}"
+        errors.append((t, w_ref - w))
+    ramp = [abs(e) for t, e in errors if 0.7 <= t <= 1.5]
+    hold = [abs(e) for t, e in errors if t >= 1.8]
+    assert max(ramp) < 1.0, max(ramp)  # rad/s, during the ramp
+    assert max(hold) < 0.05, max(hold)  # settled at 100 rad/s
+    assert abs(w - 100.0) < 0.05
+    assert abs(torque) < 0.2  # no load, no friction: no torque at constant speed
+
+
+def test_cst_makes_the_torque_asked_for(master):
+    """2 N·m after the flux has settled: the torque actual value reads it and the motor
+    accelerates at T/J (model (1): no friction)."""
+    master.configure("CYCLIC SYNCHRONOUS TORQUE", 0x6071)
+    J = MotorParams().J
+    for _ in range(500):  # magnetise
+        master.cycle(0)
+    _, w0, _ = master.cycle(round(2.0 / T_RATED * 1000))
+    for _ in range(199):
+        _, w1, torque = master.cycle(round(2.0 / T_RATED * 1000))
+    assert torque == pytest.approx(2.0, abs=0.05)
+    assert (w1 - w0) / (199 * T) == pytest.approx(2.0 / J, rel=0.03)
+
+
+def test_a_mode_the_drive_does_not_have_is_refused(master):
+    """0x6502 says which modes exist; 0x6060 refuses any other with an SDO abort."""
+    node = master.node
+    assert not node.is_op_mode_supported("CYCLIC SYNCHRONOUS POSITION")
+    assert node.is_op_mode_supported("CYCLIC SYNCHRONOUS TORQUE")
+    node.nmt.state = "PRE-OPERATIONAL"
+    with pytest.raises(canopen.SdoAbortedError) as exc:
+        node.sdo[0x6060].raw = 8
+    assert exc.value.code == 0x06090030
+    assert node.sdo[0x6061].raw == -1  # unchanged
+
+
+def test_the_servo_orients_the_field_and_limits_the_torque():
+    """The drive's own control, alone: with exact parameters the torque of model (1) equals
+    the target once the flux is up; the torque limit holds."""
+    from plant.drive import Drive
+    from plant.params import DriveParams
+
+    motor = MotorParams()
+    drive = Drive(motor, DriveParams(mode="ideal"))
+    drive.enable(True)
+    servo = Servo(motor, ServoParams(T_max=3.0), T)
+    w = 0.0
+    for _ in range(600):
+        drive.set_setpoints(servo.torque(1.5, w))
+        meas = drive.advance(T, 0.0)
+        w = meas.w_m
+    assert meas.T_e == pytest.approx(1.5, rel=0.01)
+    assert abs(meas.psi_r_ab) == pytest.approx(ServoParams().psi_rated, rel=0.01)
+    drive.set_setpoints(servo.torque(50.0, w))
+    meas = drive.advance(T, 0.0)
+    assert meas.T_e <= 3.0 * 1.01
+    assert math.isfinite(servo.T_est)
