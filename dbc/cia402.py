@@ -148,3 +148,9 @@ VELOCITY_ACTUAL = 0x606C  #: INTEGER32, velocity units
 TARGET_VELOCITY = 0x60FF  #: INTEGER32, velocity units
 #: The emulated drive's velocity unit (0x606C, 0x60FF): 0.001 rev/min, in rad/s.
 VELOCITY_UNIT = 2.0 * 3.141592653589793 / 60000.0
+#: DBC signal names of the standard process data, by object (a drive profile's DBC may name
+#: them so; the master maps them by index, whatever the EDS calls the object).
+STANDARD_SIGNALS: dict[str, int] = {
+    "target_torque": TARGET_TORQUE, "target_velocity": TARGET_VELOCITY,
+    "torque_actual": TORQUE_ACTUAL, "velocity_actual": VELOCITY_ACTUAL,
+}

@@ -15,16 +15,28 @@ class DriveMode(StrEnum):
     IDEAL: the stator currents equal the setpoints (current-fed model; emulator only).
     CURRENT_LOOP: a PI current loop at the drive's internal rate (CiA 402 current vector
     mode on a real drive). VOLTAGE: the voltage setpoints are applied (voltage vector mode).
+    TORQUE, VELOCITY: CiA 402's cyclic synchronous torque (CST) and velocity (CSV) modes of
+    a standard drive, which takes a target torque or speed every SYNC and runs its own field
+    orientation (and speed loop).
     """
 
     IDEAL = "ideal"
     CURRENT_LOOP = "current-loop"
     VOLTAGE = "voltage"
+    TORQUE = "torque"
+    VELOCITY = "velocity"
 
     @property
     def mode_of_operation(self) -> int:
-        """The emulator's 0x6060 value: −2 voltage vector mode, −1 current vector mode."""
-        return -2 if self is DriveMode.VOLTAGE else -1
+        """The emulator's 0x6060 value: −2 voltage vector mode, −1 current vector mode,
+        10 CST, 9 CSV."""
+        return {DriveMode.VOLTAGE: -2, DriveMode.TORQUE: 10,
+                DriveMode.VELOCITY: 9}.get(self, -1)
+
+    @property
+    def standard(self) -> bool:
+        """A CiA 402 standard cyclic mode (the drive's own control), not a vector mode."""
+        return self in (DriveMode.TORQUE, DriveMode.VELOCITY)
 
     @property
     def emulator_model(self) -> int:

@@ -25,10 +25,13 @@ SETPOINTS: dict[SetpointFrame, tuple[str, ...]] = {
     SetpointFrame.AB: ("i_sa_ref", "i_sb_ref", "u_sa_ref", "u_sb_ref"),
 }
 LOAD: tuple[str, ...] = ("T_L",)
+#: The targets of a standard drive's cyclic modes (CiA 402 0x6071 in CST, 0x60FF in CSV), in
+#: N·m and rad/s.
+TARGETS: tuple[str, ...] = ("target_torque", "target_velocity")
 
 #: Every role: what the gateway means by a value (a signal name of ``drive.dbc``).
 ROLES: frozenset[str] = frozenset((*TX, *CONTROL, *FRAME, *SETPOINTS[SetpointFrame.DQ],
-                                   *SETPOINTS[SetpointFrame.AB], *LOAD))
+                                   *SETPOINTS[SetpointFrame.AB], *LOAD, *TARGETS))
 
 #: The default DBC message carrying the setpoints in each frame (they share a COB-ID).
 SETPOINT_MESSAGE: dict[SetpointFrame, str] = {

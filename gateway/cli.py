@@ -157,7 +157,9 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "field-oriented control with a speed sensor, the baseline of a "
                         "vector drive), a name another installed package registers "
                         "(entry-point group can_drive_hil.controllers), or "
-                        "package.module:Class; docs/controllers.md")
+                        "package.module:Class; for a standard drive (CST, CSV): 'speed-pi' "
+                        "(a speed PI over its torque) or 'stream' (the profile as its "
+                        "target); docs/controllers.md")
     p.add_argument("--controller-params", metavar="FILE.toml",
                    help="the controller's parameters: a TOML table of names to values, "
                         "passed to its factory (not for 'paper', whose options are below)")
@@ -271,7 +273,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     load = _load_mode(args, plant)
     spec = RunSpec(
         law=args.law, flux=args.flux, estimator=args.estimator,
-        drive_mode=args.drive_mode or args.law.drive_modes[0],
+        drive_mode=_drive_mode(args),
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
@@ -364,8 +366,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drive-mode", type=DriveMode, choices=list(DriveMode),
                    help="what the drive does with the setpoints: ideal current source or PI "
                         "current loop (CiA 402 current vector mode; 'ideal' only on the "
-                        "emulator), or voltage-fed (voltage vector mode); default: ideal for "
-                        "the current-fed law, voltage for the full-order law")
+                        "emulator), or voltage-fed (voltage vector mode); or a standard "
+                        "drive's cyclic synchronous torque or velocity mode (CST, CSV: its "
+                        "own field orientation; --controller speed-pi or stream; the "
+                        "emulator's standard profile); default: ideal for the current-fed law, "
+                        "voltage for the full-order law, torque for speed-pi, velocity for "
+                        "stream")
     p.add_argument("--delay", type=int, choices=(0, 1), default=1,
                    help="1: the drive applies RPDOs at the next SYNC (CiA 301); 0: on receipt "
                         "(emulator option)")
@@ -403,6 +409,25 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
 
 
+def _drive_mode(args: argparse.Namespace) -> Any:
+    """--drive-mode; else the first the controller names (its ``drive_modes``), else the
+    paper's law's (current-fed: ideal, full-order: voltage)."""
+    from gateway.control.interface import controller_factory
+
+    if args.drive_mode is not None:
+        return args.drive_mode
+    modes = getattr(controller_factory(args.controller), "drive_modes", None)
+    return modes[0] if modes else args.law.drive_modes[0]
+
+
+def _emulator_profile(args: argparse.Namespace) -> str:
+    """The built-in emulator profile for the drive mode: its CiA 402 standard modes
+    (CST, CSV) or its vector modes."""
+    from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD
+
+    return EMULATOR_STANDARD if _drive_mode(args).standard else EMULATOR
+
+
 def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
     """The run's specification, checked against what the drive can do."""
     from dbc.modes import DriveMode
@@ -414,14 +439,15 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
     from gateway.spec import RunSpec
 
     law = args.law
-    mode = args.drive_mode or law.drive_modes[0]
+    mode = _drive_mode(args)
     if not drive.emulator and mode is DriveMode.IDEAL:
         if args.drive_mode:
             raise UserError("--drive-mode ideal (an ideal current source) exists only on the "
                             "emulator; a real drive runs its current loop: use --drive-mode "
                             "current-loop")
         mode = DriveMode.CURRENT_LOOP
-    if args.controller == DEFAULT_CONTROLLER and mode not in law.drive_modes:
+    if args.controller == DEFAULT_CONTROLLER and mode not in law.drive_modes \
+            and not mode.standard:  # RunSpec says what a standard drive takes
         raise UserError(f"the {law} law does not drive a '{mode}' drive: use --drive-mode "
                         f"{' or '.join(law.drive_modes)}")
     if args.flux is FluxSource.TRUE and not drive.truth:
@@ -532,7 +558,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from gateway.drive_profile import load_drive_profile
     from gateway.runner import BusTarget
 
-    drive = load_drive_profile(args.drive)
+    drive = load_drive_profile(args.drive, _emulator_profile(args))
     bus_cfg = bus_config(args)
 
     def open_buses(*_: Any) -> tuple[Any, str, Callable[[], None]]:
@@ -564,7 +590,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     # GIL) stops the gateway's heartbeat and the emulator's watch of it together, and the
     # 300 ms watch of the emulator profile then tripped on busy 2-core hosts before cycle
     # 1 (EMCY 0x8130). A dead gateway thread is still caught, within a second.
-    drive = load_drive_profile(None)
+    drive = load_drive_profile(None, _emulator_profile(args))
     drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
                                                     SIM_HEARTBEAT_TIMEOUT_MS))
     return _gateway_session(args, BusTarget(drive, open_buses, command="sim", truth=truth),
@@ -762,8 +788,10 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--drive-mode", "--drive", dest="drive_mode", type=DriveMode,
                    choices=list(DriveMode),
                    help="the emulated drive's mode: ideal current source, PI current loop at "
-                        "10 kHz, or voltage-fed (default: ideal for current-fed, voltage for "
-                        "full-order); --drive is the old spelling")
+                        "10 kHz, voltage-fed, or a standard drive's torque (CST) or velocity "
+                        "(CSV) mode with its own field orientation (default: ideal for "
+                        "current-fed, voltage for full-order, torque for speed-pi, velocity "
+                        "for stream); --drive is the old spelling")
     p.add_argument("--period", default="1ms",
                    help="sampling period with its unit, 100us … 100ms in whole µs (1ms, "
                         "250us, ...), or 'continuous' (default 1ms)")

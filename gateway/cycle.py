@@ -91,14 +91,16 @@ def truth_from(measured: Mapping[str, float]) -> Truth:
 
 
 def sample_from(measured: Mapping[str, float]) -> Sample:
-    """The controller's input from the drive's role values: currents, voltages, the
+    """The controller's input from the drive's role values: currents, voltages (NaN where a
+    standard drive sends none), the
     emulator's true flux where it sends it (read only in the comparison mode
     ``flux="true"``), and the drive's speed where it sends one."""
     psi = (complex(measured["psi_ra"], measured["psi_rb"]) if "psi_ra" in measured
            else None)
+    nan = math.nan
     return Sample(
-        i_s_ab=complex(measured["i_sa"], measured["i_sb"]),
-        u_s_ab=complex(measured["u_sa"], measured["u_sb"]),
+        i_s_ab=complex(measured.get("i_sa", nan), measured.get("i_sb", nan)),
+        u_s_ab=complex(measured.get("u_sa", nan), measured.get("u_sb", nan)),
         psi_r_ab=psi,
         w_m=measured.get("w_m"),
     )
@@ -113,7 +115,7 @@ def setpoint_values(
     controlword; the frame angle ε0 at the start of the interval the setpoints act on and
     the frame speed ω0; the current and voltage setpoints in the (d, q) frame, or, for
     drives that hold (a, b) setpoints, in the fixed frame; the load torque for the emulated
-    dynamometer, N·m.
+    dynamometer, N·m; a standard drive's target torque (N·m) and speed (rad/s).
     """
     if frame is SetpointFrame.DQ:
         i, u = cmd.i_s_dq_ref, cmd.u_s_dq_ref
@@ -121,7 +123,8 @@ def setpoint_values(
         i, u = cmd.i_s_ab_ref, cmd.u_s_ab_ref
     n_i1, n_i2, n_u1, n_u2 = SETPOINTS[frame]
     return {"controlword": int(controlword), "eps_0": cmd.eps_0, "w_0": cmd.w_0,
-            n_i1: i.real, n_i2: i.imag, n_u1: u.real, n_u2: u.imag, "T_L": T_L}
+            n_i1: i.real, n_i2: i.imag, n_u1: u.real, n_u2: u.imag, "T_L": T_L,
+            "target_torque": cmd.target_torque, "target_velocity": cmd.target_velocity}
 
 
 class CycleOutput(NamedTuple):

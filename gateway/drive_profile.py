@@ -14,13 +14,16 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     [modes]                          # 0x6060 values
     current = -1                     # current vector (current-fed law)
     voltage = -2                     # voltage vector (full-order law)
+    torque = 10                      # cyclic synchronous torque (CST; a standard drive)
+    velocity = 9                     # cyclic synchronous velocity (CSV)
 
     [pdo]                            # DBC messages (ids for node 1; offset by node id)
     control = "RPDO1"                # controlword, eps_0, w_0
-    setpoints = "RPDO2"              # dq setpoints; "RPDO2_AB" for drives that hold (a, b)
+    setpoints = "RPDO2"              # dq setpoints; "RPDO2_AB" for drives that hold (a, b);
+                                     # none for a standard drive (targets in control)
     load = "RPDO3"                   # emulated dynamometer (emulator only)
     currents = "TPDO1"               # statusword, i_sa, i_sb, sync_counter
-    voltages = "TPDO2"               # u_sa, u_sb, u_dc
+    voltages = "TPDO2"               # u_sa, u_sb, u_dc (optional)
     truth = "TPDO3"                  # w_m, psi_ra, psi_rb, T_e (emulator only)
     remap = true                     # write the PDO mappings by SDO from the DBC layout
 
@@ -50,7 +53,7 @@ from gateway.errors import UserError
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
               "emulator": bool, "gateway_node": int, "dbc_node": int},
-    "modes": {"current": int, "voltage": int},
+    "modes": {"current": int, "voltage": int, "torque": int, "velocity": int},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
             "truth": str, "remap": bool},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
@@ -76,8 +79,7 @@ REQUIRED_OBJECTS: dict[int, str] = {
     0x1000: "device type", 0x1017: "producer heartbeat time", 0x6040: "controlword",
     0x6041: "statusword", 0x6060: "modes of operation",
 }
-_REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "setpoints"),
-             ("pdo", "currents"), ("pdo", "voltages"))
+_REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "currents"))
 
 
 @dataclass(frozen=True)
@@ -93,11 +95,13 @@ class DriveProfile:
     emulator: bool = False
     mode_current: int = -1
     mode_voltage: int = -2
+    mode_torque: int = 10
+    mode_velocity: int = 9
     control: str = "RPDO1"
-    setpoints: str = "RPDO2"
+    setpoints: str | None = "RPDO2"
     load: str | None = None
     currents: str = "TPDO1"
-    voltages: str = "TPDO2"
+    voltages: str | None = "TPDO2"
     truth: str | None = None
     remap: bool = True
     heartbeat_ms: int = 50
@@ -125,11 +129,18 @@ def _resolve(value: str, base: Path) -> Path:
     return p if p.is_absolute() else base / p
 
 
-def load_drive_profile(path: str | Path | None = None) -> DriveProfile:
-    """Read a drive profile; None gives the built-in emulator profile."""
+#: The built-in emulator profiles: its vector modes, and its CiA 402 standard modes.
+EMULATOR = "emulator"
+EMULATOR_STANDARD = "emulator-standard"
+
+
+def load_drive_profile(path: str | Path | None = None, builtin: str = EMULATOR
+                       ) -> DriveProfile:
+    """Read a drive profile; None gives a built-in emulator profile (``builtin``:
+    :data:`EMULATOR`, or :data:`EMULATOR_STANDARD` for CST/CSV)."""
     if path is None:
-        src = resources.files("gateway").joinpath("drives/emulator.toml")
-        text, source, base = src.read_text(), "<emulator>", Path(".")
+        src = resources.files("gateway").joinpath(f"drives/{builtin}.toml")
+        text, source, base = src.read_text(), f"<{builtin}>", Path(".")
     else:
         p = Path(path)
         try:
@@ -196,8 +207,9 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         eds=_resolve(d["eds"], base), dbc=_resolve(d["dbc"], base), node=node,
         device_type=d.get("device_type"), emulator=d.get("emulator", False),
         mode_current=m.get("current", -1), mode_voltage=m.get("voltage", -2),
-        control=p["control"], setpoints=p["setpoints"], load=p.get("load"),
-        currents=p["currents"], voltages=p["voltages"], truth=p.get("truth"),
+        mode_torque=m.get("torque", 10), mode_velocity=m.get("velocity", 9),
+        control=p["control"], setpoints=p.get("setpoints"), load=p.get("load"),
+        currents=p["currents"], voltages=p.get("voltages"), truth=p.get("truth"),
         remap=p.get("remap", True),
         heartbeat_ms=t.get("heartbeat_ms", 50),
         heartbeat_timeout_ms=t.get("heartbeat_timeout_ms", 300),

@@ -43,7 +43,7 @@ class Plausibility:
         for name, v in measured.items():
             if not math.isfinite(v):
                 return f"{name} = {v} is not a number"
-        i = math.hypot(measured["i_sa"], measured["i_sb"])
+        i = math.hypot(measured.get("i_sa", 0.0), measured.get("i_sb", 0.0))
         if i > self.i_peak:
             return (f"|i_s| = {i:.3f} A (i_sa {measured['i_sa']:.3f}, i_sb "
                     f"{measured['i_sb']:.3f}) beyond the drive's peak current {self.i_peak:g} A")
@@ -122,10 +122,12 @@ class Envelope:
         w_ref, w_m = r.w_ref, r.w_m
         w_hat = getattr(r, "w_hat", None)
         psi_hat = getattr(r, "psi_r_mod_hat", None)
+        # a standard drive may send no currents or voltages (NaN in the row): not checked
         checks: list[tuple[str, float, float, str]] = [
-            ("stator current |i_s|", math.hypot(r.i_sa, r.i_sb), self.i_max, "A"),
-            ("stator voltage |u_s|", math.hypot(r.u_sa, r.u_sb), self.u_max, "V"),
-        ]
+            (what, value, bound, unit) for what, value, bound, unit in (
+                ("stator current |i_s|", math.hypot(r.i_sa, r.i_sb), self.i_max, "A"),
+                ("stator voltage |u_s|", math.hypot(r.u_sa, r.u_sb), self.u_max, "V"))
+            if not math.isnan(value)]
         if w_hat is not None:
             checks[:0] = [("speed estimate |ω̂|", abs(w_hat), self.w_max, "rad/s"),
                           ("speed error |ω̂ − ω*|", abs(w_hat - w_ref), self.e_max, "rad/s")]

@@ -60,6 +60,7 @@ from dbc.cia402 import (
     CONTROLWORD,
     ENABLE_SEQUENCE,
     MODES_OF_OPERATION,
+    STANDARD_SIGNALS,
     STATUSWORD,
     SW_FAULT,
     Controlword,
@@ -457,9 +458,11 @@ class DriveMaster:
     def object_of(self, signal: str, role: str
                   ) -> canopen.objectdictionary.ODVariable | None:
         """The EDS object a PDO signal maps: named like the DBC signal (CiA 402's controlword
-        and statusword by index); None if the EDS has none."""
-        if role in ("controlword", "statusword"):
-            index = CONTROLWORD if role == "controlword" else STATUSWORD
+        and statusword, and the standard targets and actual values of
+        :data:`dbc.cia402.STANDARD_SIGNALS`, by index); None if the EDS has none."""
+        index = ({"controlword": CONTROLWORD, "statusword": STATUSWORD}.get(role)
+                 or STANDARD_SIGNALS.get(signal))
+        if index is not None:
             obj = self.node.object_dictionary[index] if self.has(index) else None
             return obj if isinstance(obj, canopen.objectdictionary.ODVariable) else None
         return self.find_object(signal)

@@ -17,14 +17,24 @@ from pathlib import Path
 
 from dbc import MessageCodec, parse_dbc
 from dbc.modes import SetpointFrame
-from dbc.signals import CONTROL, CURRENTS, FRAME, LOAD, SETPOINTS, STATUS, TRUTH, VOLTAGES
+from dbc.signals import (
+    CONTROL,
+    CURRENTS,
+    FRAME,
+    LOAD,
+    SETPOINTS,
+    STATUS,
+    TARGETS,
+    TRUTH,
+    VOLTAGES,
+)
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 
 #: Roles a drive sends (TPDOs) and the gateway sends (RPDOs).
 TX_ROLES = frozenset((*STATUS, *CURRENTS, *VOLTAGES, *TRUTH))
 RX_ROLES = frozenset((*CONTROL, *FRAME, *SETPOINTS[SetpointFrame.DQ],
-                      *SETPOINTS[SetpointFrame.AB], *LOAD))
+                      *SETPOINTS[SetpointFrame.AB], *LOAD, *TARGETS))
 
 #: What to look for when a role is missing (for the refusal at bring-up).
 ROLE_HINTS: dict[str, str] = {
@@ -38,6 +48,9 @@ ROLE_HINTS: dict[str, str] = {
     "u_sb": "a manufacturer object with the average applied stator voltage along b",
     "eps_0": "a manufacturer object taking the (d, q) frame angle at the start of the period",
     "w_0": "a manufacturer object taking the (d, q) frame speed",
+    "target_torque": "the CiA 402 target torque 0x6071 (cyclic synchronous torque)",
+    "target_velocity": "the CiA 402 target velocity 0x60FF (cyclic synchronous velocity)",
+    "w_m": "the speed: the CiA 402 velocity actual value 0x606C, or the emulator's truth",
     "psi_ra": "the emulator's true rotor flux (TPDO3); real drives have none: use --flux "
               "estimated",
     "psi_rb": "the emulator's true rotor flux (TPDO3); real drives have none: use --flux "
@@ -135,10 +148,10 @@ class ProcessData:
 def _pdo_names(profile: DriveProfile, frame: SetpointFrame | None) -> list[tuple[str, bool]]:
     """(message, is TPDO) of the profile's [pdo] table; the setpoint message by frame."""
     setpoints = profile.setpoints
-    if frame == SetpointFrame.AB and not setpoints.upper().endswith("_AB"):
+    if setpoints and frame == SetpointFrame.AB and not setpoints.upper().endswith("_AB"):
         setpoints = f"{setpoints}_AB"
-    rx = [profile.control, setpoints] + ([profile.load] if profile.load else [])
-    tx = [profile.currents, profile.voltages] + ([profile.truth] if profile.truth else [])
+    rx = [n for n in (profile.control, setpoints, profile.load) if n]
+    tx = [n for n in (profile.currents, profile.voltages, profile.truth) if n]
     return [(n, False) for n in rx] + [(n, True) for n in tx]
 
 

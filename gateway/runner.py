@@ -59,7 +59,13 @@ def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = (
     """The roles a run needs of the drive: CiA 402 words, the measured currents and applied
     voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, the true
     flux only for ``--flux true``, and what the controller ``requires`` (its optional
-    attribute, e.g. ``("w_m",)``: a speed sensor)."""
+    attribute, e.g. ``("w_m",)``: a speed sensor). A standard drive (CST, CSV): the CiA 402
+    words, its target, and what the controller requires."""
+    if spec.drive_mode.standard:  # the drive's own control: its target, its statusword
+        target = ("target_torque" if spec.drive_mode is DriveMode.TORQUE
+                  else "target_velocity")
+        roles = ["controlword", "statusword", target]
+        return tuple(roles + [r for r in requires if r not in roles])
     frame = pd.setpoint_frame
     i1, i2, u1, u2 = SETPOINTS[frame]
     roles = ["controlword", "statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
@@ -257,7 +263,8 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
     plan.pd.require(required_roles(spec, plan.pd, getattr(ctl, "requires", ())),
                     f"{who} with a {spec.drive_mode} drive",
                     master.node.object_dictionary.indices)
-    mode = drive.mode_voltage if spec.drive_mode is DriveMode.VOLTAGE else drive.mode_current
+    mode = {DriveMode.VOLTAGE: drive.mode_voltage, DriveMode.TORQUE: drive.mode_torque,
+            DriveMode.VELOCITY: drive.mode_velocity}.get(spec.drive_mode, drive.mode_current)
     counter = master.configure(spec.period, plan.pd, drive.remap, mode,
                                _emulator_settings(master, drive, spec),
                                sync_overflow=SYNC_OVERFLOW)

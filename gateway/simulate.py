@@ -38,7 +38,7 @@ from gateway.control.controller import (
 from gateway.control.interface import ControllerContext, summary_of
 from gateway.control.laws import current_fed, full_order
 from gateway.cycle import ControlCycle, CycleRow, Truth
-from gateway.drive_profile import load_drive_profile
+from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, load_drive_profile
 from gateway.guard import DivergenceWatch
 from gateway.process_data import process_data
 from gateway.reference import Profile
@@ -49,6 +49,7 @@ from plant.motor import rhs_current_fed, rhs_full
 from plant.params import DriveParams
 from plant.rpdo import setpoints_from_rpdos, tpdo_signals
 from plant.scenario import PlantScenario
+from plant.servo import servo_for
 from plant.timing import sync_cycle
 
 
@@ -105,10 +106,11 @@ def run(profile: Profile, motor: MotorParams, spec: RunSpec,
 
 class PdoLink:
     """What the PDOs do to the signals: the emulator's process data (INT16 quantisation of
-    ``dbc/drive.dbc``), or nothing (quantize=False)."""
+    ``dbc/drive.dbc``; ``builtin``: the emulator profile, its vector or its standard modes),
+    or nothing (quantize=False)."""
 
-    def __init__(self, quantize: bool, frame: SetpointFrame) -> None:
-        self.pd = (process_data(load_drive_profile(None), frame=frame) if quantize
+    def __init__(self, quantize: bool, frame: SetpointFrame, builtin: str = EMULATOR) -> None:
+        self.pd = (process_data(load_drive_profile(None, builtin), frame=frame) if quantize
                    else None)
 
     def tpdos(self, meas: Measurement, sync_counter: int = 0) -> dict[str, float]:
@@ -141,31 +143,47 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     duration = spec.duration or profile.duration
     n_cycles = round(duration / T)
     plant = _plant(spec)  # the plant is the controller's model × the scenario
+    standard = spec.drive_mode.standard  # the drive's own control over its current loop
     drive = Drive(plant.plant_motor(motor),
-                  plant.drive_params(drive_params_for_period(DriveParams(), T,
-                                                             spec.drive_mode)),
+                  plant.drive_params(drive_params_for_period(
+                      DriveParams(), T,
+                      DriveMode.CURRENT_LOOP if standard else spec.drive_mode)),
                   _initial(spec), **plant.drive_options(lambda t: profile.load.at(t)[0]))
     drive.enable(True)
+    servo = servo_for(drive.motor, drive.params.i_trip, T) if standard else None
     paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
     ctl = spec.controller.make(ControllerContext(
         motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
         current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0))
     cycle = ControlCycle(ctl, profile, sampling)
-    link = PdoLink(spec.quantize, sampling.setpoint_frame)
+    link = PdoLink(spec.quantize, sampling.setpoint_frame,
+                   EMULATOR_STANDARD if standard else EMULATOR)
     rec = Record(cycle.row_type)
     apply = sampling.apply
     pending: dict[str, float] = {}
     T_L_active = [0.0]
+    targets = {"target_torque": 0.0, "target_velocity": 0.0}  # a standard drive's
+    w_enc = [drive.state.w_m]  # its encoder at the last sample
     step_progress = max(1, n_cycles // 100)
 
     def latch() -> None:
         if pending:
-            drive.set_setpoints(setpoints_from_rpdos(pending, pending))
+            if servo is None:
+                drive.set_setpoints(setpoints_from_rpdos(pending, pending))
+            else:
+                targets.update((k, pending[k]) for k in targets if k in pending)
             T_L_active[0] = pending["T_L"]
             pending.clear()
+        if servo is not None:  # as the emulated device does at every SYNC
+            drive.set_setpoints(
+                servo.torque(targets["target_torque"], w_enc[0])
+                if spec.drive_mode is DriveMode.TORQUE
+                else servo.velocity(targets["target_velocity"], w_enc[0]))
 
     def advance() -> Measurement:
-        return drive.advance(T, T_L_active[0])
+        meas = drive.advance(T, T_L_active[0])
+        w_enc[0] = meas.w_m
+        return meas
 
     for k in range(1, n_cycles + 1):
         meas = sync_cycle(advance, latch, apply)

@@ -134,6 +134,12 @@ class RunSpec:
             raise UserError(f"--max-miss-rate {self.max_miss_rate}: give a fraction in (0, 1]")
 
     def _check_controller(self) -> None:
+        if self.controller.is_paper and self.drive_mode.standard:
+            raise UserError(
+                f"the paper's laws send current or voltage vectors, which a standard drive in "
+                f"'{self.drive_mode}' mode does not take: use --controller speed-pi (a speed "
+                "PI over the drive's torque, --drive-mode torque) or --controller stream (the "
+                "profile's speed or torque as the target), or a vector --drive-mode")
         if self.controller.is_paper and self.drive_mode not in self.law.drive_modes:
             raise UserError(
                 f"the {self.law} law does not drive a '{self.drive_mode}' drive: use "

@@ -81,7 +81,7 @@ from plant.params import DriveParams
 from plant.pdo import SETPOINT_SIGNALS, PdoRuntime, Rpdo
 from plant.rpdo import setpoints_from_rpdos
 from plant.sdo import SdoHooks, SdoServer, Sender
-from plant.servo import T_RATED, Servo, ServoParams
+from plant.servo import TORQUE_UNIT, Servo, servo_for
 from plant.timing import sync_cycle
 
 log = logging.getLogger(__name__)
@@ -261,9 +261,7 @@ class DriveDevice:
         v = self._values
         if not OperationMode(v[(0x6060, 0)]).standard:
             return None
-        i_max = 0.8 * params.i_trip if math.isfinite(params.i_trip) else 20.0
-        return Servo(motor, ServoParams(i_max=i_max, T_max=v[(MAX_TORQUE, 0)] * T_RATED / 1000),
-                     v[(0x1006, 0)] / 1e6)
+        return servo_for(motor, params.i_trip, v[(0x1006, 0)] / 1e6, v[(MAX_TORQUE, 0)])
 
     def _reset_application(self) -> None:
         """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
@@ -452,7 +450,7 @@ class DriveDevice:
             servo.reset()
             return
         if v[(0x6060, 0)] == OperationMode.CYCLIC_SYNC_TORQUE:
-            sp = servo.torque(v[(TARGET_TORQUE, 0)] * T_RATED / 1000, self._w_enc)
+            sp = servo.torque(v[(TARGET_TORQUE, 0)] * TORQUE_UNIT, self._w_enc)
         else:
             sp = servo.velocity(v[(TARGET_VELOCITY, 0)] * VELOCITY_UNIT, self._w_enc)
         self._drive.set_setpoints(sp)
@@ -512,7 +510,7 @@ class DriveDevice:
         self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
         v = self._values  # the standard actual values, in the units of the EDS
         v[(VELOCITY_ACTUAL, 0)] = _saturate(round(meas.w_m / VELOCITY_UNIT), 32)
-        v[(TORQUE_ACTUAL, 0)] = _saturate(round(meas.T_e / T_RATED * 1000), 16)
+        v[(TORQUE_ACTUAL, 0)] = _saturate(round(meas.T_e / TORQUE_UNIT), 16)
         self.pdo.transmit(m)
         return meas
 

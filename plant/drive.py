@@ -183,6 +183,10 @@ class Drive:
     ) -> None:
         self.motor = motor if motor is not None else MotorParams()
         self.params = params if params is not None else DriveParams()
+        if self.params.mode.standard:
+            raise ValueError(f"Drive: mode {self.params.mode} is the drive's own control "
+                             "(plant.servo) over a current source: give the model 'ideal' or "
+                             "'current-loop'")
         self._c = coeffs(self.motor)
         self._h = self.params.h
         self._K_p, self._K_i = pi_gains(self.motor, self.params)

@@ -43,6 +43,8 @@ from plant.drive import Setpoints
 #: The emulated motor's rated torque, N·m (0x6076): the unit of 0x6071, 0x6072 and 0x6077
 #: is 1/1000 of it.
 T_RATED = 10.0
+#: One unit of 0x6071/0x6077, N·m (1/1000 of the rated torque).
+TORQUE_UNIT = T_RATED / 1000
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,16 @@ class ServoParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"ServoParams.{name} = {value!r} must be a finite number > 0")
+
+
+def servo_for(motor: MotorParams, i_trip: float, T: float, max_torque: int | None = None
+              ) -> Servo:
+    """The emulated drive's own control: current limit 0.8 × its over-current trip
+    ``i_trip`` (20 A where there is none), torque limit ``max_torque`` in 1/1000 of the rated
+    torque (0x6072; None: the default, 20 N·m), period ``T``."""
+    i_max = 0.8 * i_trip if math.isfinite(i_trip) else 20.0
+    T_max = ServoParams().T_max if max_torque is None else max_torque * TORQUE_UNIT
+    return Servo(motor, ServoParams(i_max=i_max, T_max=T_max), T)
 
 
 class Servo:

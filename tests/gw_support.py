@@ -62,7 +62,7 @@ def emulator_factory():
 
 
 @functools.cache
-def _patient_drive_profile() -> Path:
+def _patient_drive_profile(name: str = "emulator") -> Path:
     """The emulator's drive profile with the drive watching the gateway's heartbeat for
     :data:`gateway.cli.SIM_HEARTBEAT_TIMEOUT_MS` (1 s) instead of 300 ms, as `hil-gateway sim`
     does (written once per test process; the file is what ``--drive`` takes, and
@@ -71,13 +71,13 @@ def _patient_drive_profile() -> Path:
     unscheduled long enough to trip the drive (EMCY 0x8130) before cycle 1. No test using
     these helpers is about that timeout (tests/test_device.py and the two-process tests
     are)."""
-    text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
+    text = (Path(gateway.__file__).parent / "drives" / f"{name}.toml").read_text()
     text, n = re.subn(r"(?m)^heartbeat_timeout_ms = 300\b",
                       f"heartbeat_timeout_ms = {SIM_HEARTBEAT_TIMEOUT_MS}", text)
-    assert n == 1, "gateway/drives/emulator.toml: heartbeat_timeout_ms = 300 not found"
+    assert n == 1, f"gateway/drives/{name}.toml: heartbeat_timeout_ms = 300 not found"
     folder = Path(tempfile.mkdtemp(prefix="hil-drive-"))
     atexit.register(shutil.rmtree, folder, ignore_errors=True)  # when the test process ends
-    path = folder / "emulator-1s.toml"
+    path = folder / f"{name}-1s.toml"
     path.write_text(text)
     return path
 

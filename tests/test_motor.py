@@ -91,7 +91,7 @@ def test_motor_params_missing_file_and_table(tmp_path) -> None:
 @pytest.mark.parametrize(
     ("data", "key"),
     [
-        ({"mode": "torque"}, "mode"),
+        ({"mode": "torch"}, "mode"),
         ({"f_pwm": 0}, "f_pwm"),
         ({"u_dc": -560}, "u_dc"),
         ({"i_trip": 0.0}, "i_trip"),

@@ -59,6 +59,10 @@ class IndirectFieldOriented:
     requires = ("w_m",)
 
     def __init__(self, context: ControllerContext, params: Mapping[str, Any]) -> None:
+        if context.drive_mode.standard:
+            raise ValueError(f"ifoc sends current setpoints: it drives a vector drive "
+                             f"(--drive-mode ideal, current-loop or voltage), not "
+                             f"'{context.drive_mode}'; for a standard drive use speed-pi")
         unknown = sorted(set(params) - set(DEFAULTS))
         if unknown:
             raise ValueError(f"unknown parameter(s) {', '.join(unknown)}; ifoc takes "

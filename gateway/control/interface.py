@@ -65,16 +65,22 @@ class Command:
         of the interval's midpoint, for drives that hold (a, b) setpoints.
     i_limited: the controller's current limit clipped the setpoint.
     logged: the values of the controller's :attr:`DriveController.signals`, in order.
+    target_torque, target_velocity: for a standard drive (CiA 402 cyclic synchronous torque
+        or velocity mode, ``drive_mode`` TORQUE or VELOCITY): the target torque, N·m, or
+        speed, rad/s, it applies over the interval; a vector drive ignores them, a standard
+        drive the vector setpoints.
     """
 
-    i_s_dq_ref: complex
-    u_s_dq_ref: complex
-    eps_0: float
-    w_0: float
-    i_s_ab_ref: complex
-    u_s_ab_ref: complex
+    i_s_dq_ref: complex = 0j
+    u_s_dq_ref: complex = 0j
+    eps_0: float = 0.0
+    w_0: float = 0.0
+    i_s_ab_ref: complex = 0j
+    u_s_ab_ref: complex = 0j
     i_limited: bool = False
     logged: tuple[float, ...] = ()
+    target_torque: float = 0.0
+    target_velocity: float = 0.0
 
 
 @runtime_checkable
@@ -113,7 +119,10 @@ class ControllerContext:
     motor: the motor the controller may believe (nameplate, motor file), model (1).
     sampling: the cycle period, the delay and the setpoint frame.
     refs_at: the reference profile as a function of time (looking ahead is allowed).
-    drive_mode: what the drive does with the setpoints (current or voltage vector).
+    drive_mode: what the drive does with the setpoints (current or voltage vector), or a
+        standard drive's cyclic mode (TORQUE, VELOCITY: it takes :attr:`Command.target_torque`
+        or :attr:`Command.target_velocity`). A controller that cannot drive it raises
+        ValueError from its factory, saying what to choose.
     current_lag: the drive's current response time, s (0: an ideal current source).
     paper: the options of the paper's laws from the command line (law, flux source,
         estimator, gains, discretisation, load, identification); other controllers may
