@@ -256,6 +256,55 @@ def _pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, round(q * (len(s) - 1)))]
 
 
+@dataclass
+class _CycleTally:
+    """What the SYNC cycles saw: ``n`` cycles sent, ``complete`` with every TPDO,
+    ``in_period`` with every TPDO within the period, the current and the longest run of
+    incomplete cycles, and each TPDO's arrival latencies after SYNC in s (``lat``, by
+    COB-ID)."""
+
+    lat: dict[int, list[float]]
+    n: int = 0
+    complete: int = 0
+    in_period: int = 0
+    run_missed: int = 0
+    worst_run: int = 0
+
+    def record(self, seen: dict[int, float], t0: float, period: float) -> None:
+        """One cycle's arrivals (monotonic s, by COB-ID) after the SYNC sent at ``t0``."""
+        for c, t in seen.items():
+            self.lat[c].append(t - t0)
+        if len(seen) == len(self.lat):
+            self.complete += 1
+            self.in_period += max(seen.values()) - t0 <= period
+            self.run_missed = 0
+        else:
+            self.run_missed += 1
+            self.worst_run = max(self.worst_run, self.run_missed)
+
+
+def _zero_rpdos(pd: ProcessData) -> list[can.Message]:
+    """The RPDOs the SYNC cycles send: zero setpoints, controlword 0 (disable voltage)."""
+    values: dict[str, float] = {r: 0.0 for r in pd.roles}
+    values["controlword"] = 0  # disable voltage: no power
+    return [can.Message(arbitration_id=c, data=d, is_extended_id=False)
+            for c, _, d in pd.encode(values)]
+
+
+def _sync_and_wait(bus: can.BusABC, arrivals: _Arrivals, k: int, counter: bool,
+                   timeout: float) -> tuple[float, dict[int, float]]:
+    """Send SYNC ``k`` (with the counter byte if ``counter``) and wait for every TPDO, at
+    most ``timeout`` s: the send time and the arrivals (monotonic s, by COB-ID)."""
+    arrivals.reset()
+    data = bytes([k % SYNC_OVERFLOW + 1]) if counter else b""
+    t0 = time.monotonic()
+    bus.send(can.Message(arbitration_id=SYNC_ID, data=data, is_extended_id=False))
+    arrivals.all.wait(timeout)
+    with arrivals.lock:
+        seen = dict(arrivals.seen)
+    return t0, seen
+
+
 def _sync_cycles(report: CheckReport, master: DriveMaster, pd: ProcessData, bus: can.BusABC,
                  period: float, cycles: int, counter: bool) -> None:
     """SYNC in lockstep as a run does it (:class:`gateway.loop.CycleLoop`): SYNC, wait for
@@ -270,61 +319,57 @@ def _sync_cycles(report: CheckReport, master: DriveMaster, pd: ProcessData, bus:
     arrivals = _Arrivals(set(cob_ids))
     assert master.network.notifier is not None
     master.network.notifier.add_listener(arrivals)
-    values: dict[str, float] = {r: 0.0 for r in pd.roles}
-    values["controlword"] = 0  # disable voltage: no power
-    rpdos = [can.Message(arbitration_id=c, data=d, is_extended_id=False)
-             for c, _, d in pd.encode(values)]
-    lat: dict[int, list[float]] = {c: [] for c in cob_ids}
-    complete = in_period = 0
-    n = run_missed = worst_run = 0
+    rpdos = _zero_rpdos(pd)
+    tally = _CycleTally(lat={c: [] for c in cob_ids})
     try:
         t_next = time.monotonic()
         for k in range(cycles):
-            if master.fault.is_set() or run_missed > tolerated.max_missed:
+            if master.fault.is_set() or tally.run_missed > tolerated.max_missed:
                 break
-            arrivals.reset()
-            data = bytes([k % SYNC_OVERFLOW + 1]) if counter else b""
-            t0 = time.monotonic()
-            bus.send(can.Message(arbitration_id=SYNC_ID, data=data, is_extended_id=False))
-            arrivals.all.wait(timeout)
-            with arrivals.lock:
-                seen = dict(arrivals.seen)
-            for c, t in seen.items():
-                lat[c].append(t - t0)
-            if len(seen) == len(cob_ids):
-                complete += 1
-                in_period += max(seen.values()) - t0 <= period
-                run_missed = 0
-            else:
-                run_missed += 1
-                worst_run = max(worst_run, run_missed)
+            t0, seen = _sync_and_wait(bus, arrivals, k, counter, timeout)
+            tally.record(seen, t0, period)
             for m in rpdos:
                 bus.send(m)
-            n += 1
+            tally.n += 1
             t_next = max(t_next + period, time.monotonic())
             time.sleep(max(0.0, t_next - time.monotonic()))
     finally:
         master.network.notifier.remove_listener(arrivals)
-    report.cycles, report.complete_cycles = n, complete
-    for c, name in cob_ids.items():
-        xs = lat[c]
-        report.latency[name] = {
-            "cob_id": c, "received": len(xs),
-            "median_us": statistics.median(xs) * 1e6 if xs else None,
-            "p99_us": _pct(xs, 0.99) * 1e6 if xs else None}
-    report.notes.append(f"{in_period} of {n} cycles had every TPDO within the period "
-                        f"({period * 1e3:g} ms): what --timing realtime would see")
+    report.cycles, report.complete_cycles = tally.n, tally.complete
+    _report_latency(report, tally, cob_ids)
+    report.notes.append(f"{tally.in_period} of {tally.n} cycles had every TPDO within the "
+                        f"period ({period * 1e3:g} ms): what --timing realtime would see")
     faults = [f.describe() for f in master.state.faults]
     report.add("no drive fault during the SYNC cycles", not faults,
                "; ".join(faults) or "no EMCY, NMT change or lost heartbeat",
                "see the drive's EMCY / error history (0x1003) and its manual")
+    _report_arrivals(report, tally, cob_ids, cycles, timeout, tolerated.max_missed,
+                     tolerated.max_miss_rate)
+
+
+def _report_latency(report: CheckReport, tally: _CycleTally, cob_ids: dict[int, str]) -> None:
+    """Per TPDO (by name): COB-ID, how many arrived, median and p99 latency in µs."""
+    for c, name in cob_ids.items():
+        xs = tally.lat[c]
+        report.latency[name] = {
+            "cob_id": c, "received": len(xs),
+            "median_us": statistics.median(xs) * 1e6 if xs else None,
+            "p99_us": _pct(xs, 0.99) * 1e6 if xs else None}
+
+
+def _report_arrivals(report: CheckReport, tally: _CycleTally, cob_ids: dict[int, str],
+                     cycles: int, timeout: float, max_missed: int, max_miss_rate: float
+                     ) -> None:
+    """The check that every TPDO arrived (within ``timeout`` s) in all ``cycles`` SYNC
+    cycles, passing within a run's tolerance (RunSpec ``max_missed`` incomplete cycles in
+    a row, ``max_miss_rate``, a fraction)."""
+    n, complete, worst_run = tally.n, tally.complete, tally.worst_run
     rate = (n - complete) / n if n else 1.0
     report.add(f"every TPDO in the {cycles} SYNC cycles",
-               n == cycles and rate <= tolerated.max_miss_rate
-               and worst_run <= tolerated.max_missed,
+               n == cycles and rate <= max_miss_rate and worst_run <= max_missed,
                f"{complete} of {n} cycles had {', '.join(cob_ids.values())} within "
                f"{timeout:g} s; at most {worst_run} incomplete in a row (a run stops beyond "
-               f"{tolerated.max_missed} in a row or a {tolerated.max_miss_rate:.0%} rate)",
+               f"{max_missed} in a row or a {max_miss_rate:.0%} rate)",
                "set the TPDOs' transmission type to 1 (every SYNC) and their COB-IDs as "
                "the DBC says, check the bus load and the period (--period) against the "
                "drive's cycle time")

@@ -157,6 +157,27 @@ def load_drive_profile(path: str | Path | None = None, builtin: str = EMULATOR
 
 
 def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile:
+    """The profile from the parsed TOML ``data`` (read from ``source``; relative paths from
+    ``base``): every section and value checked, then the EDS and DBC it names."""
+    _check_sections(data, source)
+    t, lim, d = (data.get(s, {}) for s in ("timing", "limits", "drive"))
+    _check_timing(t, source)
+    _check_limits(lim, source)
+    _check_nodes(d, source)
+    prof = _build_profile(data, source, base)
+    for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
+        if not path.is_file():
+            raise UserError(f"{source}: [drive].{what} = {str(path)!r} does not exist; give the "
+                            f"path of the drive's {what.upper()} file, relative to the profile")
+    _check_eds(prof)
+    _check_dbc(prof, [n for n in (prof.control, prof.setpoints, prof.load, prof.currents,
+                                  prof.voltages, prof.truth) if n])
+    return prof
+
+
+def _check_sections(data: dict[str, Any], source: str) -> None:
+    """Only the known sections (:data:`_SECTIONS`) and keys, each of its type; the
+    :data:`_REQUIRED` keys present."""
     for section, value in data.items():
         if section not in _SECTIONS:
             raise UserError(f"{source}: unknown section [{section}]; the sections are "
@@ -177,13 +198,20 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         if key not in data.get(section, {}):
             raise UserError(f"{source}: [{section}].{key} is missing; add it (see "
                             "gateway/drives/emulator.toml for an example)")
-    d, m, p, t, lim, sg = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing",
-                                                     "limits", "signals"))
+
+
+def _check_timing(t: dict[str, Any], source: str) -> None:
+    """Each [timing] key within its range (:data:`_TIMING_RANGES`: ms 1..65535, s finite)."""
     for key, value in t.items():
         lo, hi, unit, what = _TIMING_RANGES[key]
         if not lo <= value <= hi:  # NaN and inf too
             raise UserError(f"{source}: [timing].{key} = {value!r} is outside {lo:g}..{hi:g} "
                             f"{unit} ({what}); give a value in that range")
+
+
+def _check_limits(lim: dict[str, Any], source: str) -> None:
+    """[limits]: ``current_peak_a`` a current in A (0 < I < 10000), ``dc_link_v`` a range
+    [low, high] in V (0 <= low < high < 100000)."""
     peak = lim.get("current_peak_a")
     if peak is not None and not 0.0 < peak < 1e4:
         raise UserError(f"{source}: [limits].current_peak_a = {peak!r} must be a current in A, "
@@ -194,6 +222,11 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
                            or not 0.0 <= dc[0] < dc[1] < 1e5):
         raise UserError(f"{source}: [limits].dc_link_v = {dc!r} must be [low, high] in V with "
                         "0 <= low < high")
+
+
+def _check_nodes(d: dict[str, Any], source: str) -> None:
+    """[drive] ``node``, ``gateway_node``, ``dbc_node``: CANopen node ids (1..127); the
+    gateway's differs from the drive's."""
     node = d.get("node", 1)
     for key, value in (("node", node), ("gateway_node", d.get("gateway_node", 0x7F)),
                        ("dbc_node", d.get("dbc_node", node))):
@@ -202,9 +235,17 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
     if d.get("gateway_node", 0x7F) == node:
         raise UserError(f"{source}: [drive].gateway_node = {node} is the drive's node id: the "
                         "gateway's heartbeat would look like the drive's; choose another")
-    prof = DriveProfile(
+
+
+def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfile:
+    """The :class:`DriveProfile` of checked ``data``, with the defaults for keys left out;
+    ``eds`` and ``dbc`` resolved against ``base`` (not yet checked to exist)."""
+    d, m, p, t, lim, sg = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing",
+                                                     "limits", "signals"))
+    peak, dc = lim.get("current_peak_a"), lim.get("dc_link_v")
+    return DriveProfile(
         name=d.get("name", Path(source).stem), source=source,
-        eds=_resolve(d["eds"], base), dbc=_resolve(d["dbc"], base), node=node,
+        eds=_resolve(d["eds"], base), dbc=_resolve(d["dbc"], base), node=d.get("node", 1),
         device_type=d.get("device_type"), emulator=d.get("emulator", False),
         mode_current=m.get("current", -1), mode_voltage=m.get("voltage", -2),
         mode_torque=m.get("torque", 10), mode_velocity=m.get("velocity", 9),
@@ -222,14 +263,6 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         signals={role: _message_signal(v) for role, v in sg.items()},
         gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
     )
-    for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
-        if not path.is_file():
-            raise UserError(f"{source}: [drive].{what} = {str(path)!r} does not exist; give the "
-                            f"path of the drive's {what.upper()} file, relative to the profile")
-    _check_eds(prof)
-    _check_dbc(prof, [n for n in (prof.control, prof.setpoints, prof.load, prof.currents,
-                                  prof.voltages, prof.truth) if n])
-    return prof
 
 
 def _message_signal(value: str) -> tuple[str, str]:

@@ -261,8 +261,12 @@ def summary_table(summary: Mapping[str, Any]) -> str:
         parts = [f"{label} {_fmt(sig[name]['lsb'], sig[name]['unit'])}"
                  for label, name in (("i", "i_sa"), ("u", "u_sa"), ("ω0", "w_0"),
                                      ("ε0", "eps_0"), ("ω (TPDO3)", "w_m"),
+                                     ("T*", "target_torque"), ("ω*", "target_velocity"),
+                                     ("ω (0x606C)", "velocity_actual"),
+                                     ("T (0x6077)", "torque_actual"),
                                      ("ψr (TPDO3)", "psi_ra")) if name in sig]
-        text += "\nbus resolution (1 LSB): " + ", ".join(parts) + " (dbc/drive.dbc)"
+        text += ("\nbus resolution (1 LSB): " + ", ".join(parts)
+                 + f" ({q.get('source', 'dbc/drive.dbc')})")
     elif q:
         text += f"\nbus resolution: not applied ({q.get('reason', '--no-quantize')})"
     return text
@@ -284,21 +288,23 @@ _USED_MESSAGES = ("RPDO1", "RPDO2", "RPDO2_AB", "RPDO3", "TPDO1", "TPDO2", "TPDO
 
 
 def quantisation(applied: bool = True, setpoint_message: str | None = None,
-                 reason: str = "") -> dict[str, Any]:
-    """The resolution of each bus signal, from ``dbc/drive.dbc``: for summary.json.
+                 reason: str = "", dbc: Path | None = None,
+                 messages: tuple[str, ...] = _USED_MESSAGES) -> dict[str, Any]:
+    """The resolution of each bus signal, from the drive's DBC (``dbc``; default
+    ``dbc/drive.dbc``, the emulator's) and its ``messages``: for summary.json.
 
     ``signals``: name → message, lsb (one raw unit in ``unit``), unit, bits, signed, min,
     max. Integer fields (controlword, statusword, SYNC counter) are left out. ``applied``:
     whether the run's signals went through it (`simulate --no-quantize` or continuous
-    time: false, ``reason`` says why).
+    time: false, ``reason`` says why). ``source``: the DBC's file name.
     """
-    from dbc import load_database
+    from dbc import DBC_PATH, load_database
     from dbc.codec import INT_SIGNALS
 
     skip = {"RPDO2", "RPDO2_AB"} - {setpoint_message} if setpoint_message else set()
-    db = load_database()
+    db = load_database(dbc or DBC_PATH)
     out: dict[str, Any] = {}
-    for name in _USED_MESSAGES:
+    for name in messages:
         if name in skip:
             continue
         try:
@@ -314,7 +320,8 @@ def quantisation(applied: bool = True, setpoint_message: str | None = None,
                             "unit": (sg.unit or "").replace("N.m", "N·m"),
                             "bits": sg.length, "signed": bool(sg.is_signed),
                             "min": raw_lo * float(sg.scale), "max": raw_hi * float(sg.scale)}
-    q: dict[str, Any] = {"applied": bool(applied), "source": "dbc/drive.dbc"}
+    source = "dbc/drive.dbc" if dbc is None or Path(dbc) == DBC_PATH else Path(dbc).name
+    q: dict[str, Any] = {"applied": bool(applied), "source": source}
     if not applied and reason:
         q["reason"] = reason
     q["signals"] = out
@@ -457,8 +464,20 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
     t = sig["t"]
     windows = list(windows)
     limits = dict(limits or {})
-    written: list[Path] = []
+    suptitle = _suptitler(t, title, stopped)
+    written = [_plot_fig1(plt, sig, out_dir, suptitle),
+               _plot_fig2(plt, sig, out_dir, windows, suptitle),
+               _plot_fig3(plt, sig, out_dir, windows, limits, delay_s, suptitle)]
+    own = controller_signals(sig)
+    if own:
+        written.append(_plot_fig4(plt, sig, own, out_dir, suptitle))
+    return written
 
+
+def _suptitler(t: np.ndarray, title: str, stopped: str) -> Callable[[Any, str], None]:
+    """The figures' title writer: what a figure shows, then the configuration ``title``
+    (:func:`title_for`, one line each side of " — "); a run ``stopped`` early says why in
+    dark red and gets a red dashed line at its last sample ``t[-1]`` (s) on the time axes."""
     def suptitle(fig: Any, what: str) -> None:
         conf = title.replace(" — ", "\n")  # configuration, then how it ran
         if stopped:
@@ -469,6 +488,14 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
         text = f"{what}\n{conf}" if title or stopped else what
         fig.suptitle(text, fontsize="medium", color="darkred" if stopped else "black")
 
+    return suptitle
+
+
+def _plot_fig1(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
+               suptitle: Callable[[Any, str], None]) -> Path:
+    """Fig. 1: speed (rad/s) and flux (Wb) references against the motor's, and the load
+    torque (N·m)."""
+    t = sig["t"]
     fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), layout="constrained")
     ax[0].plot(t, sig["w_ref"], label="ω* reference")
     ax[0].plot(t, sig["w_m"], "--", label="ω motor")
@@ -486,8 +513,15 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
     p = out_dir / "fig1_references.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
-    written.append(p)
+    return p
 
+
+def _plot_fig2(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
+               windows: list, suptitle: Callable[[Any, str], None]) -> Path:
+    """Fig. 2: the speed (rad/s) and flux (Wb) tracking errors, and the speed estimate's
+    error when there is one (``w_hat``); dotted lines where the metric ``windows`` after
+    the first start."""
+    t = sig["t"]
     estimate = "w_hat" in sig
     fig, ax = plt.subplots(3 if estimate else 2, 1, sharex=True,
                            figsize=(8, 7.5 if estimate else 5.5), layout="constrained")
@@ -508,13 +542,7 @@ def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
     p = out_dir / "fig2_errors.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
-    written.append(p)
-
-    written.append(_plot_fig3(plt, sig, out_dir, windows, limits, delay_s, suptitle))
-    own = controller_signals(sig)
-    if own:
-        written.append(_plot_fig4(plt, sig, own, out_dir, suptitle))
-    return written
+    return p
 
 
 #: The signals Fig. 2 already shows, and the paper's flux estimate (checked by the guard):
@@ -566,13 +594,41 @@ def fig3_limits_text(limits: Mapping[str, float]) -> str:
 def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
                windows: list, limits: Mapping[str, float], delay_s: float,
                suptitle: Callable[[Any, str], None]) -> Path:
+    """Fig. 3: the whole run's |i_s| (A) and |u_s| (V) on top, below one column per zoom
+    (:func:`zoom_windows`) of the (a, b) currents with their setpoints (acting ``delay_s``
+    after their row) and the period-average voltages; the ``limits`` drawn dotted."""
     t = sig["t"]
     zooms = zoom_windows(sig, windows)
     i_ref_a, i_ref_b = _setpoints_ab(sig)
     t_ref = t + delay_s
     fig = plt.figure(figsize=(11, 8), layout="constrained")
     grid = fig.add_gridspec(3, len(zooms), height_ratios=(1.0, 1.3, 1.3))
-    top = fig.add_subplot(grid[0, :])
+    _fig3_overview(fig.add_subplot(grid[0, :]), sig, zooms, limits)
+    for j, zoom in enumerate(zooms):
+        ai = fig.add_subplot(grid[1, j])
+        au = fig.add_subplot(grid[2, j], sharex=ai)
+        _fig3_zoom(ai, au, sig, zoom, (t_ref, i_ref_a, i_ref_b), limits)
+        if j == 0:
+            ai.set_ylabel("current [A]")
+            au.set_ylabel("voltage, period average [V]")
+        for a in (ai, au):
+            a.grid(True, alpha=0.3)
+        if j == len(zooms) - 1:
+            ai.legend(loc="upper right", fontsize="x-small")
+            au.legend(loc="upper right", fontsize="x-small")
+    suptitle(fig, "Fig. 3 — stator currents (solid: measured, dashed: setpoints) and "
+                  f"average voltages{fig3_limits_text(limits)}")
+    p = out_dir / "fig3_currents_voltages.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def _fig3_overview(top: Any, sig: Mapping[str, np.ndarray],
+                   zooms: list[tuple[str, float, float]], limits: Mapping[str, float]) -> None:
+    """Fig. 3's top panel: |i_s| (A) and, on a twin axis, |u_s| (V) over the whole run,
+    with ``i_max`` and ``u_lim`` dotted and the ``zooms`` (name, from, to in s) shaded."""
+    t = sig["t"]
     top.plot(t, np.hypot(sig["i_sa"], sig["i_sb"]), label="|i_s| [A]")
     top.set_ylabel("|i_s| [A]")
     top2 = top.twinx()
@@ -589,42 +645,35 @@ def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
     h1, l1 = top.get_legend_handles_labels()
     h2, l2 = top2.get_legend_handles_labels()
     top.legend(h1 + h2, l1 + l2, loc="upper left", fontsize="x-small", ncol=4)
-    for j, (name, lo, hi) in enumerate(zooms):
-        sel = (t >= lo) & (t <= hi)
-        sel_ref = (t_ref >= lo) & (t_ref <= hi)
-        ai = fig.add_subplot(grid[1, j])
-        au = fig.add_subplot(grid[2, j], sharex=ai)
-        ai.plot(t[sel], sig["i_sa"][sel], color="C0", label="i_sa")
-        ai.plot(t[sel], sig["i_sb"][sel], color="C2", label="i_sb")
-        ai.step(t_ref[sel_ref], i_ref_a[sel_ref], "--", where="post", color="C0", lw=0.9,
-                label="i_sa* setpoint")
-        ai.step(t_ref[sel_ref], i_ref_b[sel_ref], "--", where="post", color="C2", lw=0.9,
-                label="i_sb* setpoint")
-        au.plot(t[sel], sig["u_sa"][sel], color="C1", label="u_sa")
-        au.plot(t[sel], sig["u_sb"][sel], color="C4", label="u_sb")
-        for key, a, color, text in (("i_max", ai, "k", "±i_max"), ("i_trip", ai, "C3",
-                                                                     "±i_trip"),
-                                    ("u_lim", au, "C3", "±u_dc/√3")):
-            if key in limits:
-                for sign in (1, -1):
-                    a.axhline(sign * limits[key], color=color, ls=":", lw=1,
-                              label=text if sign > 0 else None)
-        ai.set_title(name, fontsize="small")
-        au.set_xlabel("time [s]")
-        if j == 0:
-            ai.set_ylabel("current [A]")
-            au.set_ylabel("voltage, period average [V]")
-        for a in (ai, au):
-            a.grid(True, alpha=0.3)
-        if j == len(zooms) - 1:
-            ai.legend(loc="upper right", fontsize="x-small")
-            au.legend(loc="upper right", fontsize="x-small")
-    suptitle(fig, "Fig. 3 — stator currents (solid: measured, dashed: setpoints) and "
-                  f"average voltages{fig3_limits_text(limits)}")
-    p = out_dir / "fig3_currents_voltages.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+
+
+def _fig3_zoom(ai: Any, au: Any, sig: Mapping[str, np.ndarray], zoom: tuple[str, float, float],
+               ref: tuple[np.ndarray, np.ndarray, np.ndarray],
+               limits: Mapping[str, float]) -> None:
+    """One zoomed column of Fig. 3 over ``zoom`` (name, from, to in s): the (a, b) currents
+    (A) and, dashed, their setpoints ``ref`` (acting times in s, i_sa*, i_sb* in A) in
+    ``ai``; the voltages (V) in ``au``; ±i_max, ±i_trip and ±u_dc/√3 dotted if known."""
+    name, lo, hi = zoom
+    t = sig["t"]
+    t_ref, i_ref_a, i_ref_b = ref
+    sel = (t >= lo) & (t <= hi)
+    sel_ref = (t_ref >= lo) & (t_ref <= hi)
+    ai.plot(t[sel], sig["i_sa"][sel], color="C0", label="i_sa")
+    ai.plot(t[sel], sig["i_sb"][sel], color="C2", label="i_sb")
+    ai.step(t_ref[sel_ref], i_ref_a[sel_ref], "--", where="post", color="C0", lw=0.9,
+            label="i_sa* setpoint")
+    ai.step(t_ref[sel_ref], i_ref_b[sel_ref], "--", where="post", color="C2", lw=0.9,
+            label="i_sb* setpoint")
+    au.plot(t[sel], sig["u_sa"][sel], color="C1", label="u_sa")
+    au.plot(t[sel], sig["u_sb"][sel], color="C4", label="u_sb")
+    for key, a, color, text in (("i_max", ai, "k", "±i_max"), ("i_trip", ai, "C3", "±i_trip"),
+                                ("u_lim", au, "C3", "±u_dc/√3")):
+        if key in limits:
+            for sign in (1, -1):
+                a.axhline(sign * limits[key], color=color, ls=":", lw=1,
+                          label=text if sign > 0 else None)
+    ai.set_title(name, fontsize="small")
+    au.set_xlabel("time [s]")
 
 
 # --------------------------------------------------------------------------- comparison

@@ -28,20 +28,22 @@ class TruthColumns(Protocol):
 
 
 def merge_truth(sig: dict[str, np.ndarray], truth: TruthColumns | None, period: float,
-                lsb: float) -> str:
-    """Replace TPDO3's INT16 truth in ``sig`` by the emulator's full-resolution state of
-    the same cycles, where it has them and they agree with TPDO3 within half its LSB
-    ``lsb`` (rad/s) wherever TPDO3 does not saturate; returns what the truth rests on."""
+                lsb: float, on_bus: str = report.TRUTH_TPDO3) -> str:
+    """Replace the drive's truth as the bus carried it in ``sig`` (``on_bus`` says how:
+    TPDO3's INT16, or a standard drive's velocity actual value) by the emulator's
+    full-resolution state of the same cycles, where it has them and they agree with the bus
+    within half its LSB ``lsb`` (rad/s) wherever the bus does not saturate; returns what
+    the truth rests on."""
     if truth is None or not len(sig["t"]):
-        return report.TRUTH_TPDO3
+        return on_bus
     full = truth.columns(np.rint(sig["t"] / period))
     if full is None:
-        return report.TRUTH_TPDO3
+        return on_bus
     ok = np.abs(sig["w_m"]) < 1000.0
     if not np.all(np.abs(full["w_m"][ok] - sig["w_m"][ok]) <= lsb / 2 + 1e-9):
-        log.warning("the emulator's truth does not match TPDO3's cycle by cycle; the summary "
-                    "uses TPDO3")
-        return report.TRUTH_TPDO3
+        log.warning("the emulator's truth does not match the bus's cycle by cycle; the "
+                    "summary uses the bus's")
+        return on_bus
     sig.update(full)
     return report.TRUTH_FULL
 

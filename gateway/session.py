@@ -179,10 +179,16 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         done = run_gateway(target, profile, motor, spec, out, progress, signals)
         _writing_politely(signals)
         summary = done.summary
-        summary["quantisation"] = report.quantisation(True, target.drive.setpoints)
-        if done.sig is not None and target.drive.truth:  # tracking errors need the truth
-            lsb = summary["quantisation"]["signals"]["w_m"]["lsb"]
-            summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb)
+        drive = target.drive
+        summary["quantisation"] = report.quantisation(
+            True, drive.setpoints, dbc=drive.dbc, messages=tuple(
+                n for n in (drive.control, drive.setpoints, drive.load, drive.currents,
+                            drive.voltages, drive.truth) if n))
+        if done.sig is not None and drive.truth:  # tracking errors need the truth
+            where, lsb = _speed_signal(drive)
+            on_bus = (report.TRUTH_TPDO3 if where == f"{drive.truth}.w_m"
+                      else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
+            summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb, on_bus)
             summary.update(report.metrics(done.sig, windows))
         files = write_results(out, done.sig, summary, figures=bool(target.drive.truth),
                               limits=_bus_limits(spec, target.drive), delay_s=_delay_s(spec),
@@ -190,6 +196,16 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)
+
+
+def _speed_signal(drive: Any) -> tuple[str, float]:
+    """The message and signal of the drive's DBC that carry its speed (role ``w_m``), and
+    its resolution, rad/s."""
+    from gateway.process_data import process_data
+
+    pdo = process_data(drive).pdo("w_m")
+    k = pdo.roles.index("w_m")
+    return f"{pdo.name}.{pdo.signals[k][0]}", pdo.codec.signals[k].factor
 
 
 def _bus_limits(spec: RunSpec, drive: Any) -> dict[str, float]:

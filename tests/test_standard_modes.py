@@ -256,4 +256,8 @@ def test_run_drives_a_device_in_cst_over_the_bus(emulator, tmp_path):
     assert s["run"]["cycles"] == 600 and s["run"]["stop"] == "END_OF_PROFILE"
     assert s["speed_error"]["rms"] < 2.0  # 1.13 rad/s: the load step at 0.5 s, no feed-forward
     assert emu.device._values[(0x6060, 0)] == 10
+    # the speed is the drive's velocity actual value, at its own resolution, not TPDO3's
+    assert s["truth"].startswith("TPDO1.velocity_actual, ω to 0.000105 rad/s")
+    assert s["quantisation"]["source"] == "standard.dbc"
+    assert "w_m" not in s["quantisation"]["signals"]
     assert_disabled(emu)

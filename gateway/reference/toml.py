@@ -266,35 +266,60 @@ def _beyond(src: str, w: str, raw: Any, name: str, x: float, vunit_name: str, vs
     )
 
 
-def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any],
-            raw_units: Mapping[str, Any], duration: float, positive: bool,
-            limits: Sequence[ReferenceLimit] = ()) -> Signal:
-    where = f"[{name}]"
-    _keys(src, where, tab, ("initial", "steps"))
-    vunit_name = str(raw_units.get(_SIGNAL_UNIT[name], _SI_NAME[name]))
-    tunit_name = str(raw_units["time"])
-    vscale = units.get(_SIGNAL_UNIT[name], 1.0)
-    tscale = units["time"]
+@dataclass(frozen=True)
+class _Reading:
+    """How the values of reference ``name`` ([speed], [flux], [load]) of profile ``src``
+    read: value unit ``vunit_name`` (``vscale`` SI units per unit), time unit ``tunit_name``
+    (``tscale`` s per unit), > 0 required (``positive``: the flux) and its ``limits``."""
 
-    def value(w: str, raw: Any) -> float:
-        x = _number(src, w, raw, vunit_name) * vscale
-        if positive and not x > 0.0:
+    src: str
+    name: str
+    vunit_name: str
+    vscale: float
+    tunit_name: str
+    tscale: float
+    positive: bool
+    limits: Sequence[ReferenceLimit]
+
+    def value(self, w: str, raw: Any) -> float:
+        """The value ``raw`` at ``w`` in SI: refused when not > 0 (``positive``) or beyond
+        the ``limits``."""
+        x = _number(self.src, w, raw, self.vunit_name) * self.vscale
+        if self.positive and not x > 0.0:
             raise _fail(
-                src, f"{w} = {raw!r}",
+                self.src, f"{w} = {raw!r}",
                 f"the flux reference must stay > 0 (ψ* > 0 is required by (15)); "
-                f"use a positive value in {vunit_name}",
+                f"use a positive value in {self.vunit_name}",
             )
-        refusal = _beyond(src, w, raw, name, x, vunit_name, vscale, limits)
+        refusal = _beyond(self.src, w, raw, self.name, x, self.vunit_name, self.vscale,
+                          self.limits)
         if refusal is not None:
             raise refusal
         return x
 
+    def time(self, w: str, raw: Any) -> float:
+        """The time ``raw`` at ``w`` (a step's ``t`` or ``ramp``) in s."""
+        return _number(self.src, w, raw, self.tunit_name) * self.tscale
+
+
+def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any],
+            raw_units: Mapping[str, Any], duration: float, positive: bool,
+            limits: Sequence[ReferenceLimit] = ()) -> Signal:
+    """Reference [``name``] (keys ``initial``, ``steps``) in SI: its values in the
+    profile's ``units`` (SI per unit; ``raw_units``: their names), the steps one after
+    the other, each ended by ``duration`` (s)."""
+    where = f"[{name}]"
+    _keys(src, where, tab, ("initial", "steps"))
+    rd = _Reading(src, name, vunit_name=str(raw_units.get(_SIGNAL_UNIT[name], _SI_NAME[name])),
+                  vscale=units.get(_SIGNAL_UNIT[name], 1.0),
+                  tunit_name=str(raw_units["time"]), tscale=units["time"],
+                  positive=positive, limits=limits)
     if "initial" in tab:
-        initial = value(f"{where}.initial", tab["initial"])
+        initial = rd.value(f"{where}.initial", tab["initial"])
     elif name == "load":
         initial = 0.0
     else:
-        raise _fail(src, f"{where}.initial", f"missing; add initial = <value in {vunit_name}>")
+        raise _fail(src, f"{where}.initial", f"missing; add initial = <value in {rd.vunit_name}>")
     raw_steps = tab.get("steps", [])
     if not isinstance(raw_steps, list):
         raise _fail(
@@ -306,47 +331,64 @@ def _signal(src: str, name: str, tab: Mapping[str, Any], units: Mapping[str, Any
     prev_where = ""
     for i, raw in enumerate(raw_steps):
         w = f"{where}.steps[{i}]"
-        if not isinstance(raw, dict):
-            raise _fail(
-                src, f"{w} = {raw!r}",
-                "must be a table { t = ..., value = ..., ramp = ... }",
-            )
-        _keys(src, w, raw, ("t", "value", "ramp"))
-        for key in ("t", "value", "ramp"):
-            if key not in raw:
-                raise _fail(src, f"{w}.{key}", "missing; every step needs t, value and ramp")
-        t_raw, ramp_raw = raw["t"], raw["ramp"]
-        t = _number(src, f"{w}.t", t_raw, tunit_name) * tscale
-        v = value(f"{w}.value", raw["value"])
-        ramp = _number(src, f"{w}.ramp", ramp_raw, tunit_name) * tscale
-        if t < 0.0:
-            raise _fail(src, f"{w}.t = {t_raw!r}", "must be ≥ 0; transitions start at or after 0")
-        if not ramp > 0.0:
-            raise _fail(
-                src, f"{w}.ramp = {ramp_raw!r}",
-                f"must be > 0: a jump has no derivative and the laws need C² references "
-                f"(docs/paper.md §E7); use a short ramp, e.g. ramp = {0.01 / tscale:g} "
-                f"({tunit_name})",
-            )
-        if t < prev_end * (1.0 - 1e-12):
-            raise _fail(
-                src, f"{w}.t = {t_raw!r}",
-                f"starts before the previous transition ({prev_where}) ends at "
-                f"{prev_end / tscale:g} {tunit_name}; step times must increase and a "
-                f"transition may start only when the previous ramp has ended — move t to "
-                f"≥ {prev_end / tscale:g} or shorten the previous ramp",
-            )
-        t = max(t, prev_end)
-        if t + ramp > duration * (1.0 + 1e-12):
-            raise _fail(
-                src, f"{w}",
-                f"the transition ends at {(t + ramp) / tscale:g} {tunit_name}, after the "
-                f"profile's end ([profile].duration = {duration / tscale:g} {tunit_name}); "
-                f"raise the duration or move/shorten the step",
-            )
-        steps.append(Step(t, v, ramp))
-        prev_end, prev_where = t + ramp, w
+        step = _step(rd, w, raw, prev_end, prev_where, duration)
+        steps.append(step)
+        prev_end, prev_where = step.end, w
     return Signal(initial, tuple(steps))
+
+
+def _step_fields(rd: _Reading, w: str, raw: Any) -> tuple[float, float, float]:
+    """Step ``w`` (a table with keys ``t``, ``value``, ``ramp``) as t (s, ≥ 0), value (SI)
+    and ramp (s, > 0)."""
+    src = rd.src
+    if not isinstance(raw, dict):
+        raise _fail(
+            src, f"{w} = {raw!r}",
+            "must be a table { t = ..., value = ..., ramp = ... }",
+        )
+    _keys(src, w, raw, ("t", "value", "ramp"))
+    for key in ("t", "value", "ramp"):
+        if key not in raw:
+            raise _fail(src, f"{w}.{key}", "missing; every step needs t, value and ramp")
+    t_raw, ramp_raw = raw["t"], raw["ramp"]
+    t = rd.time(f"{w}.t", t_raw)
+    v = rd.value(f"{w}.value", raw["value"])
+    ramp = rd.time(f"{w}.ramp", ramp_raw)
+    if t < 0.0:
+        raise _fail(src, f"{w}.t = {t_raw!r}", "must be ≥ 0; transitions start at or after 0")
+    if not ramp > 0.0:
+        raise _fail(
+            src, f"{w}.ramp = {ramp_raw!r}",
+            f"must be > 0: a jump has no derivative and the laws need C² references "
+            f"(docs/paper.md §E7); use a short ramp, e.g. ramp = {0.01 / rd.tscale:g} "
+            f"({rd.tunit_name})",
+        )
+    return t, v, ramp
+
+
+def _step(rd: _Reading, w: str, raw: Any, prev_end: float, prev_where: str,
+          duration: float) -> Step:
+    """Step ``w`` (see :func:`_step_fields`), starting when the previous transition
+    (``prev_where``) has ended at ``prev_end`` (s) and ending by ``duration`` (s)."""
+    t, v, ramp = _step_fields(rd, w, raw)
+    tscale, tunit_name = rd.tscale, rd.tunit_name
+    if t < prev_end * (1.0 - 1e-12):
+        raise _fail(
+            rd.src, f"{w}.t = {raw['t']!r}",
+            f"starts before the previous transition ({prev_where}) ends at "
+            f"{prev_end / tscale:g} {tunit_name}; step times must increase and a "
+            f"transition may start only when the previous ramp has ended — move t to "
+            f"≥ {prev_end / tscale:g} or shorten the previous ramp",
+        )
+    t = max(t, prev_end)
+    if t + ramp > duration * (1.0 + 1e-12):
+        raise _fail(
+            rd.src, f"{w}",
+            f"the transition ends at {(t + ramp) / tscale:g} {tunit_name}, after the "
+            f"profile's end ([profile].duration = {duration / tscale:g} {tunit_name}); "
+            f"raise the duration or move/shorten the step",
+        )
+    return Step(t, v, ramp)
 
 
 def parse_profile(text: str, source: str = "<string>",
