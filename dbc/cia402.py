@@ -120,13 +120,16 @@ class OperationMode(IntEnum):
 
     VOLTAGE_VECTOR = -2
     CURRENT_VECTOR = -1
+    CYCLIC_SYNC_POSITION = 8  #: CSP: target position 0x607A every SYNC
     CYCLIC_SYNC_VELOCITY = 9  #: CSV: target velocity 0x60FF every SYNC
     CYCLIC_SYNC_TORQUE = 10  #: CST: target torque 0x6071 every SYNC
 
     @property
     def supported_bit(self) -> int:
-        """Its bit in 0x6502 (CiA 402: bit 8 CSV, bit 9 CST; bits 16.. manufacturer)."""
+        """Its bit in 0x6502 (CiA 402: bit 7 CSP, bit 8 CSV, bit 9 CST; bits 16..
+        manufacturer)."""
         return {OperationMode.VOLTAGE_VECTOR: 1 << 17, OperationMode.CURRENT_VECTOR: 1 << 16,
+                OperationMode.CYCLIC_SYNC_POSITION: 1 << 7,
                 OperationMode.CYCLIC_SYNC_VELOCITY: 1 << 8,
                 OperationMode.CYCLIC_SYNC_TORQUE: 1 << 9}[self]
 
@@ -145,9 +148,13 @@ MAX_TORQUE = 0x6072  #: UNSIGNED16, per mille of the rated torque
 MOTOR_RATED_TORQUE = 0x6076  #: UNSIGNED32, mN·m
 TORQUE_ACTUAL = 0x6077  #: INTEGER16, per mille of the rated torque
 VELOCITY_ACTUAL = 0x606C  #: INTEGER32, velocity units
+POSITION_ACTUAL = 0x6064  #: INTEGER32, position units
+TARGET_POSITION = 0x607A  #: INTEGER32, position units
 TARGET_VELOCITY = 0x60FF  #: INTEGER32, velocity units
 #: The emulated drive's velocity unit (0x606C, 0x60FF): 0.001 rev/min, in rad/s.
 VELOCITY_UNIT = 2.0 * 3.141592653589793 / 60000.0
+#: The emulated drive's position unit (0x6064, 0x607A): 1/65536 of a revolution, in rad.
+POSITION_UNIT = 2.0 * 3.141592653589793 / 65536.0
 #: DBC signal names of the standard process data, by object (a drive profile's DBC may name
 #: them so; the master maps them by index, whatever the EDS calls the object).
 STANDARD_SIGNALS: dict[str, int] = {

@@ -183,6 +183,8 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     def advance() -> Measurement:
         meas = drive.advance(T, T_L_active[0])
         w_enc[0] = meas.w_m
+        if servo is not None:
+            servo.sample(meas.w_m)  # its encoder, as the emulated device counts it
         return meas
 
     for k in range(1, n_cycles + 1):

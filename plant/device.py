@@ -63,6 +63,9 @@ from dbc import scaling, signal_specs
 from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState
 from dbc.cia402 import (
     MAX_TORQUE,
+    POSITION_ACTUAL,
+    POSITION_UNIT,
+    TARGET_POSITION,
     TARGET_TORQUE,
     TARGET_VELOCITY,
     TORQUE_ACTUAL,
@@ -442,15 +445,19 @@ class DriveDevice:
             self._servo_step()
 
     def _servo_step(self) -> None:
-        """CSV or CST: the target of 0x60FF or 0x6071 → (d, q) setpoints for this period
-        (:mod:`plant.servo`); with the power stage off the drive's control starts over."""
+        """CSP, CSV or CST: the target of 0x607A, 0x60FF or 0x6071 → (d, q) setpoints for
+        this period (:mod:`plant.servo`); with the power stage off the drive's control
+        starts over."""
         servo, v = self._servo, self._values
         assert servo is not None
         if not self._sm.power:
             servo.reset()
             return
-        if v[(0x6060, 0)] == OperationMode.CYCLIC_SYNC_TORQUE:
+        mode = v[(0x6060, 0)]
+        if mode == OperationMode.CYCLIC_SYNC_TORQUE:
             sp = servo.torque(v[(TARGET_TORQUE, 0)] * TORQUE_UNIT, self._w_enc)
+        elif mode == OperationMode.CYCLIC_SYNC_POSITION:
+            sp = servo.position(v[(TARGET_POSITION, 0)] * POSITION_UNIT, self._w_enc)
         else:
             sp = servo.velocity(v[(TARGET_VELOCITY, 0)] * VELOCITY_UNIT, self._w_enc)
         self._drive.set_setpoints(sp)
@@ -511,6 +518,9 @@ class DriveDevice:
         v = self._values  # the standard actual values, in the units of the EDS
         v[(VELOCITY_ACTUAL, 0)] = _saturate(round(meas.w_m / VELOCITY_UNIT), 32)
         v[(TORQUE_ACTUAL, 0)] = _saturate(round(meas.T_e / TORQUE_UNIT), 16)
+        if self._servo is not None:  # the encoder counts in the standard modes
+            self._servo.sample(meas.w_m)
+            v[(POSITION_ACTUAL, 0)] = _wrap32(round(self._servo.theta / POSITION_UNIT))
         self.pdo.transmit(m)
         return meas
 
@@ -577,6 +587,11 @@ class DriveDevice:
     def _timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""
         return self.nmt.timers(now)
+
+
+def _wrap32(x: int) -> int:
+    """``x`` modulo 2³² as a signed 32-bit integer (a position counter wraps)."""
+    return (x + (1 << 31)) % (1 << 32) - (1 << 31)
 
 
 def _saturate(x: int, bits: int) -> int:

@@ -3,7 +3,8 @@
 A standard inverter offers no vector current or voltage process data: it takes a target
 torque (cyclic synchronous torque, CST, mode 10) or a target velocity (cyclic synchronous
 velocity, CSV, mode 9) every SYNC and runs its own field-oriented control. This module is
-that control, on top of the drive's current source (:class:`plant.drive.Drive` in ``ideal``
+that control (and cyclic synchronous position, CSP, mode 8: a position loop over the
+speed loop), on top of the drive's current source (:class:`plant.drive.Drive` in ``ideal``
 or ``current-loop`` mode), evaluated once per SYNC period:
 
 * **Indirect field orientation** with the drive's own motor parameters (those in 0x2200):
@@ -20,6 +21,8 @@ or ``current-loop`` mode), evaluated once per SYNC period:
   stays on the d axis; an error decays with the rotor time constant 1/α.
 * **Torque limit:** |T*| ≤ ``T_max``, and the current vector |i*| ≤ ``i_max`` (the d axis
   first: the flux is kept, the torque current gets what is left).
+* **Position loop (CSP):** ω* = (w_bw/4)·(θ* − θ) + (θ*_k − θ*_{k−1})/T, θ the encoder's
+  position (the trapezoid of its speed samples), then the speed loop.
 * **Speed loop (CSV):** a PI on the encoder's speed, T* = K_p·e + x, x ← x + K_i·T·e with
   e = ω* − ω, tuned for a double closed-loop pole at ``w_bw`` on the motor's inertia
   (K_p = 2·J·w_bw, K_i = J·w_bw²); while the torque limit clips, the integrator holds
@@ -87,6 +90,9 @@ class Servo:
         self._decay = math.exp(-motor.alpha * T)
         self._K_p = 2.0 * motor.J * params.w_bw
         self._K_i = motor.J * params.w_bw ** 2
+        self._K_pos = params.w_bw / 4.0
+        self.theta = 0.0  # the encoder's position, rad (counted from power-up)
+        self._w_sample = 0.0
         self.reset()
 
     def reset(self) -> None:
@@ -95,7 +101,22 @@ class Servo:
         self._eps = 0.0
         self._x = 0.0
         self._w_last: float | None = None
+        self._theta_ref_last: float | None = None
         self.T_est = 0.0
+
+    def sample(self, w_m: float) -> None:
+        """The encoder after each period: the position :attr:`theta` (rad) advances by the
+        trapezoid of the speeds at the period's ends."""
+        self.theta += 0.5 * (self._w_sample + w_m) * self.T
+        self._w_sample = w_m
+
+    def position(self, theta_ref: float, w_m: float) -> Setpoints:
+        """CSP: a proportional position loop, gain ``w_bw``/4, with the target's own speed
+        (its change over the period) fed forward, to a speed, then :meth:`velocity`."""
+        last = self._theta_ref_last
+        w_ff = 0.0 if last is None else (theta_ref - last) / self.T
+        self._theta_ref_last = theta_ref
+        return self.velocity(self._K_pos * (theta_ref - self.theta) + w_ff, w_m)
 
     def velocity(self, w_ref: float, w_m: float) -> Setpoints:
         """CSV: the speed PI (on ``w_m``, the encoder's ω, rad/s) to a torque, then

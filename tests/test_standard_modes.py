@@ -1,4 +1,4 @@
-"""The emulated drive in CiA 402's standard cyclic modes (CSV 9, CST 10), driven by a master
+"""The emulated drive in CiA 402's standard cyclic modes (CSP 8, CSV 9, CST 10), driven by a master
 we did not write: python-canopen's BaseNode402 built from dbc/drive.eds. It sets the mode
 (checked against 0x6502), remaps the PDOs through its own PDO API, walks the power state
 machine, then streams the target every SYNC and reads the actual values back over PDO
@@ -17,7 +17,7 @@ import pytest
 from canopen.profiles.p402 import BaseNode402
 
 from dbc import EDS_PATH
-from dbc.cia402 import VELOCITY_UNIT
+from dbc.cia402 import POSITION_UNIT, VELOCITY_UNIT
 from dbc.motor import MotorParams
 from plant.device import DriveDevice
 from plant.servo import T_RATED, Servo, ServoParams
@@ -60,7 +60,8 @@ class Master:
 
     def configure(self, mode: str, target: int) -> None:
         """Mode, PDOs (RPDO1: controlword + target; TPDO1: statusword + velocity actual +
-        torque actual, on every SYNC), operational, Operation enabled."""
+        torque actual, TPDO2: position actual, on every SYNC), operational, Operation
+        enabled."""
         node = self.node
         node.nmt.state = "PRE-OPERATIONAL"
         node.sdo[0x1006].raw = round(T * 1e6)
@@ -76,7 +77,8 @@ class Master:
         node.tpdo[1].add_variable(0x6041)
         node.tpdo[1].add_variable(0x606C)
         node.tpdo[1].add_variable(0x6077)
-        for pdo in (node.rpdo[1], node.tpdo[1]):
+        node.tpdo[2].add_variable(0x6064)
+        for pdo in (node.rpdo[1], node.tpdo[1], node.tpdo[2]):
             pdo.trans_type = 1
             pdo.enabled = True
         node.rpdo.save()
@@ -93,16 +95,24 @@ class Master:
         self.target = target
 
     def cycle(self, value: int) -> tuple[int, float, float]:
-        """One lockstep cycle: the target in RPDO1, SYNC, wait for TPDO1 → (statusword,
+        """One lockstep cycle: the target in RPDO1, SYNC, wait for the TPDOs → (statusword,
         velocity in rad/s, torque in N·m)."""
         node = self.node
         node.rpdo[1][self.target].raw = value
         node.rpdo[1].transmit()
-        self.net.sync.transmit()
-        assert node.tpdo[1].wait_for_reception(10.0) is not None, "no TPDO1"
+        last = node.tpdo[2]  # sent after TPDO1: both are in when it is
+        with last.receive_condition:  # armed before the SYNC: a fast answer is not missed
+            last.is_received = False
+            self.net.sync.transmit()
+            assert last.receive_condition.wait_for(lambda: last.is_received, 10.0), \
+                "no TPDO2 within 10 s of the SYNC"
         t = node.tpdo[1]
         return (t[0x6041].raw, t[0x606C].raw * VELOCITY_UNIT,
                 t[0x6077].raw * T_RATED / 1000)
+
+    def position(self) -> float:
+        """The position actual value of the last cycle's TPDO2, rad."""
+        return self.node.tpdo[2][0x6064].raw * POSITION_UNIT
 
 
 @pytest.fixture
@@ -145,14 +155,32 @@ def test_cst_makes_the_torque_asked_for(master):
     assert (w1 - w0) / (199 * T) == pytest.approx(2.0 / J, rel=0.03)
 
 
+def test_csp_follows_a_position_ramp(master):
+    """CSP: magnetise 0.5 s, then a position that ramps at 50 rad/s for 1 s, then holds:
+    the drive's position loop (with the target's speed fed forward) follows it, and the
+    position actual value (0x6064) counts what the motor turned."""
+    master.configure("CYCLIC SYNCHRONOUS POSITION", 0x607A)
+    lag, w = [], 0.0
+    for k in range(2000):
+        t = k * T
+        theta_ref = 50.0 * min(max(t - 0.5, 0.0), 1.0)
+        _, w, _ = master.cycle(round(theta_ref / POSITION_UNIT))
+        lag.append((t, theta_ref - master.position()))
+    assert max(abs(e) for t, e in lag if 0.8 <= t <= 1.5) < 0.2  # rad, while moving
+    assert max(abs(e) for t, e in lag if t >= 1.8) < 0.02  # rad, settling at 50 rad
+    assert abs(lag[-1][1]) < 0.002  # rad, 0.5 s after the ramp
+    assert abs(w) < 0.05
+
+
 def test_a_mode_the_drive_does_not_have_is_refused(master):
     """0x6502 says which modes exist; 0x6060 refuses any other with an SDO abort."""
     node = master.node
-    assert not node.is_op_mode_supported("CYCLIC SYNCHRONOUS POSITION")
+    assert not node.is_op_mode_supported("PROFILED POSITION")
     assert node.is_op_mode_supported("CYCLIC SYNCHRONOUS TORQUE")
+    assert node.is_op_mode_supported("CYCLIC SYNCHRONOUS POSITION")
     node.nmt.state = "PRE-OPERATIONAL"
     with pytest.raises(canopen.SdoAbortedError) as exc:
-        node.sdo[0x6060].raw = 8
+        node.sdo[0x6060].raw = 1
     assert exc.value.code == 0x06090030
     assert node.sdo[0x6061].raw == -1  # unchanged
 

@@ -428,3 +428,25 @@ def test_a_users_controller_runs_over_vcan(vcan_channel, tmp_path, monkeypatch):
     assert abs(sig["flux_model"][-1] - sig["psi_ref"][-1]) < 0.05
     assert (tmp_path / "run" / "fig4_controller.png").is_file()
     assert abs(s["speed_error"]["final"]) < 0.5
+
+
+@pytest.mark.parametrize("mode, controller", [("velocity", "stream"), ("torque", "stream"),
+                                              ("torque", "speed-pi")])
+def test_a_standard_drive_streams_the_paper_profile_over_vcan(vcan_channel, tmp_path, mode,
+                                                              controller):
+    """`run` against `hil-plant run` in another process as a standard CiA 402 drive: the
+    paper profile's speed streamed in CSV, its torque in CST (README, "Standard CiA 402
+    drives"), and the speed PI over CST; figures of target against actual."""
+    ch = vcan_channel
+    with plant(ch, tmp_path):
+        gw = run(gateway_run(ch, tmp_path / "run", "--timing", "lockstep", "--drive-mode",
+                             mode, "--controller", controller, "--profile", PAPER),
+                 tmp_path, "gateway", timeout=240)
+    assert gw.popen.returncode == 0, gw.describe()
+    s = summary(tmp_path / "run")
+    assert s["run"]["stop_reason"] == "end of the profile" and s["run"]["cycles"] == 2500
+    assert s["configuration"]["drive_mode"] == mode
+    assert s["configuration"]["drive_profile"] == "<emulator-standard>"
+    assert s["speed_error"]["rms"] < 1.5, s["speed_error"]
+    assert (tmp_path / "run" / "fig1_references.png").is_file()
+    assert (tmp_path / "run" / "fig4_controller.png").is_file()  # the target sent

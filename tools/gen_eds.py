@@ -230,9 +230,12 @@ def _objects() -> list[Obj]:
     var(0x6040, "controlword", UNSIGNED16, "rw", "0", pdo=True, desc="CiA 402 controlword")
     var(0x6041, "statusword", UNSIGNED16, "ro", "0", pdo=True, desc="CiA 402 statusword")
     var(0x6060, "Modes of operation", INTEGER8, "rw", "-1", low="-2", high="10",
-        desc="-1 current vector, -2 voltage vector (manufacturer-specific), 9 cyclic "
-             "synchronous velocity, 10 cyclic synchronous torque")
+        desc="-1 current vector, -2 voltage vector (manufacturer-specific), 8 cyclic "
+             "synchronous position, 9 cyclic synchronous velocity, 10 cyclic synchronous "
+             "torque")
     var(0x6061, "Modes of operation display", INTEGER8, "ro", "-1")
+    var(0x6064, "Position actual value", INTEGER32, "ro", "0", pdo=True,
+        desc="1/65536 revolution (the encoder, counted in the standard modes)")
     var(0x606C, "Velocity actual value", INTEGER32, "ro", "0", pdo=True,
         desc="0.001 rev/min (the encoder)")
     var(0x6071, "Target torque", INTEGER16, "rw", "0", pdo=True,
@@ -245,11 +248,13 @@ def _objects() -> list[Obj]:
         desc="per mille of the motor rated torque 0x6076")
     var(0x6079, "DC link circuit voltage", UNSIGNED32, "ro", str(round(d.u_dc * 1000)),
         desc="mV")
+    var(0x607A, "Target position", INTEGER32, "rw", "0", pdo=True,
+        desc="1/65536 revolution (CSP)")
     var(0x60FF, "Target velocity", INTEGER32, "rw", "0", pdo=True,
         desc="0.001 rev/min (CSV)")
     var(0x6502, "Supported drive modes", UNSIGNED32, "ro", f"0x{SUPPORTED_DRIVE_MODES:08X}",
-        desc="bit 8: 9 CSV, bit 9: 10 CST, bit 16: -1 current vector, bit 17: -2 voltage "
-             "vector")
+        desc="bit 7: 8 CSP, bit 8: 9 CSV, bit 9: 10 CST, bit 16: -1 current vector, "
+             "bit 17: -2 voltage vector")
     _real32_limits(objs)
     return sorted(objs, key=lambda o: o.index)
 
