@@ -601,13 +601,20 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_profile_check(args: argparse.Namespace) -> int:
-    """`hil-gateway profile check FILE`: validate and show the set points and demands.
+    """`hil-gateway profile check FILE`: validate and show the set points and demands; a
+    drive profile (a TOML with [drive]) is checked off line against its EDS and DBC
+    (:mod:`gateway.profilecheck`: exit 1 when a signal does not fit its object).
 
     What cannot run (a value beyond the PDO signals' range or the emulated drive's
     over-speed limit) is refused by the loader, as for every command that loads a profile:
     exit status 2 with the file, the key and the limit. Merely high demands are warnings."""
+    from gateway.profilecheck import check_drive_profile, is_drive_profile, render
     from gateway.reference import demand, reference_limits
 
+    if is_drive_profile(args.file):  # a drive profile ([drive]): checked off line
+        report = check_drive_profile(args.file)
+        print(render(report))
+        return 0 if report.ok else 1
     profile = _load_profile(args.file)
     motor = _load_motor(args.motor)
     print(f"{args.file}: profile {profile.name!r} is valid, duration {profile.duration:g} s")
@@ -868,9 +875,15 @@ def _add_reference(sub: Any) -> None:
                        description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
                                    "(TOML). (A drive profile, --drive, describes a drive.)")
     psub = p.add_subparsers(dest="profile_command", metavar="ACTION")
-    pc = psub.add_parser("check", help="validate; print the set points and peak demands",
-                         description="Validate a profile, print its set points and the peak "
-                                     "current and voltage it demands from the motor.")
+    pc = psub.add_parser("check", help="validate; print the set points and peak demands (a "
+                                       "drive profile: its signals against its EDS)",
+                         description="Validate a reference profile, print its set points and "
+                                     "the peak current and voltage it demands from the motor. "
+                                     "Given a drive profile (a TOML with [drive]), check it "
+                                     "off line: every PDO signal against the EDS object it "
+                                     "maps (exists, PDO-mappable, size, access) and which "
+                                     "drive modes it can run; exit 1 if a signal does not "
+                                     "fit.")
     pc.add_argument("file", metavar="FILE")
     pc.add_argument("--motor", metavar="FILE", help="motor parameters (TOML)")
     pc.set_defaults(func=cmd_profile_check)

@@ -60,7 +60,6 @@ from dbc.cia402 import (
     CONTROLWORD,
     ENABLE_SEQUENCE,
     MODES_OF_OPERATION,
-    STANDARD_SIGNALS,
     STATUSWORD,
     SW_FAULT,
     Controlword,
@@ -68,6 +67,7 @@ from dbc.cia402 import (
 )
 from dbc.timing import LOCKSTEP_BACKSTOP_S
 from gateway.drive_profile import DriveProfile
+from gateway.eds import find_object, object_for
 from gateway.errors import UserError
 from gateway.process_data import Pdo, ProcessData
 from gateway.stop import StopReason
@@ -368,19 +368,7 @@ class DriveMaster:
     def find_object(self, name: str) -> canopen.objectdictionary.ODVariable | None:
         """The EDS variable of that ParameterName (an object or a sub-index); None if the
         drive's EDS has none."""
-        od = self.node.object_dictionary
-        try:
-            obj = od[name]
-        except KeyError:
-            obj = None
-        if isinstance(obj, canopen.objectdictionary.ODVariable):
-            return obj
-        for o in od.values():
-            if isinstance(o, canopen.objectdictionary.ODRecord | canopen.objectdictionary.ODArray):
-                for var in o.values():
-                    if var.name == name:
-                        return var
-        return None
+        return find_object(self.node.object_dictionary, name)
 
     def write_by_name(self, name: str, value: int | float) -> bool:
         """Write an object found by its EDS name; False if the drive has no such object."""
@@ -457,15 +445,8 @@ class DriveMaster:
 
     def object_of(self, signal: str, role: str
                   ) -> canopen.objectdictionary.ODVariable | None:
-        """The EDS object a PDO signal maps: named like the DBC signal (CiA 402's controlword
-        and statusword, and the standard targets and actual values of
-        :data:`dbc.cia402.STANDARD_SIGNALS`, by index); None if the EDS has none."""
-        index = ({"controlword": CONTROLWORD, "statusword": STATUSWORD}.get(role)
-                 or STANDARD_SIGNALS.get(signal))
-        if index is not None:
-            obj = self.node.object_dictionary[index] if self.has(index) else None
-            return obj if isinstance(obj, canopen.objectdictionary.ODVariable) else None
-        return self.find_object(signal)
+        """The EDS object a PDO signal maps (:func:`gateway.eds.object_for`)."""
+        return object_for(self.node.object_dictionary, signal, role)
 
     def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
         """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -625,3 +626,74 @@ def test_a_real_drives_run_is_not_held_to_the_emulators_limits(tmp_path: Path) -
     assert _load_profile(str(path), other).speed.final == 700.0
     with pytest.raises(UserError, match="w_max"):
         _load_profile(str(path), emulator)
+
+
+# ------------------------------------------------------------ drive profiles, off line
+
+
+def main(argv: list[str]) -> int:
+    from gateway.cli import main as cli_main
+
+    return cli_main(argv)
+
+
+def _drive_copy(tmp_path: Path, dbc_edit=None, toml_edit=None) -> Path:
+    """The emulator's drive profile copied into tmp_path with its DBC, edited."""
+    import gateway
+    from dbc import DBC_PATH
+
+    text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
+    dbc = DBC_PATH.read_text()
+    (tmp_path / "d.dbc").write_text(dbc_edit(dbc) if dbc_edit else dbc)
+    text = text.replace('dbc = "builtin:drive.dbc"', 'dbc = "d.dbc"')
+    path = tmp_path / "drive.toml"
+    path.write_text(toml_edit(text) if toml_edit else text)
+    return path
+
+
+@pytest.mark.parametrize("name, runs, cannot", [
+    ("emulator", ("current-loop", "voltage"), ("torque", "velocity")),
+    ("emulator-standard", ("torque", "velocity"), ("current-loop", "voltage")),
+])
+def test_profile_check_takes_a_drive_profile(capsys, name, runs, cannot) -> None:
+    """`profile check DRIVE.toml`: every signal against its EDS object, and which drive
+    modes the profile can run."""
+    import gateway
+
+    path = Path(gateway.__file__).parent / "drives" / f"{name}.toml"
+    assert main(["profile", "check", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "ERROR" not in out and out.rstrip().endswith("every signal fits its object")
+    for mode in runs:
+        assert re.search(rf"--drive-mode {mode}\s+runs", out), mode
+    for mode in cannot:
+        assert re.search(rf"--drive-mode {mode}\s+cannot run", out), mode
+    assert "0x6040.0" in out  # the controlword, by index
+
+
+def test_profile_check_finds_a_size_that_does_not_fit(tmp_path: Path, capsys) -> None:
+    path = _drive_copy(tmp_path, dbc_edit=lambda t: t.replace(
+        "BO_ 641 TPDO2: 6 DRIVE", "BO_ 641 TPDO2: 8 DRIVE").replace(
+        "SG_ u_dc : 32|16@1+", "SG_ u_dc : 32|32@1+"))
+    assert main(["profile", "check", str(path)]) == 1
+    out = capsys.readouterr().out
+    assert "ERROR: 'u_dc' is 16 bits in the EDS, the DBC signal 32" in out
+    assert "not ok" in out
+
+
+def test_profile_check_finds_a_signal_without_object(tmp_path: Path, capsys) -> None:
+    path = _drive_copy(
+        tmp_path, dbc_edit=lambda t: t.replace("SG_ T_L : 0|16@1-", "SG_ Tload : 0|16@1-"),
+        toml_edit=lambda t: t + '\n[signals]\nT_L = "RPDO3.Tload"\n')
+    assert main(["profile", "check", str(path)]) == 1
+    out = capsys.readouterr().out
+    assert "the EDS has no object named 'Tload'" in out
+
+
+def test_profile_check_of_a_broken_drive_profile_is_one_paragraph(tmp_path: Path,
+                                                                  capsys) -> None:
+    path = _drive_copy(tmp_path, toml_edit=lambda t: t.replace('currents = "TPDO1"',
+                                                               'currents = "TPDO9"'))
+    assert main(["profile", "check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "TPDO9" in err and "Traceback" not in err

@@ -1,0 +1,152 @@
+"""`hil-gateway profile check DRIVE.toml`: a drive profile checked off line, before any bus.
+
+The profile loads (its EDS and DBC exist and read; the messages it names are in the DBC),
+then every PDO signal is held against the EDS object it maps (:func:`gateway.eds.object_for`):
+the object exists, is PDO-mappable, has the DBC signal's size, and can be written (a signal
+the gateway sends) or read (one the drive sends). Then, for each drive mode, whether the
+roles a run in it needs are mapped — which controllers the drive can run. The same
+checks a run makes at bring-up, without the drive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import canopen
+
+from dbc.modes import DriveMode
+from dbc.timing import Sampling
+from gateway.control.interface import ControllerChoice
+from gateway.drive_profile import DriveProfile, load_drive_profile
+from gateway.eds import object_for
+from gateway.errors import UserError
+from gateway.process_data import ProcessData, process_data
+
+#: The controller each drive mode is checked with, and the law for the paper's.
+MODE_CONTROLLERS: dict[DriveMode, tuple[str, str]] = {
+    DriveMode.CURRENT_LOOP: ("paper", "current-fed"),
+    DriveMode.VOLTAGE: ("paper", "full-order"),
+    DriveMode.TORQUE: ("speed-pi", "current-fed"),
+    DriveMode.VELOCITY: ("stream", "current-fed"),
+}
+
+
+@dataclass
+class SignalCheck:
+    """One PDO signal against its EDS object; ``problem`` is "" when it fits."""
+
+    pdo: str
+    cob_id: int
+    signal: str
+    role: str
+    bits: int
+    obj: str
+    problem: str = ""
+
+
+@dataclass
+class ProfileReport:
+    """What ``profile check`` found: the signals, and per drive mode the roles missing."""
+
+    profile: DriveProfile
+    signals: list[SignalCheck] = field(default_factory=list)
+    modes: dict[DriveMode, list[str]] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """Every signal fits its object and at least one drive mode can run."""
+        return (not any(s.problem for s in self.signals)
+                and any(not missing for missing in self.modes.values()))
+
+
+def is_drive_profile(path: str | Path) -> bool:
+    """The TOML file has a [drive] table (else it is taken for a reference profile)."""
+    import tomllib
+
+    try:
+        return "drive" in tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
+def check_drive_profile(path: str | Path) -> ProfileReport:
+    """Load the drive profile at ``path`` (a :class:`UserError` for what keeps it from
+    loading) and check its signals and modes (see the module docstring)."""
+    prof = load_drive_profile(path)
+    try:
+        od = canopen.import_od(str(prof.eds), prof.node)
+    except Exception as exc:  # checked by the loader already; a node id can still fail
+        raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} cannot be read for node "
+                        f"{prof.node} ({type(exc).__name__}: {exc})") from None
+    pd = process_data(prof)
+    report = ProfileReport(prof, _signals(od, pd))
+    mapped = {s.role for s in report.signals if not s.problem}
+    for mode in MODE_CONTROLLERS:
+        report.modes[mode] = [r for r in _roles(mode, pd) if r not in mapped]
+    return report
+
+
+def _signals(od: canopen.ObjectDictionary, pd: ProcessData) -> list[SignalCheck]:
+    out = []
+    for pdo in (*pd.rpdos, *pd.tpdos):
+        for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
+            var = object_for(od, signal, role)
+            check = SignalCheck(pdo.name, pdo.cob_id, signal, role, spec.bits,
+                                "—" if var is None else f"0x{var.index:04X}.{var.subindex}")
+            check.problem = _problem(var, spec.bits, pdo.tx, signal)
+            out.append(check)
+    return out
+
+
+def _problem(var: canopen.objectdictionary.ODVariable | None, bits: int, tx: bool,
+             signal: str) -> str:
+    """What keeps ``var`` from carrying a ``bits``-bit signal in a TPDO (``tx``) or an
+    RPDO; "" when nothing does."""
+    if var is None:
+        return (f"the EDS has no object named {signal!r}: name the object like the DBC "
+                "signal, or map the role to another signal in [signals]")
+    if not var.pdo_mappable:
+        return f"{var.name!r} is not PDO-mappable (PDOMapping=0 in the EDS)"
+    if len(var) != bits:
+        return (f"{var.name!r} is {len(var)} bits in the EDS, the DBC signal {bits}: make "
+                "the DBC signal's size the object's")
+    if tx and not var.readable:
+        return f"{var.name!r} cannot be read (AccessType {var.access_type})"
+    if not tx and not var.writable:
+        return (f"{var.name!r} cannot be written (AccessType {var.access_type}): the gateway "
+                "sends it")
+    return ""
+
+
+def _roles(mode: DriveMode, pd: ProcessData) -> list[str]:
+    """The roles a run in ``mode`` needs of the drive (:func:`gateway.runner.required_roles`
+    with the controller of :data:`MODE_CONTROLLERS`)."""
+    from gateway.control.interface import controller_factory
+    from gateway.runner import required_roles
+    from gateway.spec import RunSpec
+
+    name, law = MODE_CONTROLLERS[mode]
+    spec = RunSpec(controller=ControllerChoice(name), law=law, drive_mode=mode,
+                   sampling=Sampling(1e-3, 1, pd.setpoint_frame))
+    requires = tuple(getattr(controller_factory(name), "requires", ()))
+    return list(required_roles(spec, pd, requires))
+
+
+def render(report: ProfileReport) -> str:
+    """The report as text: one line per signal, one per drive mode, the verdict."""
+    prof = report.profile
+    lines = [f"{prof.source}: drive profile {prof.name!r}, node {prof.node}, EDS "
+             f"{prof.eds.name}, DBC {prof.dbc.name}",
+             f"  {'PDO':<10}{'COB-ID':<8}{'signal':<18}{'role':<16}{'bits':>4}  object"]
+    for s in report.signals:
+        lines.append(f"  {s.pdo:<10}0x{s.cob_id:03X}   {s.signal:<18}{s.role:<16}{s.bits:>4}  "
+                     f"{s.obj}" + (f"  ERROR: {s.problem}" if s.problem else ""))
+    for mode, missing in report.modes.items():
+        name, _ = MODE_CONTROLLERS[mode]
+        ctl = f"the {name} controller" if name != "paper" else "the paper's laws"
+        lines.append(f"  --drive-mode {mode:<13}" + (
+            f"runs {ctl}" if not missing else f"cannot run {ctl}: no {', '.join(missing)}"))
+    lines.append("ok: the profile loads, every signal fits its object" if report.ok else
+                 "not ok: fix the errors above (or map the roles a drive mode needs)")
+    return "\n".join(lines)
