@@ -160,10 +160,10 @@ def _objects(report: CheckReport, master: DriveMaster, pd: ProcessData) -> None:
                                                        strict=True)):
             name = f"object of {pdo.name}.{signal} ({role})"
             if remap:
-                var = master.object_of(signal, role)
+                var = master.object_of(signal, role, pdo.name)
                 missing = (f"the EDS ({master.profile.eds}) has no object named {signal!r}",
-                           "name the EDS object like the DBC signal, or the signal like the "
-                           "object")
+                           f"name it in the drive profile's [objects] (\"{pdo.name}.{signal}\" "
+                           "= \"0xIIII.S\"), or the EDS object like the DBC signal")
             else:
                 var = mapped[k] if k < len(mapped) else None
                 missing = (f"the drive maps {len(mapped)} objects in {pdo.name}, the DBC "

@@ -42,6 +42,7 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -61,6 +62,7 @@ _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
     "limits": {"current_peak_a": (int, float), "dc_link_v": list},
     "signals": {},  # role = "MESSAGE.signal": any role of dbc/signals.py
+    "objects": {},  # "MESSAGE.signal" = "0xIIII.S": the EDS object a DBC signal maps
 }
 #: Ranges of the timing keys: (low, high, unit, what it is).
 _TIMING_RANGES: dict[str, tuple[float, float, str, str]] = {
@@ -113,6 +115,7 @@ class DriveProfile:
     current_peak_a: float | None = None
     dc_link_v: tuple[float, float] | None = None
     signals: dict[str, tuple[str, str]] = field(default_factory=dict)
+    objects: dict[str, tuple[int, int]] = field(default_factory=dict)
     gateway_node: int = 0x7F
     dbc_node: int | None = None
 
@@ -188,6 +191,9 @@ def _check_sections(data: dict[str, Any], source: str) -> None:
             if section == "signals":
                 _check_signal(source, key, v)
                 continue
+            if section == "objects":
+                _object_key(source, key, v)
+                continue
             types = _SECTIONS[section].get(key)
             if types is None:
                 raise UserError(f"{source}: unknown key [{section}].{key}; the keys of "
@@ -242,6 +248,7 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
     ``eds`` and ``dbc`` resolved against ``base`` (not yet checked to exist)."""
     d, m, p, t, lim, sg = (data.get(s, {}) for s in ("drive", "modes", "pdo", "timing",
                                                      "limits", "signals"))
+    ob = data.get("objects", {})
     peak, dc = lim.get("current_peak_a"), lim.get("dc_link_v")
     return DriveProfile(
         name=d.get("name", Path(source).stem), source=source,
@@ -261,8 +268,23 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         current_peak_a=None if peak is None else float(peak),
         dc_link_v=None if dc is None else (float(dc[0]), float(dc[1])),
         signals={role: _message_signal(v) for role, v in sg.items()},
+        objects={key: _object_key(source, key, v) for key, v in ob.items()},
         gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
     )
+
+
+_OBJECT = re.compile(r"^0x([0-9A-Fa-f]{4})(?:[.:](?:0x)?([0-9A-Fa-f]{1,2}))?$")
+
+
+def _object_key(source: str, key: str, value: object) -> tuple[int, int]:
+    """[objects] ``"MESSAGE.signal" = "0xIIII.S"``: (index, sub-index; sub 0 if left out,
+    hexadecimal as in an EDS)."""
+    m = _OBJECT.match(value) if isinstance(value, str) else None
+    if m is None or key.count(".") != 1:
+        raise UserError(f"{source}: [objects].{key} = {value!r}: write \"MESSAGE.signal\" = "
+                        "\"0xIIII.S\" (the EDS object the DBC signal maps, e.g. "
+                        "\"TPDO1.i_sa\" = \"0x3010.0\")")
+    return int(m.group(1), 16), int(m.group(2) or "0", 16)
 
 
 def _message_signal(value: str) -> tuple[str, str]:

@@ -25,10 +25,18 @@ def find_object(od: canopen.ObjectDictionary, name: str) -> ODVariable | None:
     return None
 
 
-def object_for(od: canopen.ObjectDictionary, signal: str, role: str) -> ODVariable | None:
-    """The EDS object a PDO signal maps: named like the DBC signal; CiA 402's controlword
-    and statusword, and the standard targets and actual values of
-    :data:`dbc.cia402.STANDARD_SIGNALS`, by index. None if the EDS has none."""
+def object_for(od: canopen.ObjectDictionary, signal: str, role: str,
+               explicit: tuple[int, int] | None = None) -> ODVariable | None:
+    """The EDS object a PDO signal maps: ``explicit`` (the drive profile's [objects] entry:
+    index, sub-index) where given; else CiA 402's controlword and statusword, and the
+    standard targets and actual values of :data:`dbc.cia402.STANDARD_SIGNALS`, by index;
+    else the object named like the DBC signal. None if the EDS has none."""
+    if explicit is not None:
+        index, sub = explicit
+        obj = od.get(index)
+        if isinstance(obj, ODRecord | ODArray):
+            return obj.get(sub) if sub in obj else None
+        return obj if isinstance(obj, ODVariable) and sub == 0 else None
     index = ({"controlword": CONTROLWORD, "statusword": STATUSWORD}.get(role)
              or STANDARD_SIGNALS.get(signal))
     if index is not None:

@@ -443,22 +443,26 @@ class DriveMaster:
                             f"(COB-ID 0x{pdo.cob_id:03X}); check the drive profile "
                             f"({self.profile.source})") from None
 
-    def object_of(self, signal: str, role: str
+    def object_of(self, signal: str, role: str, message: str = ""
                   ) -> canopen.objectdictionary.ODVariable | None:
-        """The EDS object a PDO signal maps (:func:`gateway.eds.object_for`)."""
-        return object_for(self.node.object_dictionary, signal, role)
+        """The EDS object a PDO signal of ``message`` maps (:func:`gateway.eds.object_for`;
+        the profile's [objects] entry first)."""
+        return object_for(self.node.object_dictionary, signal, role,
+                          self.profile.objects.get(f"{message}.{signal}"))
 
     def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
         """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and
         statusword by index)."""
         entries = []
         for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
-            var = self.object_of(signal, role)
+            var = self.object_of(signal, role, pdo.name)
             if var is None:
                 raise UserError(
                     f"the drive's EDS ({self.profile.eds}) has no object named {signal!r} for "
-                    f"{pdo.name}.{signal}: name the object like the DBC signal, or set remap = "
-                    "false in the drive profile and configure the mapping on the drive")
+                    f"{pdo.name}.{signal}: name it in the drive profile's [objects] "
+                    f"(\"{pdo.name}.{signal}\" = \"0xIIII.S\"), name the object like the DBC "
+                    "signal, or set remap = false in the drive profile and configure the "
+                    "mapping on the drive")
             entries.append((var.index, var.subindex, spec.bits))
         return entries
 

@@ -672,29 +672,36 @@ def _role_comment(c: Choice, in_layout: set[str], unused: str) -> list[str]:
 def _toml_signals(choices: dict[str, Choice], in_layout: set[str], setpoints: str
                   ) -> list[str]:
     """[signals]: ``role = "MESSAGE.signal"`` for every chosen object in the DBC skeleton,
-    with its index:sub and name as a comment."""
+    with its index:sub and name as a comment; [objects]: the EDS object each of those
+    signals maps, ``"MESSAGE.signal" = "0xIIII.S"`` (the master maps by it)."""
     unused = _unused_setpoints(setpoints)
     table = [f'{c.role.name} = "{c.role.message}.{c.role.name}"'.ljust(34)
              + f" # {c.chosen.obj.key} {c.chosen.obj.name}"
              for c in choices.values()
              if not (c.role.message == unused and not c.candidates)
              and c.chosen is not None and c.role.name in in_layout]
-    return ["", "[signals]                         # role = \"MESSAGE.signal\"", *table, ""]
+    objects = [f'"{c.role.message}.{c.role.name}" = "0x{c.chosen.obj.index:04X}.'
+               f'{c.chosen.obj.sub}"' for c in choices.values()
+               if not (c.role.message == unused and not c.candidates)
+               and c.chosen is not None and c.role.name in in_layout]
+    return ["", "[signals]                         # role = \"MESSAGE.signal\"", *table, "",
+            "[objects]                         # the EDS object each DBC signal maps",
+            *objects, ""]
 
 
 def render_dbc(eds: DriveEds, choices: dict[str, Choice], node: int = 1) -> str:
-    """The DBC skeleton: one message per PDO with the chosen objects, ids for node 1."""
+    """The DBC skeleton: one message per PDO with the chosen objects, with the COB-IDs of
+    the CiA 301 default PDOs of ``node`` (as a third-party tool sees the drive's frames)."""
     setpoints, _ = _setpoint_family(choices)
     layout = _layout(choices, setpoints)
     out = ['VERSION ""', "", "", "NS_ :", "\tCM_", "\tBA_DEF_", "\tBA_", "\tVAL_", "",
            "BS_:", "", "BU_: GATEWAY DRIVE", "", ""]
     comments = [f'CM_ "Drive profile skeleton from {eds.path.name} (hil-gateway profile '
-                f'new-drive); COB-IDs of the CiA 301 default PDOs for node 1 (the gateway '
-                f'offsets them by the node id, {node} here). Scalings are 1: confirm the '
-                f'drive\'s units.";']
+                f'new-drive); COB-IDs of the CiA 301 default PDOs for node {node}. '
+                f'Scalings are 1: confirm the drive\'s units.";']
     for msg, sigs in layout.items():
         direction, n, _ = _MESSAGES[msg]
-        fid = (0x200 if direction == RX else 0x180) + 0x100 * (n - 1) + 1
+        fid = (0x200 if direction == RX else 0x180) + 0x100 * (n - 1) + node
         sender, receiver = ("GATEWAY", "DRIVE") if direction == RX else ("DRIVE", "GATEWAY")
         objs = [c.chosen.obj for c in sigs if c.chosen is not None]
         length = sum(INT_TYPES[o.dtype][1] for o in objs) // 8

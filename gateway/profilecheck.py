@@ -80,18 +80,19 @@ def check_drive_profile(path: str | Path) -> ProfileReport:
         raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} cannot be read for node "
                         f"{prof.node} ({type(exc).__name__}: {exc})") from None
     pd = process_data(prof)
-    report = ProfileReport(prof, _signals(od, pd))
+    report = ProfileReport(prof, _signals(od, pd, prof.objects))
     mapped = {s.role for s in report.signals if not s.problem}
     for mode in MODE_CONTROLLERS:
         report.modes[mode] = [r for r in _roles(mode, pd) if r not in mapped]
     return report
 
 
-def _signals(od: canopen.ObjectDictionary, pd: ProcessData) -> list[SignalCheck]:
+def _signals(od: canopen.ObjectDictionary, pd: ProcessData, objects: dict[str, tuple[int, int]]
+             ) -> list[SignalCheck]:
     out = []
     for pdo in (*pd.rpdos, *pd.tpdos):
         for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
-            var = object_for(od, signal, role)
+            var = object_for(od, signal, role, objects.get(f"{pdo.name}.{signal}"))
             check = SignalCheck(pdo.name, pdo.cob_id, signal, role, spec.bits,
                                 "—" if var is None else f"0x{var.index:04X}.{var.subindex}")
             check.problem = _problem(var, spec.bits, pdo.tx, signal)
@@ -104,8 +105,8 @@ def _problem(var: canopen.objectdictionary.ODVariable | None, bits: int, tx: boo
     """What keeps ``var`` from carrying a ``bits``-bit signal in a TPDO (``tx``) or an
     RPDO; "" when nothing does."""
     if var is None:
-        return (f"the EDS has no object named {signal!r}: name the object like the DBC "
-                "signal, or map the role to another signal in [signals]")
+        return (f"the EDS has no object named {signal!r}: name the object in [objects] "
+                "(\"MESSAGE.signal\" = \"0xIIII.S\"), or the object like the DBC signal")
     if not var.pdo_mappable:
         return f"{var.name!r} is not PDO-mappable (PDOMapping=0 in the EDS)"
     if len(var) != bits:

@@ -12,9 +12,11 @@ import cantools
 import pytest
 
 import dbc
+import gateway
 from gateway import newdrive
 from gateway.cli import main
 from gateway.drive_profile import load_drive_profile
+from gateway.errors import UserError
 
 
 def _gen_eds():
@@ -173,14 +175,20 @@ def test_skeleton_of_the_foreign_eds(tmp_path, capsys):
     tpdo2 = db.get_message_by_name("TPDO2")
     assert [(s.name, s.length) for s in tpdo2.signals] == [("u_sa", 16), ("u_sb", 16),
                                                            ("u_dc", 32)]
-    assert tpdo2.frame_id == 0x281 and tpdo2.length == 8
-    assert db.get_message_by_name("RPDO1").frame_id == 0x201
+    # the node id is honoured in every COB-ID, as a third-party tool sees node 5's frames
+    assert tpdo2.frame_id == 0x285 and tpdo2.length == 8
+    assert db.get_message_by_name("RPDO1").frame_id == 0x205
     assert all(s.scale == 1 for m in db.messages for s in m.signals)
     # without [signals] (until the lead's loader knows it) it is a valid drive profile
     bare = out.with_name("bare.toml")
     bare.write_text(text[:text.index("\n[signals]")] + "\n")
     prof = load_drive_profile(bare)
     assert prof.node == 5 and prof.eds.resolve() == eds.resolve()
+    from gateway.process_data import process_data
+
+    pd = process_data(prof)  # and the gateway uses them as they are
+    assert {p.name: p.cob_id for p in pd.tpdos}["TPDO2"] == 0x285
+    assert {p.name: p.cob_id for p in pd.rpdos}["RPDO1"] == 0x205
 
 
 def test_skeleton_of_our_own_eds_is_a_valid_profile(tmp_path):
@@ -259,3 +267,50 @@ def test_eds_without_cia402_objects_is_told(tmp_path):
     header = " ".join(line.lstrip("#! ") for line in text[:text.index("[drive]")].splitlines())
     assert "has no 0x6040 controlword, 0x6060 modes of operation" in header
     assert tomllib.loads(text)["signals"] == {"statusword": "TPDO1.statusword"}
+
+
+def test_a_skeleton_passes_its_own_profile_check(tmp_path, capsys):
+    """`profile new-drive` on a third-party EDS at node 23 writes a profile whose DBC has node
+    23's COB-IDs and whose [objects] name the EDS object of each signal, so `profile check`
+    passes it: every signal fits its object, and the vector modes have their roles."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from foreign_drive import write_files
+
+    write_files(tmp_path, 23)
+    out = tmp_path / "new.toml"
+    assert main(["profile", "new-drive", "--eds", str(tmp_path / "foreign.eds"), "--node",
+                 "23", "-o", str(out)]) == 0
+    data = tomllib.loads(out.read_text())
+    assert data["objects"]["TPDO1.i_sa"].startswith("0x3")
+    capsys.readouterr()
+    assert main(["profile", "check", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "ERROR" not in text and "0x197" in text
+    assert "--drive-mode current-loop runs the paper's laws" in text
+
+
+@pytest.mark.parametrize("value", ["3010", "0x301", "0x3010.", "0x3010.1.2", 12304])
+def test_a_bad_objects_entry_is_one_paragraph(tmp_path, capsys, value):
+    from gateway.drive_profile import load_drive_profile
+
+    text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
+    path = tmp_path / "d.toml"
+    rhs = f'"{value}"' if isinstance(value, str) else str(value)
+    path.write_text(text + f'\n[objects]\n"TPDO1.i_sa" = {rhs}\n')
+    with pytest.raises(UserError, match=r"\[objects\]\.TPDO1\.i_sa"):
+        load_drive_profile(path)
+
+
+def test_an_objects_entry_maps_the_signal(tmp_path):
+    """[objects] wins over the name: i_sa mapped to 0x2101 (the emulator's i_sb object) is
+    what the check reports."""
+    from gateway.profilecheck import check_drive_profile
+
+    text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
+    text = text.replace('dbc = "builtin:drive.dbc"', f'dbc = "{dbc.DBC_PATH}"').replace(
+        'eds = "builtin:drive.eds"', f'eds = "{dbc.EDS_PATH}"')
+    path = tmp_path / "d.toml"
+    path.write_text(text + '\n[objects]\n"TPDO1.i_sa" = "0x2101.0"\n')
+    report = check_drive_profile(path)
+    row = next(s for s in report.signals if s.pdo == "TPDO1" and s.signal == "i_sa")
+    assert row.obj == "0x2101.0" and not row.problem
