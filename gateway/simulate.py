@@ -131,6 +131,57 @@ def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> D
     return replace(params, mode=mode, f_pwm=internal_rate(params.f_pwm, T))
 
 
+class _SampledDrive:
+    """The drive's side of the sampled loop, as the emulated device does it: the RPDO
+    values received since the last latch become active at the latch (the vector setpoints,
+    or a standard drive's target for its own control, :mod:`plant.servo`, stepped at every
+    SYNC), and the model advances one period with the load torque latched."""
+
+    def __init__(self, drive: Drive, mode: DriveMode, T: float) -> None:
+        self.drive, self.mode, self.T = drive, mode, T
+        self.servo = servo_for(drive.motor, drive.params.i_trip, T) if mode.standard else None
+        self.pending: dict[str, float] = {}
+        self.T_L = 0.0
+        self.targets = {"target_torque": 0.0, "target_velocity": 0.0}
+        self.w_enc = drive.state.w_m  # the encoder at the last sample
+
+    def latch(self) -> None:
+        pending, servo = self.pending, self.servo
+        if pending:
+            if servo is None:
+                self.drive.set_setpoints(setpoints_from_rpdos(pending, pending))
+            else:
+                self.targets.update((k, pending[k]) for k in self.targets if k in pending)
+            self.T_L = pending["T_L"]
+            pending.clear()
+        if servo is not None:  # as the emulated device does at every SYNC
+            self.drive.set_setpoints(
+                servo.torque(self.targets["target_torque"], self.w_enc)
+                if self.mode is DriveMode.TORQUE
+                else servo.velocity(self.targets["target_velocity"], self.w_enc))
+
+    def advance(self) -> Measurement:
+        meas = self.drive.advance(self.T, self.T_L)
+        self.w_enc = meas.w_m
+        if self.servo is not None:
+            self.servo.sample(meas.w_m)  # its encoder, as the emulated device counts it
+        return meas
+
+
+def _sampled_drive(profile: Profile, motor: MotorParams, spec: RunSpec, T: float
+                   ) -> _SampledDrive:
+    """The plant of a sampled run: the controller's motor × the spec's plant scenario, the
+    drive in the spec's mode (a standard drive's own control over its current loop), at an
+    internal rate that is a whole number of steps per period."""
+    plant = _plant(spec)
+    mode = DriveMode.CURRENT_LOOP if spec.drive_mode.standard else spec.drive_mode
+    drive = Drive(plant.plant_motor(motor),
+                  plant.drive_params(drive_params_for_period(DriveParams(), T, mode)),
+                  _initial(spec), **plant.drive_options(lambda t: profile.load.at(t)[0]))
+    drive.enable(True)
+    return _SampledDrive(drive, spec.drive_mode, T)
+
+
 def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
                 progress: Progress | None = None, stop: threading.Event | None = None,
                 watch: DivergenceWatch | None = None) -> Record:
@@ -140,58 +191,22 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     sampling = spec.sampling
     assert sampling is not None
     T = sampling.period
-    duration = spec.duration or profile.duration
-    n_cycles = round(duration / T)
-    plant = _plant(spec)  # the plant is the controller's model × the scenario
-    standard = spec.drive_mode.standard  # the drive's own control over its current loop
-    drive = Drive(plant.plant_motor(motor),
-                  plant.drive_params(drive_params_for_period(
-                      DriveParams(), T,
-                      DriveMode.CURRENT_LOOP if standard else spec.drive_mode)),
-                  _initial(spec), **plant.drive_options(lambda t: profile.load.at(t)[0]))
-    drive.enable(True)
-    servo = servo_for(drive.motor, drive.params.i_trip, T) if standard else None
+    n_cycles = round((spec.duration or profile.duration) / T)
+    side = _sampled_drive(profile, motor, spec, T)
     paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
     ctl = spec.controller.make(ControllerContext(
         motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
         current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0))
     cycle = ControlCycle(ctl, profile, sampling)
     link = PdoLink(spec.quantize, sampling.setpoint_frame,
-                   EMULATOR_STANDARD if standard else EMULATOR)
+                   EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
     rec = Record(cycle.row_type)
-    apply = sampling.apply
-    pending: dict[str, float] = {}
-    T_L_active = [0.0]
-    targets = {"target_torque": 0.0, "target_velocity": 0.0}  # a standard drive's
-    w_enc = [drive.state.w_m]  # its encoder at the last sample
     step_progress = max(1, n_cycles // 100)
-
-    def latch() -> None:
-        if pending:
-            if servo is None:
-                drive.set_setpoints(setpoints_from_rpdos(pending, pending))
-            else:
-                targets.update((k, pending[k]) for k in targets if k in pending)
-            T_L_active[0] = pending["T_L"]
-            pending.clear()
-        if servo is not None:  # as the emulated device does at every SYNC
-            drive.set_setpoints(
-                servo.torque(targets["target_torque"], w_enc[0])
-                if spec.drive_mode is DriveMode.TORQUE
-                else servo.velocity(targets["target_velocity"], w_enc[0]))
-
-    def advance() -> Measurement:
-        meas = drive.advance(T, T_L_active[0])
-        w_enc[0] = meas.w_m
-        if servo is not None:
-            servo.sample(meas.w_m)  # its encoder, as the emulated device counts it
-        return meas
-
     for k in range(1, n_cycles + 1):
-        meas = sync_cycle(advance, latch, apply)
+        meas = sync_cycle(side.advance, side.latch, sampling.apply)
         measured = link.tpdos(meas, sync_counter(k))
         out = cycle.step(k, measured, truth=Truth(meas.w_m, meas.psi_r_ab, meas.T_e))
-        pending.update(link.rpdos(out.setpoints))
+        side.pending.update(link.rpdos(out.setpoints))
         rec.append(out.row)
         if watch is not None and watch.check(out.row, k):
             break
