@@ -212,19 +212,16 @@ def _mappings(report: CheckReport, master: DriveMaster, pd: ProcessData, when: s
 
 
 def _roles(report: CheckReport, master: DriveMaster, pd: ProcessData) -> bool:
-    from gateway.runner import required_roles
-    from gateway.spec import RunSpec
+    from gateway.profilecheck import roles_needed
 
-    cfg = RunSpec(drive_mode=DriveMode.CURRENT_LOOP,
-                  sampling=Sampling(0.001, 1, pd.setpoint_frame))
+    roles = roles_needed(DriveMode.CURRENT_LOOP, pd)  # the current-fed law's
     try:
-        pd.require(required_roles(cfg, pd), f"the {cfg.law} law with a {cfg.drive_mode} drive",
+        pd.require(roles, f"the current-fed law with a {DriveMode.CURRENT_LOOP} drive",
                    master.node.object_dictionary.indices)
     except UserError as exc:
         return report.add("roles of the current-fed law", False, str(exc),
                           "map the missing roles in the profile's [signals]")
-    return report.add("roles of the current-fed law", True,
-                      ", ".join(required_roles(cfg, pd)))
+    return report.add("roles of the current-fed law", True, ", ".join(roles))
 
 
 class _Arrivals(can.Listener):

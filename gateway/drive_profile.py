@@ -119,6 +119,12 @@ class DriveProfile:
     gateway_node: int = 0x7F
     dbc_node: int | None = None
 
+    @property
+    def messages(self) -> tuple[str, ...]:
+        """The DBC messages the profile names in [pdo], RPDOs then TPDOs."""
+        return tuple(n for n in (self.control, self.setpoints, self.load, self.currents,
+                                 self.voltages, self.truth) if n)
+
 
 
 def _builtin(name: str) -> Path:
@@ -173,8 +179,7 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
             raise UserError(f"{source}: [drive].{what} = {str(path)!r} does not exist; give the "
                             f"path of the drive's {what.upper()} file, relative to the profile")
     _check_eds(prof)
-    _check_dbc(prof, [n for n in (prof.control, prof.setpoints, prof.load, prof.currents,
-                                  prof.voltages, prof.truth) if n])
+    _check_dbc(prof, list(prof.messages))
     return prof
 
 

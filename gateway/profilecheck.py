@@ -83,7 +83,7 @@ def check_drive_profile(path: str | Path) -> ProfileReport:
     report = ProfileReport(prof, _signals(od, pd, prof.objects))
     mapped = {s.role for s in report.signals if not s.problem}
     for mode in MODE_CONTROLLERS:
-        report.modes[mode] = [r for r in _roles(mode, pd) if r not in mapped]
+        report.modes[mode] = [r for r in roles_needed(mode, pd) if r not in mapped]
     return report
 
 
@@ -120,7 +120,7 @@ def _problem(var: canopen.objectdictionary.ODVariable | None, bits: int, tx: boo
     return ""
 
 
-def _roles(mode: DriveMode, pd: ProcessData) -> list[str]:
+def roles_needed(mode: DriveMode, pd: ProcessData) -> list[str]:
     """The roles a run in ``mode`` needs of the drive (:func:`gateway.runner.required_roles`
     with the controller of :data:`MODE_CONTROLLERS`)."""
     from gateway.control.interface import controller_factory

@@ -131,7 +131,7 @@ def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | N
         if out is None:
             return RunResult(sig, summary)
         files = write_results(out, sig, summary, figures=True,
-                              limits=simulate.figure_limits(spec), delay_s=_delay_s(spec))
+                              limits=_figure_limits(spec, True), delay_s=_delay_s(spec))
     return RunResult(sig, summary, out, files)
 
 
@@ -180,19 +180,17 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         _writing_politely(signals)
         summary = done.summary
         drive = target.drive
-        summary["quantisation"] = report.quantisation(
-            True, drive.setpoints, dbc=drive.dbc, messages=tuple(
-                n for n in (drive.control, drive.setpoints, drive.load, drive.currents,
-                            drive.voltages, drive.truth) if n))
+        summary["quantisation"] = report.quantisation(True, drive.setpoints, dbc=drive.dbc,
+                                                      messages=drive.messages)
         if done.sig is not None and drive.truth:  # tracking errors need the truth
             where, lsb = _speed_signal(drive)
             on_bus = (report.TRUTH_TPDO3 if where == f"{drive.truth}.w_m"
                       else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
             summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb, on_bus)
             summary.update(report.metrics(done.sig, windows))
-        files = write_results(out, done.sig, summary, figures=bool(target.drive.truth),
-                              limits=_bus_limits(spec, target.drive), delay_s=_delay_s(spec),
-                              errors=summary.pop("write_errors", []))
+        files = write_results(out, done.sig, summary, figures=bool(drive.truth),
+                              limits=_figure_limits(spec, drive.emulator),
+                              delay_s=_delay_s(spec), errors=summary.pop("write_errors", []))
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)
@@ -208,14 +206,14 @@ def _speed_signal(drive: Any) -> tuple[str, float]:
     return f"{pdo.name}.{pdo.signals[k][0]}", pdo.codec.signals[k].factor
 
 
-def _bus_limits(spec: RunSpec, drive: Any) -> dict[str, float]:
-    """The limits Fig. 3 draws: the controller's current limit, and the emulator's voltage
-    limit and over-current trip (a real drive's are its own)."""
-    if drive.emulator:
+def _figure_limits(spec: RunSpec, emulated: bool) -> dict[str, float]:
+    """The limits Fig. 3 draws: the controller's current limit, and where the drive is the
+    emulated one (``emulated``; simulated or over the bus) its voltage limit (none for an
+    ideal current source) and over-current trip; a real drive's are its own."""
+    i_trip = u_lim = None
+    if emulated:
         from gateway.sim import emulator_limits
 
         i_trip, u_lim = emulator_limits()
-    else:
-        i_trip, u_lim = None, None
     return report.limits_for(spec.gains, None if spec.drive_mode is DriveMode.IDEAL else u_lim,
                              i_trip)

@@ -22,11 +22,10 @@ from typing import Any
 import numpy as np
 
 from dbc.cia301 import sync_counter
-from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, State
+from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, OperationMode, State
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
 from dbc.timing import internal_rate
-from gateway import report
 from gateway.control.controller import (
     PAPER_SIGNALS,
     FluxSource,
@@ -61,14 +60,6 @@ def _plant(spec: RunSpec) -> PlantScenario:
 def _initial(spec: RunSpec) -> MotorState:
     """The motor's state at t = 0; at rest when the spec names none."""
     return spec.initial if spec.initial is not None else MotorState()
-
-
-def figure_limits(spec: RunSpec) -> dict[str, float]:
-    """The limits Fig. 3 draws: the controller's current limit, the simulated drive's
-    voltage limit (none for an ideal current source) and over-current trip."""
-    dp = DriveParams()
-    return report.limits_for(spec.gains, None if spec.drive_mode is DriveMode.IDEAL
-                             else dp.u_lim, dp.i_trip)
 
 
 def current_lag(drive: DriveMode, params: DriveParams) -> float:
@@ -138,12 +129,15 @@ class _SampledDrive:
     SYNC), and the model advances one period with the load torque latched."""
 
     def __init__(self, drive: Drive, mode: DriveMode, T: float) -> None:
-        self.drive, self.mode, self.T = drive, mode, T
-        self.servo = servo_for(drive.motor, drive.params.i_trip, T) if mode.standard else None
+        self.drive, self.T = drive, T
+        self.servo = (servo_for(drive.motor, drive.params.i_trip, T, w_m=drive.state.w_m)
+                      if mode.standard else None)
+        self.op_mode = OperationMode(mode.mode_of_operation)
+        #: the role of a standard drive's target, and its value
+        self.target_role = "target_torque" if mode is DriveMode.TORQUE else "target_velocity"
+        self.target = 0.0
         self.pending: dict[str, float] = {}
         self.T_L = 0.0
-        self.targets = {"target_torque": 0.0, "target_velocity": 0.0}
-        self.w_enc = drive.state.w_m  # the encoder at the last sample
 
     def latch(self) -> None:
         pending, servo = self.pending, self.servo
@@ -151,18 +145,14 @@ class _SampledDrive:
             if servo is None:
                 self.drive.set_setpoints(setpoints_from_rpdos(pending, pending))
             else:
-                self.targets.update((k, pending[k]) for k in self.targets if k in pending)
+                self.target = pending.get(self.target_role, self.target)
             self.T_L = pending["T_L"]
             pending.clear()
         if servo is not None:  # as the emulated device does at every SYNC
-            self.drive.set_setpoints(
-                servo.torque(self.targets["target_torque"], self.w_enc)
-                if self.mode is DriveMode.TORQUE
-                else servo.velocity(self.targets["target_velocity"], self.w_enc))
+            self.drive.set_setpoints(servo.follow(self.op_mode, self.target))
 
     def advance(self) -> Measurement:
         meas = self.drive.advance(self.T, self.T_L)
-        self.w_enc = meas.w_m
         if self.servo is not None:
             self.servo.sample(meas.w_m)  # its encoder, as the emulated device counts it
         return meas

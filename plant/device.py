@@ -65,9 +65,6 @@ from dbc.cia402 import (
     MAX_TORQUE,
     POSITION_ACTUAL,
     POSITION_UNIT,
-    TARGET_POSITION,
-    TARGET_TORQUE,
-    TARGET_VELOCITY,
     TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
     VELOCITY_UNIT,
@@ -84,7 +81,7 @@ from plant.params import DriveParams
 from plant.pdo import SETPOINT_SIGNALS, PdoRuntime, Rpdo
 from plant.rpdo import setpoints_from_rpdos
 from plant.sdo import SdoHooks, SdoServer, Sender
-from plant.servo import TORQUE_UNIT, Servo, servo_for
+from plant.servo import TARGETS, TORQUE_UNIT, Servo, servo_for
 from plant.timing import sync_cycle
 
 log = logging.getLogger(__name__)
@@ -264,7 +261,8 @@ class DriveDevice:
         v = self._values
         if not OperationMode(v[(0x6060, 0)]).standard:
             return None
-        return servo_for(motor, params.i_trip, v[(0x1006, 0)] / 1e6, v[(MAX_TORQUE, 0)])
+        return servo_for(motor, params.i_trip, v[(0x1006, 0)] / 1e6, v[(MAX_TORQUE, 0)],
+                         self._drive.state.w_m)
 
     def _reset_application(self) -> None:
         """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
@@ -272,7 +270,6 @@ class DriveDevice:
         motor, params = self._drive_params()
         self._drive = Drive(motor, params, **self._drive_options)
         self._servo = self._make_servo(motor, params)
-        self._w_enc = 0.0  # the encoder's speed at the last sample, rad/s
         self._params_dirty = False
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
@@ -453,14 +450,9 @@ class DriveDevice:
         if not self._sm.power:
             servo.reset()
             return
-        mode = v[(0x6060, 0)]
-        if mode == OperationMode.CYCLIC_SYNC_TORQUE:
-            sp = servo.torque(v[(TARGET_TORQUE, 0)] * TORQUE_UNIT, self._w_enc)
-        elif mode == OperationMode.CYCLIC_SYNC_POSITION:
-            sp = servo.position(v[(TARGET_POSITION, 0)] * POSITION_UNIT, self._w_enc)
-        else:
-            sp = servo.velocity(v[(TARGET_VELOCITY, 0)] * VELOCITY_UNIT, self._w_enc)
-        self._drive.set_setpoints(sp)
+        mode = OperationMode(v[(0x6060, 0)])
+        index, unit = TARGETS[mode]
+        self._drive.set_setpoints(servo.follow(mode, v[(index, 0)] * unit))
 
     def _on_sync(self, data: bytes) -> None:
         n = len(data)
@@ -513,7 +505,6 @@ class DriveDevice:
         if self.on_sample is not None:  # what the TPDOs carry: the at-rest sample after a
             self.on_sample(m, meas)     # non-finite model, not its NaNs
         self._limit = meas.limit_active
-        self._w_enc = meas.w_m
         self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
         v = self._values  # the standard actual values, in the units of the EDS
         v[(VELOCITY_ACTUAL, 0)] = _saturate(round(meas.w_m / VELOCITY_UNIT), 32)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import can
+from canopen.objectdictionary import datatypes
 
 from dbc import MessageCodec, message_codec
 from dbc.codec import SignalSpec, signal_specs
@@ -34,7 +35,7 @@ from plant.rpdo import tpdo_signals
 
 def raw_spec(name: str, var: Any) -> SignalSpec:
     """A raw integer signal (factor 1) of an object's data type (an ODVariable)."""
-    return SignalSpec(name, 1.0, len(var), var.data_type in (0x2, 0x3, 0x4))
+    return SignalSpec(name, 1.0, len(var), var.data_type in datatypes.SIGNED_TYPES)
 
 
 SETPOINT_SIGNALS = frozenset({*FRAME, *(n for names in SETPOINTS.values() for n in names)})

@@ -39,6 +39,14 @@ import cmath
 import math
 from dataclasses import dataclass
 
+from dbc.cia402 import (
+    POSITION_UNIT,
+    TARGET_POSITION,
+    TARGET_TORQUE,
+    TARGET_VELOCITY,
+    VELOCITY_UNIT,
+    OperationMode,
+)
 from dbc.modes import SetpointFrame
 from dbc.motor import MotorParams
 from plant.drive import Setpoints
@@ -68,14 +76,25 @@ class ServoParams:
                 raise ValueError(f"ServoParams.{name} = {value!r} must be a finite number > 0")
 
 
-def servo_for(motor: MotorParams, i_trip: float, T: float, max_torque: int | None = None
-              ) -> Servo:
+#: Each standard mode's target object (CiA 402) and its unit in SI (N·m, rad, rad/s).
+TARGETS: dict[OperationMode, tuple[int, float]] = {
+    OperationMode.CYCLIC_SYNC_TORQUE: (TARGET_TORQUE, TORQUE_UNIT),
+    OperationMode.CYCLIC_SYNC_POSITION: (TARGET_POSITION, POSITION_UNIT),
+    OperationMode.CYCLIC_SYNC_VELOCITY: (TARGET_VELOCITY, VELOCITY_UNIT),
+}
+
+
+def servo_for(motor: MotorParams, i_trip: float, T: float, max_torque: int | None = None,
+              w_m: float = 0.0) -> Servo:
     """The emulated drive's own control: current limit 0.8 × its over-current trip
     ``i_trip`` (20 A where there is none), torque limit ``max_torque`` in 1/1000 of the rated
-    torque (0x6072; None: the default, 20 N·m), period ``T``."""
+    torque (0x6072; None: the default, 20 N·m), period ``T``, the motor's speed now
+    ``w_m`` (rad/s: its encoder's first sample)."""
     i_max = 0.8 * i_trip if math.isfinite(i_trip) else 20.0
     T_max = ServoParams().T_max if max_torque is None else max_torque * TORQUE_UNIT
-    return Servo(motor, ServoParams(i_max=i_max, T_max=T_max), T)
+    servo = Servo(motor, ServoParams(i_max=i_max, T_max=T_max), T)
+    servo.w_enc = w_m
+    return servo
 
 
 class Servo:
@@ -92,7 +111,7 @@ class Servo:
         self._K_i = motor.J * params.w_bw ** 2
         self._K_pos = params.w_bw / 4.0
         self.theta = 0.0  # the encoder's position, rad (counted from power-up)
-        self._w_sample = 0.0
+        self.w_enc = 0.0  # the encoder's speed at the last sample, rad/s
         self.reset()
 
     def reset(self) -> None:
@@ -105,10 +124,21 @@ class Servo:
         self.T_est = 0.0
 
     def sample(self, w_m: float) -> None:
-        """The encoder after each period: the position :attr:`theta` (rad) advances by the
-        trapezoid of the speeds at the period's ends."""
-        self.theta += 0.5 * (self._w_sample + w_m) * self.T
-        self._w_sample = w_m
+        """The encoder after each period: its speed :attr:`w_enc` is ``w_m`` and its
+        position :attr:`theta` (rad) advances by the trapezoid of the speeds at the
+        period's ends."""
+        self.theta += 0.5 * (self.w_enc + w_m) * self.T
+        self.w_enc = w_m
+
+    def follow(self, mode: OperationMode, target: float) -> Setpoints:
+        """One SYNC in a standard ``mode``: its ``target`` (SI: N·m, rad or rad/s, see
+        :data:`TARGETS`) → the (d, q) setpoints for the period, on the encoder's last
+        sample."""
+        if mode is OperationMode.CYCLIC_SYNC_TORQUE:
+            return self.torque(target, self.w_enc)
+        if mode is OperationMode.CYCLIC_SYNC_POSITION:
+            return self.position(target, self.w_enc)
+        return self.velocity(target, self.w_enc)
 
     def position(self, theta_ref: float, w_m: float) -> Setpoints:
         """CSP: a proportional position loop, gain ``w_bw``/4, with the target's own speed

@@ -35,7 +35,7 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
-from gateway.control.interface import Command, ControllerContext, Sample
+from gateway.control.interface import Command, ControllerContext, Sample, checked_params
 from gateway.control.laws import Refs
 
 TWO_PI = 2.0 * math.pi
@@ -63,17 +63,7 @@ class IndirectFieldOriented:
             raise ValueError(f"ifoc sends current setpoints: it drives a vector drive "
                              f"(--drive-mode ideal, current-loop or voltage), not "
                              f"'{context.drive_mode}'; for a standard drive use speed-pi")
-        unknown = sorted(set(params) - set(DEFAULTS))
-        if unknown:
-            raise ValueError(f"unknown parameter(s) {', '.join(unknown)}; ifoc takes "
-                             f"{', '.join(DEFAULTS)}")
-        p = {**DEFAULTS, **params}
-        for name in ("speed_bandwidth", "damping", "i_max"):
-            if not (isinstance(p[name], int | float) and p[name] > 0 and math.isfinite(p[name])):
-                raise ValueError(f"{name} = {p[name]!r} must be a number > 0")
-        if not isinstance(p["load_feedforward"], bool):
-            raise ValueError(f"load_feedforward = {p['load_feedforward']!r} must be true or "
-                             "false")
+        p = checked_params("ifoc", params, DEFAULTS)
         m = context.motor
         self.motor = m
         self.refs_at = context.refs_at

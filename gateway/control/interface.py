@@ -112,6 +112,26 @@ class DriveController(Protocol):
         ...
 
 
+def checked_params(name: str, params: Mapping[str, Any], defaults: Mapping[str, Any]
+            ) -> dict[str, Any]:
+    """A controller's ``--controller-params`` over its ``defaults``: ValueError naming an
+    unknown key (and what controller ``name`` takes) or a bad value (a default that is a
+    bool takes true or false, a number a finite number > 0)."""
+    unknown = sorted(set(params) - set(defaults))
+    if unknown:
+        takes = ", ".join(defaults) or "no parameters"
+        raise ValueError(f"unknown parameter(s) {', '.join(unknown)}; {name} takes {takes}")
+    p = {**defaults, **params}
+    for key, default in defaults.items():
+        if isinstance(default, bool):
+            if not isinstance(p[key], bool):
+                raise ValueError(f"{key} = {p[key]!r} must be true or false")
+        elif not (isinstance(p[key], int | float) and not isinstance(p[key], bool)
+                  and math.isfinite(p[key]) and p[key] > 0):
+            raise ValueError(f"{key} = {p[key]!r} must be a number > 0")
+    return p
+
+
 @dataclass(frozen=True)
 class ControllerContext:
     """What a run tells a controller when it makes one.

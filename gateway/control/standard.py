@@ -30,30 +30,12 @@ from collections.abc import Mapping
 from typing import Any
 
 from dbc.modes import DriveMode
-from gateway.control.interface import Command, ControllerContext, Sample
+from gateway.control.interface import Command, ControllerContext, Sample, checked_params
 from gateway.control.laws import Refs
 
 #: ``speed-pi``'s parameters and their defaults.
 SPEED_PI_DEFAULTS: dict[str, Any] = {"speed_bandwidth": 60.0, "damping": 1.0, "T_max": 20.0,
                                      "load_feedforward": False}
-
-
-def _params(name: str, params: Mapping[str, Any], defaults: Mapping[str, Any]
-            ) -> dict[str, Any]:
-    """``params`` over ``defaults``; ValueError naming unknown keys or bad values."""
-    unknown = sorted(set(params) - set(defaults))
-    if unknown:
-        takes = ", ".join(defaults) or "no parameters"
-        raise ValueError(f"unknown parameter(s) {', '.join(unknown)}; {name} takes {takes}")
-    p = {**defaults, **params}
-    for key, default in defaults.items():
-        if isinstance(default, bool):
-            if not isinstance(p[key], bool):
-                raise ValueError(f"{key} = {p[key]!r} must be true or false")
-        elif not (isinstance(p[key], int | float) and not isinstance(p[key], bool)
-                  and math.isfinite(p[key]) and p[key] > 0):
-            raise ValueError(f"{key} = {p[key]!r} must be a number > 0")
-    return p
 
 
 class SpeedPi:
@@ -72,7 +54,7 @@ class SpeedPi:
             raise ValueError(f"speed-pi sends a target torque: it drives a standard drive in "
                              f"cyclic synchronous torque mode (--drive-mode torque), not "
                              f"'{context.drive_mode}'")
-        p = _params("speed-pi", params, SPEED_PI_DEFAULTS)
+        p = checked_params("speed-pi", params, SPEED_PI_DEFAULTS)
         w_n, zeta = float(p["speed_bandwidth"]), float(p["damping"])
         self.k_p, self.k_i = 2.0 * zeta * w_n, w_n * w_n
         self.T_max = float(p["T_max"])
@@ -115,7 +97,7 @@ class Stream:
             raise ValueError(f"stream sends a target speed or torque: it drives a standard "
                              f"drive (--drive-mode velocity or torque), not "
                              f"'{context.drive_mode}'")
-        _params("stream", params, {})
+        checked_params("stream", params, {})
         self.torque = context.drive_mode is DriveMode.TORQUE
         #: the target sent: torque in N·m (CST) or speed in rad/s (CSV)
         self.signals = ("T_ref",) if self.torque else ("w_target",)
