@@ -160,4 +160,37 @@ POSITION_UNIT = 2.0 * 3.141592653589793 / 65536.0
 STANDARD_SIGNALS: dict[str, int] = {
     "target_torque": TARGET_TORQUE, "target_velocity": TARGET_VELOCITY,
     "torque_actual": TORQUE_ACTUAL, "velocity_actual": VELOCITY_ACTUAL,
+    "target_position": TARGET_POSITION, "position_actual": POSITION_ACTUAL,
 }
+
+#: Supported drive modes (CiA 402 0x6502, UNSIGNED32): bit k−1 for standard mode k (1..10),
+#: bits 16..31 manufacturer-specific.
+SUPPORTED_DRIVE_MODES_OBJECT = 0x6502
+#: CiA 402's standard modes of operation (0x6060 values), named.
+STANDARD_MODE_NAMES: dict[int, str] = {
+    1: "profile position (PP, 1)", 2: "velocity (vl, 2)", 3: "profile velocity (PV, 3)",
+    4: "profile torque (TQ, 4)", 6: "homing (HM, 6)", 7: "interpolated position (IP, 7)",
+    8: "cyclic synchronous position (CSP, 8)", 9: "cyclic synchronous velocity (CSV, 9)",
+    10: "cyclic synchronous torque (CST, 10)",
+}
+
+
+def mode_bit(mode: int, emulator: bool = False) -> int | None:
+    """The bit of 0x6502 that tells whether the drive offers mode of operation ``mode``:
+    CiA 402's for the standard modes 1..10; the emulator's for its vector modes (another
+    drive's manufacturer modes have no standard bit: None)."""
+    if 1 <= mode <= 10:
+        return 1 << (mode - 1)
+    if emulator and mode in (OperationMode.CURRENT_VECTOR, OperationMode.VOLTAGE_VECTOR):
+        return OperationMode(mode).supported_bit
+    return None
+
+
+def modes_in(supported: int) -> list[int]:
+    """The standard modes (1..10) a 0x6502 value offers."""
+    return [m for m in range(1, 11) if supported & (1 << (m - 1)) and m != 5]
+
+
+def describe_mode(mode: int) -> str:
+    """A mode of operation for messages: CiA 402's name, or "manufacturer mode N"."""
+    return STANDARD_MODE_NAMES.get(mode, f"manufacturer-specific mode {mode}")

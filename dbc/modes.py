@@ -15,9 +15,10 @@ class DriveMode(StrEnum):
     IDEAL: the stator currents equal the setpoints (current-fed model; emulator only).
     CURRENT_LOOP: a PI current loop at the drive's internal rate (CiA 402 current vector
     mode on a real drive). VOLTAGE: the voltage setpoints are applied (voltage vector mode).
-    TORQUE, VELOCITY: CiA 402's cyclic synchronous torque (CST) and velocity (CSV) modes of
-    a standard drive, which takes a target torque or speed every SYNC and runs its own field
-    orientation (and speed loop).
+    TORQUE, VELOCITY, POSITION: a standard CiA 402 drive, which takes a target torque, speed
+    or position every SYNC and runs its own field orientation (and speed and position loops):
+    cyclic synchronous torque (CST), velocity (CSV) and position (CSP) modes, or the profile
+    torque and velocity modes where the drive profile's [modes] says so.
     """
 
     IDEAL = "ideal"
@@ -25,18 +26,26 @@ class DriveMode(StrEnum):
     VOLTAGE = "voltage"
     TORQUE = "torque"
     VELOCITY = "velocity"
+    POSITION = "position"
 
     @property
     def mode_of_operation(self) -> int:
         """The emulator's 0x6060 value: −2 voltage vector mode, −1 current vector mode,
-        10 CST, 9 CSV."""
-        return {DriveMode.VOLTAGE: -2, DriveMode.TORQUE: 10,
-                DriveMode.VELOCITY: 9}.get(self, -1)
+        10 CST, 9 CSV, 8 CSP."""
+        return {DriveMode.VOLTAGE: -2, DriveMode.TORQUE: 10, DriveMode.VELOCITY: 9,
+                DriveMode.POSITION: 8}.get(self, -1)
 
     @property
     def standard(self) -> bool:
         """A CiA 402 standard cyclic mode (the drive's own control), not a vector mode."""
-        return self in (DriveMode.TORQUE, DriveMode.VELOCITY)
+        return self in (DriveMode.TORQUE, DriveMode.VELOCITY, DriveMode.POSITION)
+
+    @property
+    def target(self) -> str | None:
+        """The role of a standard drive's target in this mode (N·m, rad/s, rad); None for
+        the vector modes."""
+        return {DriveMode.TORQUE: "target_torque", DriveMode.VELOCITY: "target_velocity",
+                DriveMode.POSITION: "target_position"}.get(self)
 
     @property
     def emulator_model(self) -> int:

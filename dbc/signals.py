@@ -25,9 +25,9 @@ SETPOINTS: dict[SetpointFrame, tuple[str, ...]] = {
     SetpointFrame.AB: ("i_sa_ref", "i_sb_ref", "u_sa_ref", "u_sb_ref"),
 }
 LOAD: tuple[str, ...] = ("T_L",)
-#: The targets of a standard drive's cyclic modes (CiA 402 0x6071 in CST, 0x60FF in CSV), in
-#: N·m and rad/s.
-TARGETS: tuple[str, ...] = ("target_torque", "target_velocity")
+#: The targets of a standard drive (CiA 402 0x6071 in CST, 0x60FF in CSV, 0x607A in CSP), in
+#: N·m, rad/s and rad.
+TARGETS: tuple[str, ...] = ("target_torque", "target_velocity", "target_position")
 
 #: Every role: what the gateway means by a value (a signal name of ``drive.dbc``).
 ROLES: frozenset[str] = frozenset((*TX, *CONTROL, *FRAME, *SETPOINTS[SetpointFrame.DQ],

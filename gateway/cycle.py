@@ -115,7 +115,8 @@ def setpoint_values(
     controlword; the frame angle ε0 at the start of the interval the setpoints act on and
     the frame speed ω0; the current and voltage setpoints in the (d, q) frame, or, for
     drives that hold (a, b) setpoints, in the fixed frame; the load torque for the emulated
-    dynamometer, N·m; a standard drive's target torque (N·m) and speed (rad/s).
+    dynamometer, N·m; a standard drive's target torque (N·m), speed (rad/s) and position
+    (rad).
     """
     if frame is SetpointFrame.DQ:
         i, u = cmd.i_s_dq_ref, cmd.u_s_dq_ref
@@ -124,7 +125,8 @@ def setpoint_values(
     n_i1, n_i2, n_u1, n_u2 = SETPOINTS[frame]
     return {"controlword": int(controlword), "eps_0": cmd.eps_0, "w_0": cmd.w_0,
             n_i1: i.real, n_i2: i.imag, n_u1: u.real, n_u2: u.imag, "T_L": T_L,
-            "target_torque": cmd.target_torque, "target_velocity": cmd.target_velocity}
+            "target_torque": cmd.target_torque, "target_velocity": cmd.target_velocity,
+            "target_position": cmd.target_position}
 
 
 class CycleOutput(NamedTuple):

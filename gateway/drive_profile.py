@@ -14,8 +14,10 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     [modes]                          # 0x6060 values
     current = -1                     # current vector (current-fed law)
     voltage = -2                     # voltage vector (full-order law)
-    torque = 10                      # cyclic synchronous torque (CST; a standard drive)
-    velocity = 9                     # cyclic synchronous velocity (CSV)
+    torque = 10                      # cyclic synchronous torque (CST; a standard drive;
+                                     # 4: profile torque)
+    velocity = 9                     # cyclic synchronous velocity (CSV; 3: profile velocity)
+    position = 8                     # cyclic synchronous position (CSP)
 
     [pdo]                            # DBC messages (ids for node 1; offset by node id)
     control = "RPDO1"                # controlword, eps_0, w_0
@@ -38,6 +40,12 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     rpdo_timeout_ms = 300            # RPDO deadline monitoring (0x1400.5)
     boot_timeout_s = 2.0
     sdo_timeout_s = 0.5
+
+    [[sdo]]                          # start-up SDO writes, in order, in PRE-OPERATIONAL
+    index = 0x6083                   # (after the identity check, before the PDO mappings);
+    sub = 0                          # each is read back and must equal the value
+    value = 10000
+    note = "profile acceleration"    # optional, for messages
 """
 
 from __future__ import annotations
@@ -54,7 +62,7 @@ from gateway.errors import UserError
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
               "emulator": bool, "gateway_node": int, "dbc_node": int},
-    "modes": {"current": int, "voltage": int, "torque": int, "velocity": int},
+    "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
             "truth": str, "remap": bool},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
@@ -63,7 +71,11 @@ _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "limits": {"current_peak_a": (int, float), "dc_link_v": list},
     "signals": {},  # role = "MESSAGE.signal": any role of dbc/signals.py
     "objects": {},  # "MESSAGE.signal" = "0xIIII.S": the EDS object a DBC signal maps
+    "sdo": {},  # [[sdo]]: a list of start-up writes (:class:`SdoWrite`), checked apart
 }
+#: The keys of an [[sdo]] entry and their types (``note`` optional).
+_SDO_KEYS: dict[str, type | tuple[type, ...]] = {"index": int, "sub": int,
+                                                  "value": (int, float), "note": str}
 #: Ranges of the timing keys: (low, high, unit, what it is).
 _TIMING_RANGES: dict[str, tuple[float, float, str, str]] = {
     "heartbeat_ms": (1, 65535, "ms", "0x1017 is UNSIGNED16 ms; 0 would switch the drive's "
@@ -85,6 +97,22 @@ _REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "cu
 
 
 @dataclass(frozen=True)
+class SdoWrite:
+    """A start-up SDO write of the drive profile's [[sdo]] list: object, value, and what it
+    is for (messages)."""
+
+    index: int
+    sub: int
+    value: int | float
+    note: str = ""
+
+    def describe(self) -> str:
+        """"0xIIII.S = value (note)"."""
+        return (f"0x{self.index:04X}.{self.sub} = {self.value!r}"
+                + (f" ({self.note})" if self.note else ""))
+
+
+@dataclass(frozen=True)
 class DriveProfile:
     """A drive as the gateway sees it (see the module docstring for the TOML form)."""
 
@@ -99,6 +127,7 @@ class DriveProfile:
     mode_voltage: int = -2
     mode_torque: int = 10
     mode_velocity: int = 9
+    mode_position: int = 8
     control: str = "RPDO1"
     setpoints: str | None = "RPDO2"
     load: str | None = None
@@ -118,6 +147,7 @@ class DriveProfile:
     objects: dict[str, tuple[int, int]] = field(default_factory=dict)
     gateway_node: int = 0x7F
     dbc_node: int | None = None
+    sdo: tuple[SdoWrite, ...] = ()
 
     @property
     def messages(self) -> tuple[str, ...]:
@@ -190,6 +220,9 @@ def _check_sections(data: dict[str, Any], source: str) -> None:
         if section not in _SECTIONS:
             raise UserError(f"{source}: unknown section [{section}]; the sections are "
                             f"{', '.join('[' + s + ']' for s in _SECTIONS)}")
+        if section == "sdo":
+            _check_sdo_list(source, value)
+            continue
         if not isinstance(value, dict):
             raise UserError(f"{source}: [{section}] must be a table")
         for key, v in value.items():
@@ -209,6 +242,31 @@ def _check_sections(data: dict[str, Any], source: str) -> None:
         if key not in data.get(section, {}):
             raise UserError(f"{source}: [{section}].{key} is missing; add it (see "
                             "gateway/drives/emulator.toml for an example)")
+
+
+def _check_sdo_list(source: str, entries: object) -> None:
+    """[[sdo]]: a list of tables with ``index`` (0x1000..0xFFFF), ``sub`` (0..255), a
+    numeric ``value`` and an optional ``note``."""
+    if not isinstance(entries, list):
+        raise UserError(f"{source}: sdo must be a list of [[sdo]] tables (index, sub, value)")
+    for k, e in enumerate(entries, 1):
+        where = f"{source}: [[sdo]] entry {k}"
+        if not isinstance(e, dict):
+            raise UserError(f"{where} must be a table with index, sub and value")
+        for key, v in e.items():
+            types = _SDO_KEYS.get(key)
+            if types is None:
+                raise UserError(f"{where}: unknown key {key!r}; the keys are "
+                                f"{', '.join(_SDO_KEYS)}")
+            if not isinstance(v, types) or isinstance(v, bool):
+                raise UserError(f"{where}: {key} = {v!r} has the wrong type")
+        missing = [key for key in ("index", "sub", "value") if key not in e]
+        if missing:
+            raise UserError(f"{where} has no {', '.join(missing)}; write index = 0xIIII, "
+                            "sub = S, value = V")
+        if not 0x1000 <= e["index"] <= 0xFFFF or not 0 <= e["sub"] <= 255:
+            raise UserError(f"{where}: 0x{e['index']:X}.{e['sub']} is not an object of the "
+                            "object dictionary (index 0x1000..0xFFFF, sub-index 0..255)")
 
 
 def _check_timing(t: dict[str, Any], source: str) -> None:
@@ -261,6 +319,7 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         device_type=d.get("device_type"), emulator=d.get("emulator", False),
         mode_current=m.get("current", -1), mode_voltage=m.get("voltage", -2),
         mode_torque=m.get("torque", 10), mode_velocity=m.get("velocity", 9),
+        mode_position=m.get("position", 8),
         control=p["control"], setpoints=p.get("setpoints"), load=p.get("load"),
         currents=p["currents"], voltages=p.get("voltages"), truth=p.get("truth"),
         remap=p.get("remap", True),
@@ -275,6 +334,8 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         signals={role: _message_signal(v) for role, v in sg.items()},
         objects={key: _object_key(source, key, v) for key, v in ob.items()},
         gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
+        sdo=tuple(SdoWrite(e["index"], e["sub"], e["value"], e.get("note", ""))
+                  for e in data.get("sdo", [])),
     )
 
 
@@ -322,6 +383,52 @@ def _check_eds(prof: DriveProfile) -> None:
     if missing:
         raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} has no {', '.join(missing)}: "
                         "the gateway needs them to run a CiA 402 drive (is it the drive's EDS?)")
+    for w in prof.sdo:
+        _check_sdo_object(prof, od, w)
+
+
+def _check_sdo_object(prof: DriveProfile, od: Any, w: SdoWrite) -> None:
+    """An [[sdo]] write names a writable variable of the EDS, and its value fits it."""
+    from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+
+    obj = od.get(w.index)
+    var = obj.get(w.sub) if isinstance(obj, ODRecord | ODArray) else (
+        obj if isinstance(obj, ODVariable) and w.sub == 0 else None)
+    where = f"{prof.source}: [[sdo]] {w.describe()}"
+    if var is None:
+        raise UserError(f"{where}: the EDS {str(prof.eds)!r} has no such object; check index "
+                        "and sub-index against the drive's EDS")
+    if not var.writable:
+        raise UserError(f"{where}: the EDS says 0x{w.index:04X}.{w.sub} ({var.name}) is "
+                        f"{var.access_type}, not writable")
+    if var.data_type in _FLOAT_TYPES:
+        return
+    if isinstance(w.value, float):
+        raise UserError(f"{where}: {var.name} is an integer object; give an integer value")
+    lo, hi = _int_range(var)
+    if not lo <= w.value <= hi:
+        raise UserError(f"{where}: {w.value} is outside {var.name}'s range {lo}..{hi}")
+
+
+_FLOAT_TYPES = (0x8, 0x11)  #: REAL32, REAL64
+
+
+def _int_range(var: Any) -> tuple[int, int]:
+    """The raw range of an integer object of the EDS (its data type's, or its own limits)."""
+    from canopen.objectdictionary import SIGNED_TYPES
+
+    bits = {0x1: 1, 0x2: 8, 0x3: 16, 0x4: 32, 0x5: 8, 0x6: 16, 0x7: 32, 0x10: 24, 0x12: 40,
+            0x13: 48, 0x14: 56, 0x15: 64, 0x16: 24, 0x18: 40, 0x19: 48, 0x1A: 56,
+            0x1B: 64}.get(var.data_type, 64)
+    if var.data_type in SIGNED_TYPES:
+        lo, hi = -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+    else:
+        lo, hi = 0, (1 << bits) - 1
+    if var.min is not None:
+        lo = max(lo, var.min)
+    if var.max is not None:
+        hi = min(hi, var.max)
+    return lo, hi
 
 
 def _check_dbc(prof: DriveProfile, names: list[str]) -> None:

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import struct
 import threading
 import time
@@ -61,9 +62,13 @@ from dbc.cia402 import (
     ENABLE_SEQUENCE,
     MODES_OF_OPERATION,
     STATUSWORD,
+    SUPPORTED_DRIVE_MODES_OBJECT,
     SW_FAULT,
     Controlword,
     State,
+    describe_mode,
+    mode_bit,
+    modes_in,
 )
 from dbc.timing import LOCKSTEP_BACKSTOP_S
 from gateway.drive_profile import DriveProfile
@@ -138,6 +143,11 @@ class ShutdownReport:
 #: CiA 402 states in which the power stage applies no voltage to the motor.
 POWER_OFF_STATES = (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
                     State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.FAULT)
+
+
+def _objects_text(mapped: list[tuple[int, int, int]]) -> str:
+    """Mapped objects as "0xIIII.S/bits, …"."""
+    return ", ".join(f"0x{i:04X}.{s}/{b}" for i, s, b in mapped) or "none"
 
 
 class DriveMaster:
@@ -408,6 +418,8 @@ class DriveMaster:
         p = self.profile
         for name, value in emulator_objects.items():  # f_pwm first: 0x1006 must fit it
             self.write_by_name(name, value)
+        self._startup_writes()
+        self._check_mode(mode)
         counter = False
         if sync_overflow and self.has(0x1019):
             try:
@@ -431,6 +443,34 @@ class DriveMaster:
                 self._check_mapping(pdo)
         self.sdo_write(MODES_OF_OPERATION, 0, mode, "modes of operation")
         return counter
+
+    def _startup_writes(self) -> None:
+        """The drive profile's [[sdo]] list, in order: each written, then read back and
+        compared; a refusal or a different read-back is a :class:`UserError` naming it."""
+        for w in self.profile.sdo:
+            self.sdo_write(w.index, w.sub, w.value, w.note or "start-up write")
+            back = self.sdo_read(w.index, w.sub)
+            same = (math.isclose(float(back), float(w.value), rel_tol=1e-6, abs_tol=1e-9)
+                    if isinstance(back, float) or isinstance(w.value, float) else back == w.value)
+            if not same:
+                raise UserError(f"node {self.node_id}: the start-up write {w.describe()} was "
+                                f"accepted but reads back {back!r}; the drive changed or "
+                                f"limited the value: check it against the drive's manual "
+                                f"([[sdo]] in {self.profile.source})")
+
+    def _check_mode(self, mode: int) -> None:
+        """Where the EDS has 0x6502 (supported drive modes), the drive must offer ``mode``
+        (CiA 402's bit of a standard mode; the emulator's bits of its vector modes)."""
+        bit = mode_bit(mode, emulator=self.profile.emulator)
+        if bit is None or not self.has(SUPPORTED_DRIVE_MODES_OBJECT):
+            return
+        supported = int(self.sdo_read(SUPPORTED_DRIVE_MODES_OBJECT, 0))
+        if not supported & bit:
+            offered = ", ".join(describe_mode(m) for m in modes_in(supported)) or "none"
+            raise UserError(f"node {self.node_id} does not offer mode of operation "
+                            f"{describe_mode(mode)}: its 0x6502 (supported drive modes) is "
+                            f"0x{supported:08X}, which offers {offered}; choose one of those "
+                            f"in [modes] of {self.profile.source} or another --drive-mode")
 
     def _pdo_map(self, pdo: Pdo) -> PdoMap:
         """python-canopen's map object of that PDO (number from the COB-ID)."""
@@ -468,33 +508,64 @@ class DriveMaster:
 
     def _map_pdo(self, pdo: Pdo) -> None:
         """Write one PDO's mapping with python-canopen's map object (CiA 301 procedure:
-        disable, map, enable), synchronous every SYNC, RPDO deadline from the profile."""
+        disable, map, enable), synchronous every SYNC, RPDO deadline from the profile
+        where the communication record has an event timer (sub-index 5)."""
         m = self._pdo_map(pdo)
+        where = (f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
+                 f"0x{pdo.cob_id:03X})")
         try:
+            entries = self._objects_of(pdo)
+            self._check_records(pdo, m, len(entries))
             m.read(from_od=True)
             m.clear()
-            for index, sub, bits in self._objects_of(pdo):
+            for index, sub, bits in entries:
                 m.add_variable(index, sub, bits)
             m.cob_id = pdo.cob_id
             m.trans_type = 1
             m.rtr_allowed = True  # leave bit 30 clear, as the EDS defaults have it
-            if not pdo.tx:
+            if not pdo.tx and 5 in m.com_record.od:
                 m.event_timer = self.profile.rpdo_timeout_ms
+            elif not pdo.tx:
+                self.notes.append(
+                    f"{pdo.name}: 0x{m.com_record.od.index:04X} has no sub-index 5 (event "
+                    "timer) in the EDS, so the drive is not given the RPDO deadline "
+                    f"({self.profile.rpdo_timeout_ms} ms)")
             m.enabled = True
             m.save()
         except SdoCommunicationError as exc:
-            raise UserError(f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
-                            f"0x{pdo.cob_id:03X}): {self._sdo_failure(exc)}.") from exc
+            raise UserError(f"{where}: {self._sdo_failure(exc)}.") from exc
         except SdoAbortedError as exc:
-            raise UserError(f"configuring node {self.node_id}: mapping {pdo.name} (COB-ID "
-                            f"0x{pdo.cob_id:03X}) was refused: {exc}. Check the drive profile "
+            raise UserError(f"{where} was refused: {exc}. Check the drive profile "
                             f"({self.profile.source}) against the drive's EDS.") from exc
+        except KeyError as exc:  # python-canopen: a sub-index the EDS does not have
+            raise UserError(f"{where}: the drive's EDS ({self.profile.eds}) lacks an entry "
+                            f"it needs ({exc}); check its 0x{m.com_record.od.index:04X} and "
+                            f"0x{m.map_array.od.index:04X} records") from None
         finally:  # the loop decodes PDOs itself: no python-canopen PDO callbacks
-            self.network.unsubscribe(pdo.cob_id, m.on_message)
+            with contextlib.suppress(KeyError, ValueError):  # not subscribed if it failed
+                self.network.unsubscribe(pdo.cob_id, m.on_message)
+
+    def _check_records(self, pdo: Pdo, m: PdoMap, n_objects: int) -> None:
+        """The EDS's communication record has sub-indices 1 and 2 and its mapping record
+        sub-indices 0..``n_objects``; a :class:`UserError` naming what is missing."""
+        com, mapping = m.com_record.od, m.map_array.od
+        missing = [f"0x{com.index:04X}.{k}" for k in (1, 2) if k not in com]
+        if 0 not in mapping:
+            missing.append(f"0x{mapping.index:04X}.0")
+        if missing:
+            raise UserError(f"{pdo.name}: the drive's EDS ({self.profile.eds}) has no "
+                            f"{', '.join(missing)}, which a PDO needs (CiA 301: COB-ID, "
+                            "transmission type, number of mapped objects)")
+        gaps = [k for k in range(1, n_objects + 1) if k not in mapping]
+        if gaps:
+            raise UserError(f"{pdo.name}: the DBC message has {n_objects} signals but the "
+                            f"drive's mapping record 0x{mapping.index:04X} has no sub-index "
+                            f"{', '.join(map(str, gaps))} in the EDS; split the message or "
+                            f"check the EDS ({self.profile.eds})")
 
     def _check_mapping(self, pdo: Pdo) -> None:
-        """remap = false: read the drive's mapping of that PDO and check it carries the DBC
-        message's layout (sizes in order) on its COB-ID."""
+        """remap = false: read the drive's mapping of that PDO and check it carries the
+        objects of the DBC message's roles, in order and size, on its COB-ID."""
         problems = self.mapping_problems(pdo)
         if problems:
             raise UserError(f"{pdo.name} on node {self.node_id} does not match the drive "
@@ -509,6 +580,11 @@ class DriveMaster:
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id}: "
                             f"{self._sdo_failure(exc)}") from exc
+        except KeyError as exc:  # python-canopen: a sub-index the EDS does not have
+            raise UserError(f"reading the mapping of {pdo.name} from node {self.node_id}: "
+                            f"the drive's EDS ({self.profile.eds}) lacks an entry of "
+                            f"0x{m.com_record.od.index:04X} or 0x{m.map_array.od.index:04X} "
+                            f"({exc}) that the drive uses") from None
         finally:  # the map subscribed on the COB-ID it read, which may not be the DBC's
             for cob_id in {pdo.cob_id, (m.cob_id or 0) & 0x7FF}:
                 with contextlib.suppress(KeyError, ValueError):
@@ -516,19 +592,39 @@ class DriveMaster:
         return m
 
     def mapping_problems(self, pdo: Pdo) -> list[str]:
-        """Read the drive's mapping of that PDO by SDO and compare it with the DBC message's
-        layout (sizes in order), COB-ID and enable bit; the differences ([] if none)."""
+        """Read the drive's mapping of that PDO by SDO and compare it with the DBC message:
+        COB-ID, enable bit, and each mapped object (index, sub-index, length) against the
+        object the signal's role should carry (:meth:`object_of`: the profile's [objects]
+        first); the differences ([] if none)."""
         m = self.read_mapping(pdo)
-        bits = [v.length for v in m.map]
-        want = [s.bits for s in pdo.codec.signals]
         problems = []
         if (m.cob_id or 0) & 0x7FF != pdo.cob_id:
             problems.append(f"COB-ID 0x{(m.cob_id or 0) & 0x7FF:03X}, the DBC says "
                             f"0x{pdo.cob_id:03X}")
         if not m.enabled:
             problems.append("not enabled")
-        if bits != want:
-            problems.append(f"mapped sizes {bits} bits, the DBC's signals {want}")
+        mapped = [(v.index, v.subindex, v.length) for v in m.map]
+        want = []
+        for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
+            var = self.object_of(signal, role, pdo.name)
+            want.append((signal, None if var is None else (var.index, var.subindex), spec.bits))
+        if len(mapped) != len(want):
+            problems.append(f"{len(mapped)} objects mapped ({_objects_text(mapped)}), the DBC "
+                            f"has {len(want)} signals ({', '.join(w[0] for w in want)})")
+            return problems
+        for k, ((index, sub, bits), (signal, obj, want_bits)) in enumerate(
+                zip(mapped, want, strict=True), 1):
+            where = f"entry {k} ({pdo.name}.{signal})"
+            if obj is None:
+                problems.append(f"{where}: the EDS names no object for it, so what the drive "
+                                f"maps there (0x{index:04X}.{sub}) cannot be checked; name it "
+                                f"in [objects] as \"{pdo.name}.{signal}\" = \"0xIIII.S\"")
+            elif (index, sub) != obj:
+                problems.append(f"{where}: the drive maps 0x{index:04X}.{sub}, the role needs "
+                                f"0x{obj[0]:04X}.{obj[1]}")
+            elif bits != want_bits:
+                problems.append(f"{where}: 0x{index:04X}.{sub} mapped with {bits} bits, the "
+                                f"DBC's signal has {want_bits}")
         return problems
 
     # ------------------------------------------------------------------ operation

@@ -50,6 +50,7 @@ ROLE_HINTS: dict[str, str] = {
     "w_0": "a manufacturer object taking the (d, q) frame speed",
     "target_torque": "the CiA 402 target torque 0x6071 (cyclic synchronous torque)",
     "target_velocity": "the CiA 402 target velocity 0x60FF (cyclic synchronous velocity)",
+    "target_position": "the CiA 402 target position 0x607A (cyclic synchronous position)",
     "w_m": "the speed: the CiA 402 velocity actual value 0x606C, or the emulator's truth",
     "psi_ra": "the emulator's true rotor flux (TPDO3); real drives have none: use --flux "
               "estimated",

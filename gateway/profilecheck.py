@@ -29,6 +29,7 @@ MODE_CONTROLLERS: dict[DriveMode, tuple[str, str]] = {
     DriveMode.VOLTAGE: ("paper", "full-order"),
     DriveMode.TORQUE: ("speed-pi", "current-fed"),
     DriveMode.VELOCITY: ("stream", "current-fed"),
+    DriveMode.POSITION: ("stream", "current-fed"),
 }
 
 

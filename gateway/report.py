@@ -262,6 +262,7 @@ def summary_table(summary: Mapping[str, Any]) -> str:
                  for label, name in (("i", "i_sa"), ("u", "u_sa"), ("ω0", "w_0"),
                                      ("ε0", "eps_0"), ("ω (TPDO3)", "w_m"),
                                      ("T*", "target_torque"), ("ω*", "target_velocity"),
+                                     ("θ*", "target_position"),
                                      ("ω (0x606C)", "velocity_actual"),
                                      ("T (0x6077)", "torque_actual"),
                                      ("ψr (TPDO3)", "psi_ra")) if name in sig]

@@ -62,9 +62,8 @@ def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = (
     attribute, e.g. ``("w_m",)``: a speed sensor). A standard drive (CST, CSV): the CiA 402
     words, its target, and what the controller requires."""
     if spec.drive_mode.standard:  # the drive's own control: its target, its statusword
-        target = ("target_torque" if spec.drive_mode is DriveMode.TORQUE
-                  else "target_velocity")
-        roles = ["controlword", "statusword", target]
+        assert spec.drive_mode.target is not None
+        roles = ["controlword", "statusword", spec.drive_mode.target]
         return tuple(roles + [r for r in requires if r not in roles])
     frame = pd.setpoint_frame
     i1, i2, u1, u2 = SETPOINTS[frame]
@@ -264,7 +263,8 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
                     f"{who} with a {spec.drive_mode} drive",
                     master.node.object_dictionary.indices)
     mode = {DriveMode.VOLTAGE: drive.mode_voltage, DriveMode.TORQUE: drive.mode_torque,
-            DriveMode.VELOCITY: drive.mode_velocity}.get(spec.drive_mode, drive.mode_current)
+            DriveMode.VELOCITY: drive.mode_velocity,
+            DriveMode.POSITION: drive.mode_position}.get(spec.drive_mode, drive.mode_current)
     counter = master.configure(spec.period, plan.pd, drive.remap, mode,
                                _emulator_settings(master, drive, spec),
                                sync_overflow=SYNC_OVERFLOW)

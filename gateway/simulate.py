@@ -134,7 +134,7 @@ class _SampledDrive:
                       if mode.standard else None)
         self.op_mode = OperationMode(mode.mode_of_operation)
         #: the role of a standard drive's target, and its value
-        self.target_role = "target_torque" if mode is DriveMode.TORQUE else "target_velocity"
+        self.target_role = mode.target or ""
         self.target = 0.0
         self.pending: dict[str, float] = {}
         self.T_L = 0.0

@@ -146,6 +146,8 @@ def profile_text(node: int, gateway_node: int = 0x7F) -> str:
     """The drive profile: everything the gateway knows of this drive."""
     signals = "\n".join(f'{role} = "{"RX" if o in {x for _, objs in RPDOS for x in objs} else "TX"}'
                         f'{_pdo_number(o)}.{sig}"' for o, (sig, role) in SIGNAL.items())
+    objects = "\n".join(f'"{_message(o)}.{sig}" = "0x{o:04X}.0"'
+                         for o, (sig, _) in SIGNAL.items())
     return f"""[drive]
 name = "foreign test drive"
 eds = "foreign.eds"
@@ -170,6 +172,9 @@ remap = false
 [signals]
 {signals}
 
+[objects]   # the objects each signal maps: the master checks the drive's mappings against them
+{objects}
+
 [limits]
 current_peak_a = 30.0
 dc_link_v = [300.0, 800.0]
@@ -179,6 +184,11 @@ heartbeat_ms = 50
 drive_heartbeat_timeout_ms = 500
 rpdo_timeout_ms = 300
 """
+
+
+def _message(obj: int) -> str:
+    """The DBC message (RX1.., TX1..) that maps ``obj``."""
+    return ("RX" if any(obj in objs for _, objs in RPDOS) else "TX") + str(_pdo_number(obj))
 
 
 def _pdo_number(obj: int) -> int:

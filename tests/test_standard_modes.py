@@ -241,10 +241,11 @@ def test_sim_runs_the_speed_pi_over_cst_and_equals_simulate(tmp_path):
     assert (tmp_path / "sim" / "fig4_controller.png").is_file()  # T_ref, w_int
 
 
-@pytest.mark.parametrize("mode, target", [("velocity", 1.5), ("torque", 1.5)])
+@pytest.mark.parametrize("mode, target", [("velocity", 1.5), ("torque", 1.5),
+                                          ("position", 3.0)])
 def test_stream_sends_the_profile_as_the_target(tmp_path, mode, target):
-    """`stream`: CSV streams ω* (the drive's speed loop tracks it), CST the torque that makes
-    ω* against the profile's load (open loop)."""
+    """`stream`: CSV streams ω* (the drive's speed loop tracks it), CSP ∫ω* dt (its
+    position loop), CST the torque that makes ω* against the profile's load (open loop)."""
     from gateway.cli import main
 
     out = tmp_path / mode
@@ -252,6 +253,32 @@ def test_stream_sends_the_profile_as_the_target(tmp_path, mode, target):
                  "--out", str(out)]) == 0
     s = _summary(out)
     assert s["speed_error"]["rms"] < target, s["speed_error"]
+    assert s["configuration"]["drive_mode"] == mode
+
+
+def test_csp_streams_the_integral_of_the_speed_profile_and_equals_simulate(tmp_path):
+    """CSP: the target position is ∫ω* dt (trapezoids, one period ahead), 0x6060 = 8, and
+    the lockstep run equals the in-process simulation bit for bit but for the timing."""
+    from gateway.cli import main
+    from gateway.reference import load_profile
+    from gateway.report import read_csv
+
+    argv = ["--controller", "stream", "--drive-mode", "position", "--reference",
+            "profiles/quick.toml"]
+    assert main(["sim", *argv, "--out", str(tmp_path / "sim")]) == 0
+    assert main(["simulate", *argv, "--out", str(tmp_path / "simulate")]) == 0
+    bus, local = read_csv(tmp_path / "sim" / "signals.csv"), read_csv(tmp_path / "simulate"
+                                                                       / "signals.csv")
+    for name, column in local.items():
+        assert np.array_equal(bus[name], column, equal_nan=True), name
+    t, theta = bus["t"], bus["theta_target"]
+    w_ref = np.array([load_profile("profiles/quick.toml").at(x).w_ref for x in t])
+    T = t[1] - t[0]
+    want = np.concatenate([[0.0], np.cumsum(0.5 * T * (w_ref[1:] + w_ref[:-1]))]) + T * w_ref
+    assert np.allclose(theta, want, atol=1e-9)
+    # the drive's position loop turns it into speed: the motor ends on the profile's speed
+    s = _summary(tmp_path / "sim")
+    assert abs(s["speed_error"]["final"]) < 0.1 and s["speed_error"]["rms"] < 3.0
 
 
 @pytest.mark.parametrize("argv, words", [

@@ -65,10 +65,10 @@ class Command:
         of the interval's midpoint, for drives that hold (a, b) setpoints.
     i_limited: the controller's current limit clipped the setpoint.
     logged: the values of the controller's :attr:`DriveController.signals`, in order.
-    target_torque, target_velocity: for a standard drive (CiA 402 cyclic synchronous torque
-        or velocity mode, ``drive_mode`` TORQUE or VELOCITY): the target torque, N·m, or
-        speed, rad/s, it applies over the interval; a vector drive ignores them, a standard
-        drive the vector setpoints.
+    target_torque, target_velocity, target_position: for a standard drive (CiA 402 torque,
+        velocity or position mode, ``drive_mode`` TORQUE, VELOCITY or POSITION): the target
+        torque, N·m, speed, rad/s, or position, rad, it applies over the interval; a vector
+        drive ignores them, a standard drive the vector setpoints.
     """
 
     i_s_dq_ref: complex = 0j
@@ -81,6 +81,7 @@ class Command:
     logged: tuple[float, ...] = ()
     target_torque: float = 0.0
     target_velocity: float = 0.0
+    target_position: float = 0.0
 
 
 @runtime_checkable

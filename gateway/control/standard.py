@@ -1,6 +1,7 @@
 """Controllers for standard CiA 402 drives, which take a target every SYNC and run their own
-field orientation: cyclic synchronous torque (CST) and velocity (CSV), ``--drive-mode
-torque`` and ``velocity``.
+field orientation: cyclic synchronous torque (CST), velocity (CSV) and position (CSP),
+``--drive-mode torque``, ``velocity`` and ``position`` (or the profile torque and velocity
+modes, where the drive profile's [modes] names them).
 
 * ``speed-pi`` (:class:`SpeedPi`, CST): the speed loop in the gateway, the drive's torque
   loop below it — the baseline for drives that offer no vector current or voltage process
@@ -11,12 +12,14 @@ torque`` and ``velocity``.
   ±``T_max``; the integral stops while the limit clips (anti-windup). With the period's
   delay the torque acts one period after the sample; the loop's bandwidth (60 rad/s by
   default) is far below the sampling rate, as in ``ifoc``.
-* ``stream`` (:class:`Stream`, CSV or CST): no loop in the gateway — the reference profile
-  is the target, predicted to the start of the interval it acts on (x + delay·T·dx/dt):
-  its speed ω* (CSV; the drive's speed loop does the work), or (CST) the torque that makes
-  ω* against the profile's load by row 1 of (1) inverted, T* = J·dω*/dt + T_L — open loop,
-  so the speed drifts with any error of J or of the load: what a user streaming a setpoint
-  profile to a standard drive wants.
+* ``stream`` (:class:`Stream`, CSV, CST or CSP): no loop in the gateway — the reference
+  profile is the target, predicted to the start of the interval it acts on
+  (x + delay·T·dx/dt): its speed ω* (CSV; the drive's speed loop does the work); (CSP) its
+  position θ* = ∫ω* dt, integrated from 0 at the start of the run by the trapezoidal rule
+  over each period (the drive's position and speed loops do the work); or (CST) the torque
+  that makes ω* against the profile's load by row 1 of (1) inverted, T* = J·dω*/dt + T_L —
+  open loop, so the speed drifts with any error of J or of the load: what a user streaming
+  a setpoint profile to a standard drive wants.
 
 Parameters (``--controller-params FILE.toml``), ``speed-pi``: ``speed_bandwidth`` ω_n
 (rad/s, 60), ``damping`` ζ (1.0), ``T_max`` (N·m, 20), ``load_feedforward`` (false).
@@ -86,29 +89,40 @@ class SpeedPi:
 
 
 class Stream:
-    """The reference profile's speed (CSV) or torque (CST) as the standard drive's target
-    (see the module docstring); a :class:`gateway.control.interface.DriveController`."""
+    """The reference profile's speed (CSV), position (CSP) or torque (CST) as the standard
+    drive's target (see the module docstring); a
+    :class:`gateway.control.interface.DriveController`."""
 
     #: the drive modes it drives; the first is the command line's default for it
-    drive_modes = (DriveMode.VELOCITY, DriveMode.TORQUE)
+    drive_modes = (DriveMode.VELOCITY, DriveMode.TORQUE, DriveMode.POSITION)
 
     def __init__(self, context: ControllerContext, params: Mapping[str, Any]) -> None:
         if not context.drive_mode.standard:
-            raise ValueError(f"stream sends a target speed or torque: it drives a standard "
-                             f"drive (--drive-mode velocity or torque), not "
-                             f"'{context.drive_mode}'")
+            raise ValueError(f"stream sends a target speed, position or torque: it drives a "
+                             f"standard drive (--drive-mode velocity, position or torque), "
+                             f"not '{context.drive_mode}'")
         checked_params("stream", params, {})
-        self.torque = context.drive_mode is DriveMode.TORQUE
-        #: the target sent: torque in N·m (CST) or speed in rad/s (CSV)
-        self.signals = ("T_ref",) if self.torque else ("w_target",)
-        self._ahead = context.sampling.delay * context.sampling.period
+        self.mode = context.drive_mode
+        #: the target sent: torque in N·m (CST), speed in rad/s (CSV), position in rad (CSP)
+        self.signals = {DriveMode.TORQUE: ("T_ref",), DriveMode.POSITION: ("theta_target",)
+                        }.get(self.mode, ("w_target",))
+        self._T = context.sampling.period
+        self._ahead = context.sampling.delay * self._T
         self.J = context.motor.J
+        self._theta = 0.0  # θ* = ∫ω* dt at the last sample, rad
+        self._w_last: float | None = None  # ω* at the last sample, rad/s
 
     def step(self, refs: Refs, sample: Sample) -> Command:
-        if self.torque:  # row 1 of (1) inverted: the torque that makes ω* against T_L
+        if self.mode is DriveMode.TORQUE:  # row 1 of (1) inverted: T* that makes ω* vs T_L
             T_ref = (self.J * (refs.dw_ref + self._ahead * refs.ddw_ref)
                      + refs.T_L + self._ahead * refs.dT_L)
             return Command(target_torque=T_ref, logged=(T_ref,))
+        if self.mode is DriveMode.POSITION:
+            if self._w_last is not None:  # the trapezoid over the period just ended
+                self._theta += 0.5 * self._T * (self._w_last + refs.w_ref)
+            self._w_last = refs.w_ref
+            theta = self._theta + self._ahead * refs.w_ref
+            return Command(target_position=theta, logged=(theta,))
         w_target = refs.w_ref + self._ahead * refs.dw_ref
         return Command(target_velocity=w_target, logged=(w_target,))
 
@@ -116,4 +130,6 @@ class Stream:
         """Nothing to correct: the next target is the profile's again."""
 
     def coast(self) -> None:
-        """Nothing to advance."""
+        """A missed cycle: the position integral advances one period at the last ω*."""
+        if self._w_last is not None:
+            self._theta += self._T * self._w_last
