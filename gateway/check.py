@@ -214,14 +214,16 @@ def _mappings(report: CheckReport, master: DriveMaster, pd: ProcessData, when: s
 def _roles(report: CheckReport, master: DriveMaster, pd: ProcessData) -> bool:
     from gateway.profilecheck import roles_needed
 
-    roles = roles_needed(DriveMode.CURRENT_LOOP, pd)  # the current-fed law's
+    mode = master.profile.check_mode
+    roles = roles_needed(mode, pd)
+    who = (f"a {mode} run" if mode.standard
+           else f"the current-fed law with a {mode} drive")
     try:
-        pd.require(roles, f"the current-fed law with a {DriveMode.CURRENT_LOOP} drive",
-                   master.node.object_dictionary.indices)
+        pd.require(roles, who, master.node.object_dictionary.indices)
     except UserError as exc:
-        return report.add("roles of the current-fed law", False, str(exc),
+        return report.add(f"roles of {who}", False, str(exc),
                           "map the missing roles in the profile's [signals]")
-    return report.add("roles of the current-fed law", True, ", ".join(roles))
+    return report.add(f"roles of {who}", True, ", ".join(roles))
 
 
 class _Arrivals(can.Listener):
@@ -423,7 +425,8 @@ def check_drive(bus: can.BusABC, profile: DriveProfile, node: int | None = None,
                         "RPDO apply": int(Sampling(period).apply),
                         "f_pwm": round(internal_rate(_eds_default(master, "f_pwm"), period))}
         try:
-            counter = master.configure(period, pd, profile.remap, profile.mode_current,
+            counter = master.configure(period, pd, profile.remap,
+                                       profile.mode_of(profile.check_mode),
                                        emulator, sync_overflow=SYNC_OVERFLOW)
         except UserError as exc:
             report.add("configuration by SDO", False, str(exc),

@@ -128,7 +128,7 @@ def _controller_choice(args: argparse.Namespace) -> Any:
 
     from gateway.control.interface import ControllerChoice, controller_factory
 
-    name = args.controller
+    name = _controller_name(args)
     controller_factory(name)  # found, or a UserError naming what is registered
     params: dict[str, Any] = {}
     if args.controller_params:
@@ -143,6 +143,22 @@ def _controller_choice(args: argparse.Namespace) -> Any:
     return ControllerChoice(name, params)
 
 
+def _controller_name(args: argparse.Namespace) -> str:
+    """--controller, else 'paper'."""
+    return args.controller or "paper"
+
+
+def _drive_defaults(args: argparse.Namespace, drive: Any) -> None:
+    """A drive profile that names the drive mode its runs use ([modes].default: a standard
+    drive) gives it to a run without --drive-mode, and 'stream' to one without
+    --controller."""
+    if drive.default_mode is None or args.drive_mode is not None:
+        return
+    args.drive_mode = drive.default_mode
+    if args.controller is None and drive.default_mode.standard:
+        args.controller = "stream"
+
+
 def _add_control_options(p: argparse.ArgumentParser) -> None:
     from gateway.control.controller import Discretisation, EstimatorKind, FluxSource, Law
     from gateway.control.laws import Gains
@@ -151,15 +167,16 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", "--profile", dest="profile", metavar="FILE",
                    help="reference profile ω*(t), ψ*(t), T_L(t) (TOML); default: the paper's "
                         "section 6 scenario")
-    p.add_argument("--controller", metavar="NAME", default="paper",
+    p.add_argument("--controller", metavar="NAME", default=None,
                    help="the controller in the loop: 'paper' (default: the laws of Marino, "
                         "Tomei & Verrelli, with the options below), 'ifoc' (indirect "
                         "field-oriented control with a speed sensor, the baseline of a "
                         "vector drive), a name another installed package registers "
                         "(entry-point group can_drive_hil.controllers), or "
-                        "package.module:Class; for a standard drive (CST, CSV): 'speed-pi' "
-                        "(a speed PI over its torque) or 'stream' (the profile as its "
-                        "target); docs/controllers.md")
+                        "package.module:Class; for a standard drive (CST, CSV, CSP): "
+                        "'speed-pi' (a speed PI over its torque) or 'stream' (the profile as "
+                        "its target; the default for a drive profile whose [modes].default "
+                        "is a standard mode); docs/controllers.md")
     p.add_argument("--controller-params", metavar="FILE.toml",
                    help="the controller's parameters: a TOML table of names to values, "
                         "passed to its factory (not for 'paper', whose options are below)")
@@ -416,7 +433,7 @@ def _drive_mode(args: argparse.Namespace) -> Any:
 
     if args.drive_mode is not None:
         return args.drive_mode
-    modes = getattr(controller_factory(args.controller), "drive_modes", None)
+    modes = getattr(controller_factory(_controller_name(args)), "drive_modes", None)
     return modes[0] if modes else args.law.drive_modes[0]
 
 
@@ -554,6 +571,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from gateway.runner import BusTarget
 
     drive = load_drive_profile(args.drive, _emulator_profile(args))
+    _drive_defaults(args, drive)
     bus_cfg = bus_config(args)
 
     def open_buses(*_: Any) -> tuple[Any, str, Callable[[], None]]:

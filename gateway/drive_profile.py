@@ -18,6 +18,8 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
                                      # 4: profile torque)
     velocity = 9                     # cyclic synchronous velocity (CSV; 3: profile velocity)
     position = 8                     # cyclic synchronous position (CSP)
+    default = "velocity"             # optional: the drive mode of a run without --drive-mode
+                                     # (a standard one: also --controller stream)
 
     [pdo]                            # DBC messages (ids for node 1; offset by node id)
     control = "RPDO1"                # controlword, eps_0, w_0
@@ -57,12 +59,14 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from dbc.modes import DriveMode
 from gateway.errors import UserError
 
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
               "emulator": bool, "gateway_node": int, "dbc_node": int},
-    "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int},
+    "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int,
+              "default": str},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
             "truth": str, "remap": bool},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
@@ -128,6 +132,7 @@ class DriveProfile:
     mode_torque: int = 10
     mode_velocity: int = 9
     mode_position: int = 8
+    default_mode: DriveMode | None = None
     control: str = "RPDO1"
     setpoints: str | None = "RPDO2"
     load: str | None = None
@@ -148,6 +153,17 @@ class DriveProfile:
     gateway_node: int = 0x7F
     dbc_node: int | None = None
     sdo: tuple[SdoWrite, ...] = ()
+
+    def mode_of(self, drive_mode: DriveMode) -> int:
+        """The 0x6060 value of a drive mode on this drive ([modes])."""
+        return {DriveMode.VOLTAGE: self.mode_voltage, DriveMode.TORQUE: self.mode_torque,
+                DriveMode.VELOCITY: self.mode_velocity,
+                DriveMode.POSITION: self.mode_position}.get(drive_mode, self.mode_current)
+
+    @property
+    def check_mode(self) -> DriveMode:
+        """The drive mode `check` configures: [modes].default, else the current loop."""
+        return self.default_mode or DriveMode.CURRENT_LOOP
 
     @property
     def messages(self) -> tuple[str, ...]:
@@ -244,6 +260,18 @@ def _check_sections(data: dict[str, Any], source: str) -> None:
                             "gateway/drives/emulator.toml for an example)")
 
 
+def _default_mode(source: str, modes: dict[str, Any]) -> DriveMode | None:
+    """[modes].default: a drive mode (``velocity``, ``torque``, ``position``, ...)."""
+    value = modes.get("default")
+    if value is None:
+        return None
+    try:
+        return DriveMode(value)
+    except ValueError:
+        raise UserError(f"{source}: [modes].default = {value!r} is not a drive mode; the "
+                        f"drive modes are {', '.join(m.value for m in DriveMode)}") from None
+
+
 def _check_sdo_list(source: str, entries: object) -> None:
     """[[sdo]]: a list of tables with ``index`` (0x1000..0xFFFF), ``sub`` (0..255), a
     numeric ``value`` and an optional ``note``."""
@@ -319,7 +347,7 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         device_type=d.get("device_type"), emulator=d.get("emulator", False),
         mode_current=m.get("current", -1), mode_voltage=m.get("voltage", -2),
         mode_torque=m.get("torque", 10), mode_velocity=m.get("velocity", 9),
-        mode_position=m.get("position", 8),
+        mode_position=m.get("position", 8), default_mode=_default_mode(source, m),
         control=p["control"], setpoints=p.get("setpoints"), load=p.get("load"),
         currents=p["currents"], voltages=p.get("voltages"), truth=p.get("truth"),
         remap=p.get("remap", True),

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dbc.cia402 import describe_mode
 from gateway.errors import UserError
 
 RX, TX = "rx", "tx"  # gateway→drive (RPDO of the drive), drive→gateway (TPDO)
@@ -238,9 +239,9 @@ def read_eds(path: str | Path, node: int = 1) -> DriveEds:
         else:  # pragma: no cover
             continue
         for v, name in items:
-            objects[(v.index, v.subindex)] = EdsObject(
+            objects[(v.index, v.subindex)] = EdsObject(  # a DCF's ParameterValue first
                 v.index, v.subindex, name, int(v.data_type or 0), str(v.access_type or ""),
-                bool(v.pdo_mappable), v.default)
+                bool(v.pdo_mappable), v.value if v.value is not None else v.default)
     if not objects:
         raise UserError(f"the EDS {str(p)!r} has no object sections ([1000], [6040], ...); "
                         f"{hint}")
@@ -689,9 +690,14 @@ def _toml_signals(choices: dict[str, Choice], in_layout: set[str], setpoints: st
             *objects, ""]
 
 
-def render_dbc(eds: DriveEds, choices: dict[str, Choice], node: int = 1) -> str:
+def render_dbc(eds: DriveEds, choices: dict[str, Choice], node: int = 1,
+               vendor: Any = None) -> str:
     """The DBC skeleton: one message per PDO with the chosen objects, with the COB-IDs of
-    the CiA 301 default PDOs of ``node`` (as a third-party tool sees the drive's frames)."""
+    the CiA 301 default PDOs of ``node`` (as a third-party tool sees the drive's frames);
+    the scalings 1, or the ``vendor`` DBC's where it has a signal named like the object or
+    the role."""
+    from gateway.newdrive_standard import vendor_signal
+
     setpoints, _ = _setpoint_family(choices)
     layout = _layout(choices, setpoints)
     out = ['VERSION ""', "", "", "NS_ :", "\tCM_", "\tBA_DEF_", "\tBA_", "\tVAL_", "",
@@ -710,10 +716,13 @@ def render_dbc(eds: DriveEds, choices: dict[str, Choice], node: int = 1) -> str:
         for c, o in zip(sigs, objs, strict=True):
             _, bits, signed = INT_TYPES[o.dtype]
             lo, hi = (-(1 << bits - 1), (1 << bits - 1) - 1) if signed else (0, (1 << bits) - 1)
-            out.append(f" SG_ {c.role.name} : {bit}|{bits}@1{'-' if signed else '+'} (1,0) "
-                       f'[{lo}|{hi}] "" {receiver}')
-            body = (f"{o.key} {o.name} ({o.type_name}, {o.access}); scaling 1: confirm the "
-                    "drive's unit").replace('"', "'")
+            found = None if vendor is None else vendor_signal(vendor, c.role.name, o.name)
+            factor, unit, why = ((found[0], found[1], found[2]) if found is not None
+                                 else (1.0, "", "scaling 1: confirm the drive's unit"))
+            out.append(f" SG_ {c.role.name} : {bit}|{bits}@1{'-' if signed else '+'} "
+                       f"({factor!r},0) [{lo * factor:.12g}|{hi * factor:.12g}] "
+                       f'"{unit}" {receiver}')
+            body = f"{o.key} {o.name} ({o.type_name}, {o.access}); {why}".replace('"', "'")
             comments.append(f'CM_ SG_ {fid} {c.role.name} "{body}";')
             bit += bits
         out.append("")
@@ -723,34 +732,76 @@ def render_dbc(eds: DriveEds, choices: dict[str, Choice], node: int = 1) -> str:
 # ---- the command line ---------------------------------------------------------------------
 
 
+def _vendor_dbc(path: str | None) -> Any:
+    """``--dbc``: the vendor's DBC (cantools), or None."""
+    if path is None:
+        return None
+    from dbc import load_database
+
+    try:
+        return load_database(Path(path))
+    except Exception as exc:  # cantools raises many kinds on a bad file
+        raise UserError(f"--dbc {path}: cannot be read as a DBC ({type(exc).__name__}: "
+                        f"{str(exc)[:200]}); give the vendor's DBC file") from None
+
+
+def _laws_can_run(choices: dict[str, Choice]) -> bool:
+    """The file has the phase currents and a complete setpoint family."""
+    return (choices["i_sa"].chosen is not None and choices["i_sb"].chosen is not None
+            and _setpoint_family(choices)[1])
+
+
 def cmd_new_drive(args: argparse.Namespace) -> int:
-    """`hil-gateway profile new-drive --eds FILE [--node N] [-o PROFILE.toml]`."""
+    """`hil-gateway profile new-drive --eds FILE [--node N] [--dbc VENDOR.dbc]
+    [-o PROFILE.toml]`: a vector drive's skeleton, or a standard drive's profile."""
+    from gateway import newdrive_standard
+
     if not 1 <= args.node <= 127:
         raise UserError(f"--node {args.node}: a CANopen node id is 1..127")
     eds = read_eds(args.eds, args.node)
+    vendor = _vendor_dbc(args.dbc)
     choices = choose(eds)
-    if args.output is None:
-        print(render_toml(eds, choices, node=args.node, eds_ref=args.eds,
-                          dbc_ref=Path(args.eds).stem + ".dbc"), end="")
-        return 0
-    out = Path(args.output)
-    if out.suffix.lower() != ".toml":
+    std = None if _laws_can_run(choices) else newdrive_standard.plan(eds, vendor)
+    out = None if args.output is None else Path(args.output)
+    if out is not None and out.suffix.lower() != ".toml":
         raise UserError(f"-o {str(out)!r}: give the profile's name ending in .toml (the DBC "
                         "skeleton is written next to it with the suffix .dbc)")
-    dbc_path = out.with_suffix(".dbc")
-    try:
-        eds_ref = os.path.relpath(eds.path.resolve(), out.resolve().parent).replace(os.sep, "/")
-    except ValueError:  # another drive (Windows)
-        eds_ref = str(eds.path.resolve())
-    toml_text = render_toml(eds, choices, node=args.node, eds_ref=eds_ref,
-                            dbc_ref=dbc_path.name)
+    dbc_path = Path(args.eds).with_suffix(".dbc") if out is None else out.with_suffix(".dbc")
+    eds_ref = args.eds
+    if out is not None:
+        try:
+            eds_ref = os.path.relpath(eds.path.resolve(), out.resolve().parent).replace(
+                os.sep, "/")
+        except ValueError:  # another drive (Windows)
+            eds_ref = str(eds.path.resolve())
+    if std is not None:
+        toml_text = newdrive_standard.render_toml(
+            eds, std, node=args.node, eds_ref=eds_ref, dbc_ref=dbc_path.name,
+            common=(_toml_timing(eds), _toml_limits(eds)))
+        dbc_text = newdrive_standard.render_dbc(eds, std, args.node)
+    else:
+        toml_text = render_toml(eds, choices, node=args.node, eds_ref=eds_ref,
+                                dbc_ref=dbc_path.name)
+        dbc_text = render_dbc(eds, choices, args.node, vendor)
+    if out is None:
+        print(toml_text, end="")
+        return 0
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(toml_text, encoding="utf-8")
-        dbc_path.write_text(render_dbc(eds, choices, args.node), encoding="utf-8")
+        dbc_path.write_text(dbc_text, encoding="utf-8")
     except OSError as exc:
         raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose a "
                         "writable place with -o") from None
+    if std is not None:
+        todo = sorted({s.name for s in std.signals if s.todo})
+        print(f"wrote {out} and {dbc_path}: a standard CiA 402 drive, "
+              f"{std.default.value} mode ({std.modes[std.default]} = "
+              f"{describe_mode(std.modes[std.default])}); "
+              + (f"TODO: confirm the units of {', '.join(todo)} (see the header)" if todo
+                 else "units from the file") + f"; check it offline: hil-gateway profile "
+              f"check {out}")
+        return 0
     found = sum(1 for c in choices.values() if c.chosen is not None)
     print(f"wrote {out} and {dbc_path}: {found} of {len(choices)} roles have a candidate; "
           "confirm each against the drive's manual")
@@ -767,7 +818,11 @@ def add_action(psub: Any) -> None:
                     "in [signals]; with -o X.toml also a DBC skeleton X.dbc. Exit 2 if the "
                     "EDS cannot be read.")
     p.add_argument("--eds", required=True, metavar="FILE", help="the drive's EDS or DCF")
-    p.add_argument("--node", type=int, default=1, metavar="N", help="node id (default 1)")
+    p.add_argument("--node", type=int, default=1, metavar="N",
+                   help="node id (default 1): every COB-ID of the DBC is this node's")
+    p.add_argument("--dbc", metavar="VENDOR.dbc",
+                   help="take the scalings from the vendor's DBC: a signal named like the EDS "
+                        "object (or like our signal) gives its factor and unit")
     p.add_argument("-o", "--output", metavar="PROFILE.toml",
                    help="write the profile here and the DBC skeleton next to it "
                         "(default: the profile on standard output)")

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import canopen
 
+from dbc.cia402 import SUPPORTED_DRIVE_MODES_OBJECT, describe_mode, mode_bit
 from dbc.modes import DriveMode
 from dbc.timing import Sampling
 from gateway.control.interface import ControllerChoice
@@ -53,12 +55,18 @@ class ProfileReport:
     profile: DriveProfile
     signals: list[SignalCheck] = field(default_factory=list)
     modes: dict[DriveMode, list[str]] = field(default_factory=dict)
+    #: drive mode → why the drive does not offer its 0x6060 value (0x6502 of the EDS)
+    not_offered: dict[DriveMode, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
-        """Every signal fits its object and at least one drive mode can run."""
-        return (not any(s.problem for s in self.signals)
-                and any(not missing for missing in self.modes.values()))
+        """Every signal fits its object, at least one drive mode can run, and the profile's
+        default mode (if it names one) can."""
+        runs = [m for m, missing in self.modes.items()
+                if not missing and m not in self.not_offered]
+        default = self.profile.default_mode
+        return (not any(s.problem for s in self.signals) and bool(runs)
+                and (default is None or default in runs))
 
 
 def is_drive_profile(path: str | Path) -> bool:
@@ -85,7 +93,22 @@ def check_drive_profile(path: str | Path) -> ProfileReport:
     mapped = {s.role for s in report.signals if not s.problem}
     for mode in MODE_CONTROLLERS:
         report.modes[mode] = [r for r in roles_needed(mode, pd) if r not in mapped]
+    supported = _default(od, SUPPORTED_DRIVE_MODES_OBJECT)
+    for mode in MODE_CONTROLLERS:
+        value = prof.mode_of(mode)
+        bit = mode_bit(value, emulator=prof.emulator)
+        if isinstance(supported, int) and bit is not None and not supported & bit:
+            report.not_offered[mode] = (f"[modes] gives {describe_mode(value)}, which the "
+                                        f"EDS's 0x6502 (0x{supported:08X}) does not offer")
     return report
+
+
+def _default(od: canopen.ObjectDictionary, index: int) -> Any:
+    """An object's value in the file (a DCF's ParameterValue first), or None."""
+    obj = od.get(index)
+    if obj is None or not hasattr(obj, "default"):
+        return None
+    return obj.value if getattr(obj, "value", None) is not None else obj.default
 
 
 def _signals(od: canopen.ObjectDictionary, pd: ProcessData, objects: dict[str, tuple[int, int]]
@@ -147,8 +170,11 @@ def render(report: ProfileReport) -> str:
     for mode, missing in report.modes.items():
         name, _ = MODE_CONTROLLERS[mode]
         ctl = f"the {name} controller" if name != "paper" else "the paper's laws"
+        why = (f"no {', '.join(missing)}" if missing else report.not_offered.get(mode))
+        default = " (the profile's default)" if mode is prof.default_mode else ""
         lines.append(f"  --drive-mode {mode:<13}" + (
-            f"runs {ctl}" if not missing else f"cannot run {ctl}: no {', '.join(missing)}"))
+            f"runs {ctl}{default}" if not why else f"cannot run {ctl}{default}: {why}"))
     lines.append("ok: the profile loads, every signal fits its object" if report.ok else
-                 "not ok: fix the errors above (or map the roles a drive mode needs)")
+                 "not ok: fix the errors above (or map the roles a drive mode needs, or "
+                 "choose a [modes] value the drive offers)")
     return "\n".join(lines)

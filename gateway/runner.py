@@ -262,10 +262,7 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
     plan.pd.require(required_roles(spec, plan.pd, getattr(ctl, "requires", ())),
                     f"{who} with a {spec.drive_mode} drive",
                     master.node.object_dictionary.indices)
-    mode = {DriveMode.VOLTAGE: drive.mode_voltage, DriveMode.TORQUE: drive.mode_torque,
-            DriveMode.VELOCITY: drive.mode_velocity,
-            DriveMode.POSITION: drive.mode_position}.get(spec.drive_mode, drive.mode_current)
-    counter = master.configure(spec.period, plan.pd, drive.remap, mode,
+    counter = master.configure(spec.period, plan.pd, drive.remap, drive.mode_of(spec.drive_mode),
                                _emulator_settings(master, drive, spec),
                                sync_overflow=SYNC_OVERFLOW)
     lockstep = spec.timing is Timing.LOCKSTEP
