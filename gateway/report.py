@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from dbc.modes import DriveMode
+
 #: Metric windows of the paper scenario, s: start-up and first load, load steps, field weakening.
 DEFAULT_WINDOWS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.5), (1.5, math.inf))
 
@@ -378,7 +380,8 @@ def title_for(config: Mapping[str, Any]) -> str:
     parts = [*head, f"{config.get('drive_mode', '?')} drive", period_text(config.get("period"))]
     if config.get("period") not in (None, "continuous"):
         parts.append(f"delay {config.get('delay', '?')}")
-        parts.append(f"{config.get('setpoint_frame', '?')} setpoints")
+        if config.get("drive_mode") not in {m.value for m in DriveMode if m.standard}:
+            parts.append(f"{config.get('setpoint_frame', '?')} setpoints")
     if config.get("command") == "simulate":
         how = "simulate" + ("" if config.get("period") == "continuous" else
                             (", INT16 bus signals" if config.get("quantize", True)
