@@ -400,13 +400,12 @@ def _check_signal(source: str, role: str, value: object) -> None:
 
 def _check_eds(prof: DriveProfile) -> None:
     """The EDS loads and has the objects the gateway needs (:data:`REQUIRED_OBJECTS`)."""
-    import canopen
+    from dbc.edsfile import EdsError, load_od
 
     try:
-        od = canopen.import_od(str(prof.eds))
-    except Exception as exc:
-        raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} cannot be read "
-                        f"({type(exc).__name__}: {exc}); give the drive's CiA 306 EDS") from None
+        od = load_od(prof.eds)
+    except EdsError as exc:
+        raise UserError(f"{prof.source}: {exc}; give the drive's CiA 306 EDS") from None
     missing = [f"0x{i:04X} {what}" for i, what in REQUIRED_OBJECTS.items() if i not in od]
     if missing:
         raise UserError(f"{prof.source}: the EDS {str(prof.eds)!r} has no {', '.join(missing)}: "

@@ -70,6 +70,7 @@ from dbc.cia402 import (
     mode_bit,
     modes_in,
 )
+from dbc.edsfile import EdsError, load_od
 from dbc.timing import LOCKSTEP_BACKSTOP_S
 from gateway.drive_profile import DriveProfile
 from gateway.eds import find_object, object_for
@@ -168,10 +169,9 @@ class DriveMaster:
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1
         try:
-            self.node = canopen.RemoteNode(self.node_id, str(profile.eds))
-        except Exception as exc:
-            raise UserError(f"cannot load the EDS {str(profile.eds)!r} of drive profile "
-                            f"{profile.source}: {exc}") from exc
+            self.node = canopen.RemoteNode(self.node_id, load_od(profile.eds, self.node_id))
+        except EdsError as exc:
+            raise UserError(f"drive profile {profile.source}: {exc}") from None
         self.node.sdo.RESPONSE_TIMEOUT = profile.sdo_timeout_s
         self.network.add_node(self.node)
         self.state = MasterState()

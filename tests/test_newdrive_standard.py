@@ -157,3 +157,29 @@ def test_unknown_si_units_are_not_guessed():
     assert decode_si_unit(0x00B49900, with_time=True) is None
     units = standard_units(lambda i, s: 0x00B49900 if i == 0x60A9 else None)
     assert "velocity" in units.assumed and "assumed 1 rev/min" in units.sources["velocity"]
+
+
+def test_canopeneditor_empty_keys_are_read_as_absent(tmp_path):
+    """CANopenEditor writes `VendorNumber=` and similar empty keys: read as absent."""
+    eds = write_eds(tmp_path / "servo.eds", standard_objects(), product="Std servo")
+    eds.write_text(eds.read_text().replace(
+        "VendorName=ACME drives", "VendorName=ACME drives\nVendorNumber=\nProductNumber=\n"
+        "RevisionNumber=\nOrderCode=\nGranularity=\nDynamicChannelsSupported=").replace(
+        "[6071]\n", "[6071]\nLowLimit=\nHighLimit=\n"))
+    out = tmp_path / "servo.toml"
+    assert main(["profile", "new-drive", "--eds", str(eds), "--node", "4", "-o",
+                 str(out)]) == 0
+    assert main(["profile", "check", str(out)]) == 0
+
+
+def test_a_number_key_that_is_not_a_number_is_named_with_its_line(tmp_path, capsys):
+    eds = write_eds(tmp_path / "servo.eds", standard_objects())
+    lines = eds.read_text().splitlines()
+    k = lines.index("[6071]") + 3  # its DataType
+    assert lines[k].startswith("DataType=")
+    lines[k] = "DataType=INTEGER16"
+    eds.write_text("\n".join(lines))
+    assert main(["profile", "new-drive", "--eds", str(eds)]) == 2
+    err = capsys.readouterr().err
+    assert f"line {k + 1}: [6071] DataType='INTEGER16' is not a number" in err
+    assert "Traceback" not in err
