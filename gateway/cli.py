@@ -277,6 +277,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
+    from gateway.scope import live_scope
     from gateway.session import Output, run
     from gateway.simulate import emulator_rate
     from gateway.spec import RunSpec
@@ -303,9 +304,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                              f"simulating {total:g} s at {label}")
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
-        result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
-                                                         args.force),
-                     windows=report.profile_windows(profile, args.windows), progress=progress)
+        with live_scope(args.scope, f"simulate {profile.name}") as scope:
+            result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
+                                                             args.force),
+                         windows=report.profile_windows(profile, args.windows),
+                         progress=progress, watcher=scope)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -424,6 +427,11 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
                         "profile), paper ([0,0.5), [0.5,1.5), [1.5,end)), none, or boundaries "
                         "in s such as 0.5,1.5 (docs/outputs.md)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.add_argument("--scope", metavar="[HOST:]PORT",
+                   help="serve a live scope of the run at http://HOST:PORT/ (HOST 127.0.0.1 "
+                        "by default; PORT 0: any free port, printed): speed, flux, currents, "
+                        "voltages, torque, timing, the drive's state and stop reason, with "
+                        "signal choice, pause, zoom, time base and a trigger")
 
 
 def _drive_mode(args: argparse.Namespace) -> Any:
@@ -527,6 +535,7 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     run (:func:`gateway.session.run`), the report, the exit status."""
     from gateway import report
     from gateway.loop import LoopRow
+    from gateway.scope import live_scope
     from gateway.session import Output, run
 
     kind, drive = target.command, target.drive
@@ -547,9 +556,11 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     target = replace(target, node=node, gateway_node=args.gateway_node)
     progress = Progress(kind, True if args.progress else None)
     try:
-        result = run(spec, profile, motor, target=target,
-                     output=Output(args.out, kind, args.force),
-                     windows=report.profile_windows(profile, args.windows), progress=progress)
+        with live_scope(args.scope, f"{kind} {profile.name}") as scope:
+            result = run(spec, profile, motor, target=target,
+                         output=Output(args.out, kind, args.force),
+                         windows=report.profile_windows(profile, args.windows),
+                         progress=progress, watcher=scope)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -785,6 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_parser(sub)
     check.add_parser(sub)
     _add_compare(sub)
+    _add_scope(sub)
     _add_reference(sub)
     _debug_everywhere(parser)
     return parser
@@ -864,6 +876,54 @@ def _add_run(sub: Any) -> None:
     p.add_argument("--drive", metavar="PROFILE", help="drive profile (TOML); default: the "
                    "emulator (gateway/drives/emulator.toml)")
     p.set_defaults(func=cmd_run)
+
+
+def cmd_scope(args: argparse.Namespace) -> int:
+    """`hil-gateway scope RUN_DIR`: a finished run in the live scope's page."""
+    import time
+
+    from gateway import report
+    from gateway.scope import ScopeFeed, ScopeServer, parse_address
+
+    run = report.load_run(Path(args.run))
+    host, port = parse_address(args.scope)
+    if not run.signals:
+        raise UserError(f"{args.run}: no signals.csv to show (the run wrote none)")
+    feed = ScopeFeed(f"{run.name} (finished)")
+    feed.load(run.signals)
+    feed.finish(run.summary)
+    server = ScopeServer(feed, host, port)
+    until = f"for {args.hold:g} s" if args.hold else "until Ctrl-C"
+    print(f"scope: {server.url} shows {args.run} ({len(run.signals['t'])} rows); serving "
+          f"{until}", flush=True)
+    try:
+        time.sleep(args.hold) if args.hold else _wait_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.close()
+    return 0
+
+
+def _wait_forever() -> None:
+    import threading
+
+    threading.Event().wait()
+
+
+def _add_scope(sub: Any) -> None:
+    p = sub.add_parser(
+        "scope", help="open a finished run in the live scope's web page",
+        description="Serve a run directory's signals.csv in the live scope's page (the page "
+                    "that --scope serves while a run happens): choose signals, pause, zoom, "
+                    "time base, trigger. Serves until Ctrl-C (or --hold seconds).")
+    p.add_argument("run", metavar="RUN_DIR", help="a run directory (with signals.csv)")
+    p.add_argument("--scope", metavar="[HOST:]PORT", default="127.0.0.1:8765",
+                   help="where to serve the page (default 127.0.0.1:8765; PORT 0: any free "
+                        "port, printed)")
+    p.add_argument("--hold", type=float, default=0.0, metavar="S",
+                   help="serve for this many seconds, then exit (default: until Ctrl-C)")
+    p.set_defaults(func=cmd_scope)
 
 
 def _add_compare(sub: Any) -> None:

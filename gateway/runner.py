@@ -192,21 +192,24 @@ OWN_ECHO_INTERFACES = ("socketcan", "virtual", "inprocess")
 
 def run_gateway(target: BusTarget, profile: Profile, motor: MotorParams, spec: RunSpec,
                 out: Path, progress: Callable[[float], None] | None = None,
-                signals: StopSignals | None = None) -> BusRun:
+                signals: StopSignals | None = None,
+                on_record: Callable[[report.Record], None] | None = None) -> BusRun:
     """Open the target's bus and run the loop against its drive; every exit path goes
     through the same shutdown (the module's docstring), then the bus is closed. The raw bus
     log is written (flushed every second) and :data:`RUNNING_MARKER` before the loop
-    starts; the results are written by the caller (:func:`gateway.session.run`), once."""
+    starts; the results are written by the caller (:func:`gateway.session.run`), once.
+    ``on_record``: called with the loop's record before its first cycle (a live scope)."""
     plan = _plan(target, profile, motor, spec)
     bus, label, close = target.open(spec, motor, target.node_id)
     try:
-        return _run_on(bus, label, plan, out, progress, signals or StopSignals())
+        return _run_on(bus, label, plan, out, progress, signals or StopSignals(), on_record)
     finally:
         close()
 
 
 def _run_on(bus: can.BusABC, label: str, plan: _Plan, out: Path,
-            progress: Callable[[float], None] | None, signals: StopSignals) -> BusRun:
+            progress: Callable[[float], None] | None, signals: StopSignals,
+            on_record: Callable[[report.Record], None] | None = None) -> BusRun:
     target, profile, spec = plan.target, plan.profile, plan.spec
     node_id = target.node_id
     configuration = _configuration(spec, target, profile, node_id, label)
@@ -224,6 +227,8 @@ def _run_on(bus: can.BusABC, label: str, plan: _Plan, out: Path,
         report.write_summary(out / RUNNING_MARKER, {
             "run": {"status": "running", "started": t_start}, "configuration": configuration})
         signals.on_stop = loop.request_stop
+        if on_record is not None:
+            on_record(loop.record)
         if signals.requested.is_set():
             loop.request_stop(signals.reason)
         stats = loop.run(progress)
