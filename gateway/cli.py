@@ -14,7 +14,7 @@ import re
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -121,9 +121,10 @@ def _choices(enum: Any) -> list[str]:
     return [m.value for m in enum]
 
 
-def _controller_choice(args: argparse.Namespace) -> Any:
+def _controller_choice(args: argparse.Namespace, given: dict[str, Any] | None = None) -> Any:
     """``--controller`` and ``--controller-params``, checked before anything runs: the
-    controller is found (a registered name or module:Class) and its parameters read."""
+    controller is found (a registered name or module:Class) and its parameters read
+    (``given``: the parameters themselves, in place of the file's)."""
     import tomllib
 
     from gateway.control.interface import ControllerChoice, controller_factory
@@ -131,7 +132,9 @@ def _controller_choice(args: argparse.Namespace) -> Any:
     name = _controller_name(args)
     controller_factory(name)  # found, or a UserError naming what is registered
     params: dict[str, Any] = {}
-    if args.controller_params:
+    if given is not None:
+        params = dict(given)
+    elif args.controller_params:
         path = Path(args.controller_params)
         try:
             params = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -272,19 +275,37 @@ def _gains(args: argparse.Namespace):
 # --------------------------------------------------------------------------- simulate
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
-    """`hil-gateway simulate`: the closed loop without CAN."""
+@dataclass(frozen=True)
+class RunInputs:
+    """What a command line asks of :func:`gateway.session.run`: the checked ``spec``, the
+    reference ``profile``, the controller's ``motor``, the metric ``windows``, the bus
+    ``target`` (None: in this process) and the period's words (``label``). Made by
+    :func:`simulate_inputs` and :func:`sim_inputs`, which `simulate`, `sim` and a
+    campaign's points (:mod:`gateway.campaign`) all go through."""
+
+    spec: Any
+    profile: Any
+    motor: Any
+    windows: tuple
+    target: Any = None
+    label: str = ""
+
+
+def simulate_inputs(args: argparse.Namespace, plant: Any = None,
+                    controller_params: dict[str, Any] | None = None) -> RunInputs:
+    """`simulate`'s options → what its run needs, every input checked (UserError) before
+    anything runs. ``plant``: the plant scenario itself, in place of ``--plant``;
+    ``controller_params``: the controller's parameters, in place of the
+    ``--controller-params`` file's."""
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
-    from gateway.scope import live_scope
-    from gateway.session import Output, run
     from gateway.simulate import emulator_rate
     from gateway.spec import RunSpec
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    plant = _load_scenario(args.plant)
+    plant = plant if plant is not None else _load_scenario(args.plant)
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
     duration = parse_duration(args.duration, "--duration") if args.duration else None
@@ -295,20 +316,30 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
-        controller=_controller_choice(args),
+        controller=_controller_choice(args, controller_params),
     )
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
     n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
     report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
                              f"simulating {total:g} s at {label}")
+    return RunInputs(spec, profile, motor, report.profile_windows(profile, args.windows),
+                     label=label)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """`hil-gateway simulate`: the closed loop without CAN."""
+    from gateway.scope import live_scope
+    from gateway.session import Output, run
+
+    inputs = simulate_inputs(args)
+    spec, profile, label = inputs.spec, inputs.profile, inputs.label
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
         with live_scope(args.scope, f"simulate {profile.name}") as scope:
-            result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
-                                                             args.force),
-                         windows=report.profile_windows(profile, args.windows),
-                         progress=progress, watcher=scope)
+            result = run(spec, profile, inputs.motor,
+                         output=Output(args.out, f"simulate-{args.law}", args.force),
+                         windows=inputs.windows, progress=progress, watcher=scope)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -453,7 +484,8 @@ def _emulator_profile(args: argparse.Namespace) -> str:
     return EMULATOR_STANDARD if _drive_mode(args).standard else EMULATOR
 
 
-def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
+def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
+              controller_params: dict[str, Any] | None = None):
     """The run's specification, checked against what the drive can do."""
     from dbc.modes import DriveMode
     from dbc.timing import Sampling
@@ -491,7 +523,7 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
         plant=plant, load=load, discretisation=_design(args, load), identify=args.identify,
-        controller=_controller_choice(args),
+        controller=_controller_choice(args, controller_params),
     )
 
 
@@ -530,18 +562,18 @@ def _finish_run(summary: dict[str, Any]) -> int:
     return run["exit_status"]
 
 
-def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
-    """What `run` and `sim` share: inputs checked before the run directory is made, the
-    run (:func:`gateway.session.run`), the report, the exit status."""
+def bus_inputs(args: argparse.Namespace, target: Any, plant: Any = None,
+               controller_params: dict[str, Any] | None = None) -> RunInputs:
+    """What `run` and `sim` share before the run: the options → the spec against
+    ``target``'s drive, its node ids, the duration and record size, all checked (UserError)
+    before the run directory is made; ``controller_params`` as in :func:`simulate_inputs`."""
     from gateway import report
     from gateway.loop import LoopRow
-    from gateway.scope import live_scope
-    from gateway.session import Output, run
 
-    kind, drive = target.command, target.drive
+    drive = target.drive
     profile = _load_profile(args.profile, drive)
     motor = _load_motor(args.motor)
-    spec = _run_spec(args, drive, plant)
+    spec = _run_spec(args, drive, plant, controller_params)
     node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -553,14 +585,28 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
     report.check_record_size(n_rows, len(LoopRow._fields), args.allow_long,
                              f"running {total:g} s at {format_duration(spec.period)}")
-    target = replace(target, node=node, gateway_node=args.gateway_node)
+    return RunInputs(spec, profile, motor, report.profile_windows(profile, args.windows),
+                     replace(target, node=node, gateway_node=args.gateway_node),
+                     format_duration(spec.period))
+
+
+def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
+    """What `run` and `sim` share: inputs checked before the run directory is made
+    (:func:`bus_inputs`), the run (:func:`gateway.session.run`), the report, the exit
+    status."""
+    from gateway.scope import live_scope
+    from gateway.session import Output, run
+
+    kind = target.command
+    inputs = bus_inputs(args, target, plant)
+    spec, profile, target = inputs.spec, inputs.profile, inputs.target
+    drive, node = target.drive, target.node
     progress = Progress(kind, True if args.progress else None)
     try:
         with live_scope(args.scope, f"{kind} {profile.name}") as scope:
-            result = run(spec, profile, motor, target=target,
+            result = run(spec, profile, inputs.motor, target=target,
                          output=Output(args.out, kind, args.force),
-                         windows=report.profile_windows(profile, args.windows),
-                         progress=progress, watcher=scope)
+                         windows=inputs.windows, progress=progress, watcher=scope)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -596,14 +642,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 SIM_HEARTBEAT_TIMEOUT_MS = 1000
 
 
-def cmd_sim(args: argparse.Namespace) -> int:
-    """`hil-gateway sim`: the same loop against the emulator started in this process."""
+def sim_target(args: argparse.Namespace, plant: Any) -> Any:
+    """`sim`'s target: the emulated drive started in this process for the run, on the
+    transport of ``--transport``, with ``plant`` (a plant scenario) and the reference
+    profile's load for its dynamometer; the emulator's truth recorded."""
     from gateway.drive_profile import load_drive_profile
     from gateway.runner import BusTarget
     from gateway.sim import TruthRecorder, open_emulator
 
     truth = TruthRecorder()
-    plant = _load_scenario(args.plant)
     profile_load = _load_profile(args.profile).load
 
     def open_buses(spec: Any, motor: Any, node: int) -> tuple[Any, str, Callable[[], None]]:
@@ -617,8 +664,21 @@ def cmd_sim(args: argparse.Namespace) -> int:
     drive = load_drive_profile(None, _emulator_profile(args))
     drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
                                                     SIM_HEARTBEAT_TIMEOUT_MS))
-    return _gateway_session(args, BusTarget(drive, open_buses, command="sim", truth=truth),
-                            plant)
+    return BusTarget(drive, open_buses, command="sim", truth=truth)
+
+
+def sim_inputs(args: argparse.Namespace, plant: Any = None,
+               controller_params: dict[str, Any] | None = None) -> RunInputs:
+    """`sim`'s options → what its run needs (:func:`bus_inputs` against the emulator's
+    target); ``plant`` and ``controller_params`` as in :func:`simulate_inputs`."""
+    plant = plant if plant is not None else _load_scenario(args.plant)
+    return bus_inputs(args, sim_target(args, plant), plant, controller_params)
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    """`hil-gateway sim`: the same loop against the emulator started in this process."""
+    plant = _load_scenario(args.plant)
+    return _gateway_session(args, sim_target(args, plant), plant)
 
 
 # ---------------------------------------------------------------------------- profile

@@ -156,9 +156,26 @@ def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | N
         _watched(summary, watcher)
         if out is None:
             return RunResult(sig, summary)
-        files = write_results(out, sig, summary, figures=True,
-                              limits=_figure_limits(spec, True), delay_s=_delay_s(spec))
+        files = _write_simulation(out, spec, sig, summary)
     return RunResult(sig, summary, out, files)
+
+
+def _write_simulation(out: Path, spec: RunSpec, sig: dict[str, np.ndarray],
+                      summary: dict[str, Any]) -> list[Path]:
+    """A simulation's files, as `simulate` writes them."""
+    return write_results(out, sig, summary, figures=True, limits=_figure_limits(spec, True),
+                         delay_s=_delay_s(spec))
+
+
+def save(result: RunResult, spec: RunSpec, output: Output) -> RunResult:
+    """A simulation run without a directory (``output`` None in :func:`run`) written
+    afterwards into one, as `simulate` would have written it: a campaign keeps the
+    directories of its points that failed, and only those."""
+    if result.sig is None:
+        raise ValueError("a run without a record has nothing to write")
+    with run_dir(output.dir, output.name, output.force) as out:
+        files = _write_simulation(out, spec, result.sig, result.summary)
+    return RunResult(result.sig, result.summary, out, files)
 
 
 def _simulation_summary(spec: RunSpec, profile: Profile, sig: dict[str, np.ndarray],

@@ -22,7 +22,13 @@ from gateway.transport import InProcessChannel
 from plant.device import DriveDevice
 from plant.drive import Measurement
 from plant.params import DriveParams
-from plant.scenario import PlantScenario, ScenarioError, resolve_scenario
+from plant.scenario import (
+    PlantScenario,
+    ScenarioError,
+    parse_scenario,
+    resolve_scenario,
+    scenario_source,
+)
 
 
 class TruthRecorder:
@@ -57,6 +63,22 @@ def load_scenario(arg: str | None) -> PlantScenario:
         return PlantScenario()
     try:
         return resolve_scenario(arg)
+    except ScenarioError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def scenario_text(arg: str) -> tuple[str, str]:
+    """``--plant ARG``'s TOML text and source name (a file, or a shipped scenario's name)."""
+    try:
+        return scenario_source(arg)
+    except ScenarioError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def scenario_from_text(text: str, source: str) -> PlantScenario:
+    """A plant scenario from its TOML text (``source`` names it in messages)."""
+    try:
+        return parse_scenario(text, source)
     except ScenarioError as exc:
         raise UserError(str(exc)) from exc
 
