@@ -32,6 +32,8 @@ examples:
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
   hil-gateway compare runs/A runs/B                  did my change help? errors side by side
+  hil-gateway campaign campaigns/motor-population.toml
+                                                    1000 runs on a local Dask cluster
   hil-gateway reference check profiles/paper.toml
 """
 
@@ -835,9 +837,11 @@ def _values_not_options(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of `hil-gateway` (all subcommands)."""
-    parser = _Parser(
+def build_parser(parser_class: type[argparse.ArgumentParser] = _Parser
+                 ) -> argparse.ArgumentParser:
+    """The argument parser of `hil-gateway` (all subcommands; ``parser_class``: of every
+    parser, e.g. one whose ``error`` raises, for a campaign's points)."""
+    parser = parser_class(
         prog=PROG,
         description="CANopen hardware-in-the-loop gateway: the sensorless speed and flux "
                     "controller of Marino, Tomei & Verrelli (2002) against a CiA 402 drive, "
@@ -858,6 +862,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compare(sub)
     _add_scope(sub)
     _add_reference(sub)
+    from gateway.campaign import command as campaign
+
+    campaign.add_parser(sub)
     _debug_everywhere(parser)
     return parser
 
@@ -1054,8 +1061,11 @@ def _usage(p: argparse.ArgumentParser) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `hil-gateway`; returns the exit status."""
+    from gateway.campaign.command import rewrite
+
     parser = build_parser()
-    args = parser.parse_args(_values_not_options(sys.argv[1:] if argv is None else argv))
+    args = parser.parse_args(_values_not_options(rewrite(sys.argv[1:] if argv is None
+                                                         else argv)))
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
