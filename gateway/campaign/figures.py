@@ -165,10 +165,13 @@ def stability_map(plt: Any, rows: Sequence[Mapping[str, Any]], meta: Mapping[str
         fig.colorbar(sc, ax=ax, label=metric)
     else:
         ca, cb = _categories(rows, a, meta), _categories(rows, b, meta)
+        la, lb = ca, cb
         if _numeric([r.get(a) for r in rows]):
-            ca = [str(v) for v in sorted({r.get(a) for r in rows})]
+            values = sorted({r.get(a) for r in rows if r.get(a) is not None})
+            ca, la = [str(v) for v in values], [f"{v:.4g}" for v in values]
         if _numeric([r.get(b) for r in rows]):
-            cb = [str(v) for v in sorted({r.get(b) for r in rows})]
+            values = sorted({r.get(b) for r in rows if r.get(b) is not None})
+            cb, lb = [str(v) for v in values], [f"{v:.4g}" for v in values]
         ia, ib = {c: i for i, c in enumerate(ca)}, {c: i for i, c in enumerate(cb)}
         import numpy as np
 
@@ -201,13 +204,13 @@ def stability_map(plt: Any, rows: Sequence[Mapping[str, Any]], meta: Mapping[str
                 if len(ca) * len(cb) <= 64 and np.isfinite(grid[i, j]):
                     ax.text(j, i - 0.3, f"{grid[i, j]:.3g}", ha="center", va="center",
                             fontsize="x-small", color="w")
-        ax.set_xticks(range(len(ca)), ca, rotation=30 if len(ca) > 6 else 0)
-        ax.set_yticks(range(len(cb)), cb)
+        ax.set_xticks(range(len(ca)), la, rotation=30 if len(ca) > 6 else 0)
+        ax.set_yticks(range(len(cb)), lb)
     ax.set_xlabel(a)
     ax.set_ylabel(b)
     ax.set_title(f"campaign {meta.get('name', '')}: {metric} over {a} × {b} "
                  "(× = a point did not pass)", fontsize="medium")
-    name = re.sub(r"[^A-Za-z0-9.+-]+", "_", f"map_{a}__{b}") + ".png"
+    name = re.sub(r"[^A-Za-z0-9.+_-]+", "_", f"map_{a}__{b}") + ".png"
     try:
         return _save(fig, out / name)
     finally:

@@ -202,14 +202,20 @@ def configure(campaign: Campaign, index: int, values: Mapping[str, Any], files: 
                        tuple(written), bool(plant_keys), bool(params_keys))
 
 
-def plan(campaign: Campaign, cwd: Path | None = None) -> tuple[list[PointConfig], int]:
-    """Every point of ``campaign`` (identical configurations once) and how many were
-    identical to an earlier one."""
+def every_point(campaign: Campaign, cwd: Path | None = None) -> list[PointConfig]:
+    """Every point of ``campaign`` in order, identical configurations included (a case
+    that two grids share is in both)."""
     files = _Files(cwd or Path.cwd())
+    return [configure(campaign, i, values, files)
+            for i, values in enumerate(_combinations(campaign))]
+
+
+def plan(campaign: Campaign, cwd: Path | None = None) -> tuple[list[PointConfig], int]:
+    """The points to run: every point of ``campaign``, identical configurations once (the
+    first), and how many were identical to an earlier one."""
     points: list[PointConfig] = []
     seen: set[str] = set()
-    for i, values in enumerate(_combinations(campaign)):
-        point = configure(campaign, i, values, files)
+    for point in every_point(campaign, cwd):
         if point.hash not in seen:
             seen.add(point.hash)
             points.append(point)
