@@ -837,11 +837,9 @@ def _values_not_options(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def build_parser(parser_class: type[argparse.ArgumentParser] = _Parser
-                 ) -> argparse.ArgumentParser:
-    """The argument parser of `hil-gateway` (all subcommands; ``parser_class``: of every
-    parser, e.g. one whose ``error`` raises, for a campaign's points)."""
-    parser = parser_class(
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of `hil-gateway` (all subcommands)."""
+    parser = _Parser(
         prog=PROG,
         description="CANopen hardware-in-the-loop gateway: the sensorless speed and flux "
                     "controller of Marino, Tomei & Verrelli (2002) against a CiA 402 drive, "

@@ -347,3 +347,25 @@ def test_bad_campaign_input_is_one_paragraph_and_exit_2(tmp_path):
     assert p.returncode == 2 and "not a campaign's table" in p.stderr
     p = cli("campaign", str(camp), "--workers", "2", "--in-process")
     assert p.returncode == 2 and "not allowed with argument" in p.stderr
+
+
+def test_a_sim_point_runs_over_canopen_against_the_emulator(tmp_path, capsys):
+    """`command = "sim"`: the point goes through `sim`'s own inputs and the bus loop; its
+    run directory (the bus log) is removed again when the point ran to its end."""
+    camp = write(tmp_path / "c.toml", """
+[campaign]
+name = "bus"
+command = "sim"
+[base]
+profile = "profiles/quick.toml"
+duration = "50ms"
+[grid]
+"plant.sensors.offset_a" = [0.01]
+""")
+    out = tmp_path / "out"
+    assert main(["campaign", str(camp), "--out", str(out), "--in-process"]) == 0
+    (row,) = pq.read_table(out / "results.parquet").to_pylist()
+    assert row["status"] == "ok" and row["cycles"] == 50 and row["missed_cycles"] == 0
+    assert row["command"] == "sim" and row["run_dir"] is None
+    assert not any((out / "runs").iterdir())
+    assert "hil-gateway sim --reference=profiles/quick.toml" in capsys.readouterr().out

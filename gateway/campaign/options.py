@@ -75,10 +75,16 @@ class _Raising(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """`hil-gateway`'s parser, raising UserError on a bad option."""
-    from gateway.cli import build_parser as cli_parser
+    """The parser of `hil-gateway simulate` and `sim` as the command line defines them
+    (its own functions; the other commands left out: a worker builds one per batch),
+    raising UserError on a bad option."""
+    from gateway.cli import _add_sim, _add_simulate
 
-    return cli_parser(_Raising)
+    parser = _Raising(prog="hil-gateway")
+    sub = parser.add_subparsers(dest="command")
+    _add_simulate(sub)
+    _add_sim(sub)
+    return parser
 
 
 def _subparser(parser: argparse.ArgumentParser, command: Command) -> argparse.ArgumentParser:
