@@ -6,20 +6,22 @@ and the scaling of 2 workers against 1.
     .venv/bin/python bench/bench_campaign.py --quick    # 100 points, 1 repeat
 
 The points: the quick profile for 150 ms, a Monte Carlo of R_s (±5 %) and J (±20 %),
-the R_s-adaptive estimator. Baseline:
-the same points' simulations called directly (:func:`gateway.session.run` on a RunSpec
-made beforehand), the same points in the same invocation, interleaved with the campaign
-in this process. Overhead per point = (campaign time − direct time) / points, against the
-direct time per point (target < 5 %). Rates are over the points' running (the runner's
-loop, the table written per batch), the cluster's start-up given apart. Scaling = rate
-of 2 workers / rate of 1 (target ≥ 1.8×; on a shared 2-core machine the second worker
-competes with everything else). Medians of the repeats.
+the R_s-adaptive estimator. Baseline: the same points' simulations called directly
+(:func:`gateway.session.run` on a RunSpec made beforehand), in the same invocation,
+interleaved with the campaign in this process; and the points as the command line runs
+one (its inputs built from the options, :func:`gateway.cli.simulate_inputs`, then the same
+call), which is what a point runs. Overhead per point = (campaign time − direct time) /
+points, against the direct time per point (target < 5 %), and against the command line's
+path. Rates are over the points' running (the runner's loop, the table written per batch),
+the cluster's start-up apart. Scaling = rate of 2 workers / rate of 1 (target ≥ 1.8×; on
+a shared 2-core machine the second worker competes with everything else). Medians.
 
 A campaign that fails (a point not 'ok', the cluster not starting) is a failed
-measurement (bench/_common.py). ``--json [FILE]`` keys: ``points``, ``direct_s``,
-``in_process_s``, ``overhead_per_point_pct``, ``rate_direct``, ``rate_in_process``,
-``rate_1_worker``, ``rate_2_workers``, ``cluster_start_s``, ``scaling_2_vs_1`` (points
-per second, seconds), ``failed``.
+measurement (bench/_common.py). ``--json [FILE]`` keys: ``points``, ``repeats``,
+``direct_s``, ``cli_s``, ``in_process_s``, ``overhead_per_point_pct``,
+``overhead_vs_cli_pct``, ``rate_direct``, ``rate_in_process``, ``rate_1_worker``,
+``rate_2_workers``, ``cluster_start_s``, ``scaling_2_vs_1`` (points per second, seconds),
+``failed``.
 """
 
 from __future__ import annotations
@@ -79,6 +81,23 @@ def direct(pts) -> float:
     return time.perf_counter() - t0
 
 
+def direct_cli(pts) -> float:
+    """The points as the command line runs one: its inputs from the options
+    (:func:`gateway.cli.simulate_inputs`, timed), then :func:`gateway.session.run`."""
+    from gateway.campaign.options import build_parser, parse_args
+    from gateway.cli import simulate_inputs
+    from gateway.session import run
+    from gateway.sim import scenario_from_text
+
+    parser = build_parser()
+    t0 = time.perf_counter()
+    for p in pts:
+        i = simulate_inputs(parse_args(parser, p.command, p.argv), scenario_from_text(*p.plant))
+        if run(i.spec, i.profile, i.motor, windows=i.windows).exit_status:
+            raise RunError("a direct run stopped")
+    return time.perf_counter() - t0
+
+
 def campaign_run(campaign, pts, engine) -> float:
     """The points through the campaign's runner on ``engine`` into a new table."""
     from gateway.campaign import runner
@@ -132,15 +151,17 @@ def main(argv: list[str] | None = None) -> int:
     warm = points(4, 2)[1]
     fig = Figures(points=n, repeats=repeats)
     here = ("direct_s", "in_process_s", "rate_direct", "rate_in_process",
-            "overhead_per_point_pct")
+            "overhead_per_point_pct", "cli_s", "overhead_vs_cli_pct")
     try:
         with the_run("warm-up"):
             direct(warm)
             in_process(campaign, warm)
-        d_s, p_s = [], []
-        for _ in range(repeats):  # interleaved: the machine's load falls on both alike
+        d_s, p_s, c_s = [], [], []
+        for _ in range(repeats):  # interleaved: the machine's load falls on all alike
             with the_run("direct"):
                 d_s.append(direct(pts))
+            with the_run("command line's inputs"):
+                c_s.append(direct_cli(pts))
             with the_run("in process"):
                 p_s.append(in_process(campaign, pts))
     except RunError as exc:
@@ -152,6 +173,9 @@ def main(argv: list[str] | None = None) -> int:
         fig.put("rate_direct", n / d)
         fig.put("rate_in_process", n / p)
         fig.put("overhead_per_point_pct", 100.0 * (p - d) / d)
+        c = statistics.median(c_s)
+        fig.put("cli_s", c)
+        fig.put("overhead_vs_cli_pct", 100.0 * (p - c) / c)
     rates: dict[int, list[float]] = {1: [], 2: []}
     starts: list[float] = []
     for _ in range(repeats):
@@ -178,10 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'':34}{'points/s':>10}{'s':>9}   baseline / target")
     print(f"{'direct session.run (baseline)':34}"
           + fig.show("rate_direct", lambda v: f"{v:10.1f}{n / v:9.2f}"))
+    print(f"{'inputs from options + session.run':34}"
+          + fig.show("cli_s", lambda v: f"{n / v:10.1f}{v:9.2f}   the command line's path"))
     print(f"{'campaign, in this process':34}"
           + fig.show("rate_in_process", lambda v: f"{v:10.1f}{n / v:9.2f}")
           + fig.show("overhead_per_point_pct",
-                     lambda v: f"   overhead {v:+.1f} % per point (target < 5 %)"))
+                     lambda v: f"   overhead {v:+.1f} % per point (target < 5 %)")
+          + fig.show("overhead_vs_cli_pct", lambda v: f", {v:+.1f} % against the line above"))
     for w, name in ((1, "rate_1_worker"), (2, "rate_2_workers")):
         label = f"campaign, local cluster, {w} worker{'s' if w > 1 else ''}"
         print(f"{label:34}" + fig.show(name, lambda v: f"{v:10.1f}{n / v:9.2f}"))

@@ -35,8 +35,8 @@ redraws them from the table.
 The points run on Dask: by default a local cluster of one worker process per core (one
 thread each) whose dashboard address is printed; --scheduler runs them on a cluster you
 started (dask scheduler, dask worker ADDRESS --nthreads 1); --in-process runs them here,
-one after the other (for debugging). Campaign files: campaigns/*.toml, and the format in
-`hil-gateway campaign --help` below and the README.
+one after the other (for debugging). Shipped campaigns: campaigns/*.toml; the file format
+is below and in the README.
 
 Exit status: 0 when every point ran to its end and passed every criterion, 1 when some did
 not, 130 when interrupted (run the command again to go on), 2 for bad input."""
