@@ -7,9 +7,11 @@ simulation is pure Python, threads would only share the GIL, and a `sim` point's
 and gateway must have their process to themselves), bound to 127.0.0.1, or an existing
 scheduler (``--scheduler tcp://HOST:PORT``) whose workers the user started.
 
-A worker that dies while it runs a batch fails the batch with Dask's KilledWorker once
-the scheduler has given up retrying it; :class:`Done` says so (``died``) and the runner
-splits the batch to find the point that kills it.
+A worker that dies while it runs a batch fails the batch with Dask's KilledWorker (at
+once on the local cluster: its scheduler retries nothing, ``allowed-failures`` 0; an
+existing scheduler after its own retries); :class:`Done` says so (``died``) and the runner
+runs the batch's points again one by one, so that only a point that kills its worker
+again becomes a row, and the innocent ones of its batch run.
 """
 
 from __future__ import annotations
@@ -59,7 +61,9 @@ class Engine(Protocol):
 
     def restart(self, worker: str) -> None: ...
 
-    def check(self) -> None: ...
+    def threads(self) -> int:
+        """How many points could run at once now (0: no worker at the moment)."""
+        ...
 
     def close(self) -> None: ...
 
@@ -95,8 +99,8 @@ class InProcess:
     def restart(self, worker: str) -> None:
         """A run left behind here goes on in its daemon thread until the campaign ends."""
 
-    def check(self) -> None:
-        """Always able to run."""
+    def threads(self) -> int:
+        return 1
 
     def close(self) -> None:
         self._queue.clear()
@@ -135,7 +139,8 @@ class DaskEngine:
                             "--in-process") from exc
         self._distributed = distributed
         if not logging.getLogger().isEnabledFor(logging.DEBUG):  # --debug shows Dask's too
-            logging.getLogger("distributed").setLevel(logging.ERROR)
+            # what matters of Dask's errors (a worker that died) becomes the table's rows
+            logging.getLogger("distributed").setLevel(logging.CRITICAL)
         self.cluster: Any = None
         self.command = command
         if scheduler is not None:
@@ -149,7 +154,7 @@ class DaskEngine:
             self.description = f"Dask scheduler {scheduler}"
         else:
             n = workers or machine_workers()
-            config = {"distributed.scheduler.allowed-failures": 1,
+            config = {"distributed.scheduler.allowed-failures": 0,
                       "distributed.scheduler.worker-saturation": 1.0,
                       "distributed.worker.memory.target": False,
                       "distributed.worker.memory.spill": False}
@@ -233,11 +238,8 @@ class DaskEngine:
             log.warning("could not restart %s (%s); its run left behind goes on there",
                         worker, exc)
 
-    def check(self) -> None:
-        if not self.client.nthreads():
-            raise UserError(f"{self.description}: no worker is left; start workers (dask "
-                            "worker ADDRESS --nthreads 1) and run the campaign again: it goes "
-                            "on where it stopped")
+    def threads(self) -> int:
+        return sum(self.client.nthreads().values())
 
     def close(self) -> None:
         with contextlib.suppress(Exception):

@@ -41,8 +41,10 @@ BATCH_SECONDS = 1.0
 BATCH_MAX = 64
 #: Batches in flight per point that runs at once.
 IN_FLIGHT = 2
-#: How often the engine is asked whether it still has workers, s.
+#: How often the engine is asked whether it still has workers, s, and how long it may
+#: have none (its nannies restarting them) before the campaign stops.
 CHECK_EVERY = 5.0
+NO_WORKERS_GRACE = 120.0
 
 
 def param_types(campaign: Campaign) -> dict[str, str]:
@@ -193,7 +195,7 @@ def run(engine: Engine, todo: Sequence[PointConfig], table: ResultTable, limits:
     sizer = BatchSizer()
     written: list[dict[str, Any]] = []
     capacity = engine.capacity
-    last_check = time.monotonic()
+    last_check = seen_workers = time.monotonic()
     per_point = limits.timeout + limits.grace
 
     def record(rows: list[dict[str, Any]]) -> None:
@@ -228,8 +230,15 @@ def run(engine: Engine, todo: Sequence[PointConfig], table: ResultTable, limits:
                                         "long after the time limits of its batch (a worker "
                                         "hung?)", EXIT_TIMEOUT, math.nan)) for p in batch])
         if now - last_check > CHECK_EVERY:
-            engine.check()
-            capacity, last_check = engine.capacity, now
+            last_check = now
+            threads = engine.threads()
+            if threads:
+                capacity, seen_workers = threads, now
+            elif now - seen_workers > NO_WORKERS_GRACE:
+                raise UserError(f"{engine.description}: no worker for "
+                                f"{NO_WORKERS_GRACE:g} s; start workers (dask worker ADDRESS "
+                                "--nthreads 1) and run the campaign again: it goes on where "
+                                "it stopped", exit_code=1)
     return written
 
 
