@@ -121,12 +121,12 @@ def labels(values: dict) -> tuple[str, str, str]:
 
 
 def only(blocks: list[str], out: Path) -> Path:
-    """The campaign with only the grids of ``blocks``, written into ``out``."""
+    """The campaign with only the grids of ``blocks``, written beside ``out``."""
     data = tomllib.loads(CAMPAIGN.read_text(encoding="utf-8"))
     data["grid"] = [g for g in data["grid"]
                     if g["block"][0]["label"].partition("/")[0] in blocks]
-    path = out / "robustness-only.toml"
-    out.mkdir(parents=True, exist_ok=True)
+    path = out.with_name(f"{out.name}-campaign.toml")
+    out.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomltext.dumps(data), encoding="utf-8")
     return path
 

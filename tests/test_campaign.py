@@ -339,10 +339,17 @@ class Dies:
 
 def test_bad_campaign_input_is_one_paragraph_and_exit_2(tmp_path):
     camp = write(tmp_path / "c.toml", SMALL.replace('duration = "250ms"', 'period = "1"'))
+    write(tmp_path / "ok.toml", SMALL)
     p = cli("campaign", str(camp), "--out", str(tmp_path / "o"), "--in-process")
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert "point #0" in p.stderr and "--period" in p.stderr
     assert not (tmp_path / "o").exists()
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    p = cli("campaign", str(camp.with_name("ok.toml")), "--out", str(tmp_path / "mine"),
+            "--in-process")
+    assert p.returncode == 2 and "not a campaign's directory" in p.stderr
+    assert [f.name for f in (tmp_path / "mine").iterdir()] == ["notes.txt"]
     p = cli("campaign", "show", str(tmp_path))
     assert p.returncode == 2 and "not a campaign's table" in p.stderr
     p = cli("campaign", str(camp), "--workers", "2", "--in-process")

@@ -221,6 +221,7 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     points, same = plan(campaign)
     _validate(campaign, points)
     out = Path(args.out or f"runs/campaign-{campaign.name}")
+    runner.check_out(out, campaign)
     with runner.lock(out):
         table, done = runner.prepare(out, campaign, args.retry_failed)
         todo = [p for p in points if p.hash not in done]

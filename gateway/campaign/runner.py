@@ -13,6 +13,7 @@ limits (a worker that hangs without dying) is cancelled and its points become ro
 from __future__ import annotations
 
 import fcntl
+import json
 import math
 import signal
 import time
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gateway.atomicfile import write_text_atomic
 from gateway.campaign.engine import Done, Engine
 from gateway.campaign.model import Axis, AxisKind, Campaign, Dist
 from gateway.campaign.points import PointConfig, record_fields
@@ -146,14 +148,10 @@ class BatchSizer:
         return min(ideal, balanced)
 
 
-def prepare(out: Path, campaign: Campaign, retry_failed: bool
-            ) -> tuple[ResultTable, set[str]]:
-    """The table in ``out`` (a killed run's parts compacted first) and the hashes of the
-    points already done (with ``retry_failed``: only those whose run gave a result)."""
+def check_out(out: Path, campaign: Campaign) -> None:
+    """``out`` is new, empty, or an earlier run's of this campaign (UserError otherwise)."""
     meta_file = out / META
     if meta_file.exists():
-        import json
-
         try:
             old = json.loads(meta_file.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
@@ -162,13 +160,20 @@ def prepare(out: Path, campaign: Campaign, retry_failed: bool
         if old.get("name") != campaign.name:
             raise UserError(f"--out {out}: holds campaign {old.get('name')!r}, not "
                             f"{campaign.name!r}; choose another directory")
+    elif out.exists() and (not out.is_dir() or any(p.name != ".lock" for p in out.iterdir())):
+        raise UserError(f"--out {out}: exists and is not a campaign's directory (no {META}); "
+                        "choose a new directory, or the one of an earlier run of this campaign")
+
+
+def prepare(out: Path, campaign: Campaign, retry_failed: bool
+            ) -> tuple[ResultTable, set[str]]:
+    """The table in ``out`` (a killed run's parts compacted first) and the hashes of the
+    points already done (with ``retry_failed``: only those whose run gave a result)."""
+    meta_file = out / META
+    check_out(out, campaign)
     meta = campaign_meta(campaign)
     table = ResultTable(out, meta, meta["params"])
     table.clean()
-    import json
-
-    from gateway.atomicfile import write_text_atomic
-
     write_text_atomic(meta_file, json.dumps(meta, indent=1, ensure_ascii=False) + "\n")
     existing = table.compact()
     done: set[str] = set()
