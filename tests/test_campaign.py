@@ -376,3 +376,37 @@ duration = "50ms"
     assert row["command"] == "sim" and row["run_dir"] is None
     assert not any((out / "runs").iterdir())
     assert "hil-gateway sim --reference=profiles/quick.toml" in capsys.readouterr().out
+
+
+def test_sigterm_stops_a_campaign_and_keeps_what_it_ran(tmp_path):
+    """SIGTERM (as from a batch system) stops the campaign like Ctrl-C: exit 130, every
+    point that came back in the table, the same command then runs only the others."""
+    import signal
+    import time
+
+    camp = write(tmp_path / "c.toml", """
+[campaign]
+name = "long"
+[base]
+profile = "profiles/quick.toml"
+duration = "20ms"
+[random]
+n = 120
+"plant.motor.J" = {dist = "uniform", low = 0.8, high = 1.2}
+""")
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "gateway", "campaign", str(camp), "--out",
+                          str(out), "--in-process"], cwd=ROOT, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not list((out / "parts").glob("part-*.parquet")) if (out / "parts").is_dir() else True:
+        assert p.poll() is None and time.monotonic() - t0 < 300
+        time.sleep(0.1)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 130 and "Traceback" not in err
+    rows = pq.read_table(out / "results.parquet").to_pylist()
+    assert 0 < len(rows) < 120 and len({r["hash"] for r in rows}) == len(rows)
+    again = cli("campaign", str(camp), "--out", str(out), "--in-process")
+    assert f"{len(rows)} already in" in again.stdout
+    assert len(pq.read_table(out / "results.parquet")) == 120
