@@ -596,6 +596,23 @@ def cmd_run(args: argparse.Namespace) -> int:
 SIM_HEARTBEAT_TIMEOUT_MS = 1000
 
 
+def _fault_wrapper(plant: Any, spec: Any, drive: Any, node: int, args: argparse.Namespace
+                   ) -> Callable[[Any, Any], Any] | None:
+    """The scenario's bus faults between the gateway and the drive (None: none)."""
+    faults = getattr(plant, "bus_faults", ())
+    if not faults:
+        return None
+    from gateway.faultbus import inject
+    from gateway.process_data import process_data
+
+    pd = process_data(drive, node)
+    gateway_node = args.gateway_node or drive.gateway_node
+
+    def wrap(bus: Any, other: Any) -> Any:
+        return inject(bus, faults, spec.period, pd, node, gateway_node, other)
+    return wrap
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
     from gateway.drive_profile import load_drive_profile
@@ -608,7 +625,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     def open_buses(spec: Any, motor: Any, node: int) -> tuple[Any, str, Callable[[], None]]:
         return open_emulator(args.transport, node, motor, spec.drive_mode, plant,
-                             profile_load, on_sample=truth)
+                             profile_load, on_sample=truth,
+                             wrap=_fault_wrapper(plant, spec, drive, node, args))
 
     # The emulator runs in this interpreter: a stall of the process (a loaded host, the
     # GIL) stops the gateway's heartbeat and the emulator's watch of it together, and the

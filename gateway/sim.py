@@ -64,6 +64,7 @@ def load_scenario(arg: str | None) -> PlantScenario:
 def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode,
                   plant: PlantScenario | None = None, reference_load: Any = None,
                   on_sample: Callable[[int, Measurement], None] | None = None,
+                  wrap: Callable[[can.BusABC, can.BusABC], can.BusABC] | None = None,
                   ) -> tuple[can.BusABC, str, Callable[[], None]]:
     """Start the emulated drive at ``node`` on a new in-process bus; returns the gateway's
     bus, its label ('inprocess:hil-sim-…') and the function that stops and closes it all.
@@ -71,15 +72,21 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
     ``plant``: how the emulated plant differs from the controller's model (the controller's
     ``motor`` × the scenario); ``reference_load``: the reference profile's load signal, for
     a scenario whose dynamometer follows the profile; ``on_sample``: the device's per-cycle
-    hook (e.g. a :class:`TruthRecorder`)."""
+    hook (e.g. a :class:`TruthRecorder`); ``wrap``: given the gateway's bus and a bus of
+    another node on the same medium, the bus the gateway uses (the scenario's bus faults,
+    :func:`gateway.faultbus.inject`)."""
     if transport == "virtual":
         channel = f"hil-sim-{os.getpid()}"
         bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
         bus_dev = can.Bus(interface="virtual", channel=channel)
+        if wrap is not None:
+            bus_gw = wrap(bus_gw, can.Bus(interface="virtual", channel=channel))
     else:
         medium = InProcessChannel("hil-sim")
         channel = medium.name
         bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
+        if wrap is not None:
+            bus_gw = wrap(bus_gw, medium.bus())
     plant = plant or PlantScenario()
     try:
         device = DriveDevice(
