@@ -285,6 +285,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     plant = _load_scenario(args.plant)
+    if plant is not None and plant.bus_faults:
+        raise UserError(f"--plant {args.plant} injects bus faults ([[bus.fault]]), which act "
+                        "on a CAN bus: run it over the bus with `hil-gateway sim --plant "
+                        f"{args.plant}`")
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
     duration = parse_duration(args.duration, "--duration") if args.duration else None
@@ -602,10 +606,11 @@ def _fault_wrapper(plant: Any, spec: Any, drive: Any, node: int, args: argparse.
     faults = getattr(plant, "bus_faults", ())
     if not faults:
         return None
-    from gateway.faultbus import inject
+    from gateway.faultbus import check_faults, inject
     from gateway.process_data import process_data
 
     pd = process_data(drive, node)
+    check_faults(faults, pd, f"--plant {args.plant}")
     gateway_node = args.gateway_node or drive.gateway_node
 
     def wrap(bus: Any, other: Any) -> Any:

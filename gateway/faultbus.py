@@ -28,7 +28,7 @@ import can
 from dbc.busfaults import BusFault, FaultKind, FaultSchedule
 from dbc.cia301 import HEARTBEAT_BASE, NMT_ID, SYNC_ID
 
-__all__ = ["FaultyBus", "FrameIds", "inject"]
+__all__ = ["FaultyBus", "FrameIds", "check_faults", "inject"]
 
 _SDO_RX = 0x600  #: SDO requests to the drive (client → server)
 _FRAME_KINDS = frozenset({FaultKind.DROP, FaultKind.DELAY, FaultKind.DUPLICATE,
@@ -283,6 +283,19 @@ def _copy(m: can.Message, data: bytes | None = None) -> can.Message:
     return can.Message(timestamp=m.timestamp or time.time(), arbitration_id=m.arbitration_id,
                        is_extended_id=m.is_extended_id, is_error_frame=m.is_error_frame,
                        dlc=len(d), data=d, channel=m.channel, check=False)
+
+
+def check_faults(faults: tuple[BusFault, ...], pd: object, source: str = "") -> None:
+    """Every message a fault names is one of the drive's PDOs (or SYNC); a
+    :class:`gateway.errors.UserError` naming it otherwise."""
+    from gateway.errors import UserError
+
+    names = [p.name for p in getattr(pd, "pdos", ())]
+    for f in faults:
+        if f.kind in _FRAME_KINDS and f.message not in (*names, "SYNC"):
+            raise UserError(f"{source}: bus fault {f.describe()}: {f.message!r} is not a "
+                            f"message of the drive's DBC; its messages are "
+                            f"{', '.join(names)} (and SYNC)")
 
 
 def inject(bus: can.BusABC, faults: tuple[BusFault, ...], period: float, pd: object,
