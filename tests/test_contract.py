@@ -10,7 +10,6 @@ import timeit
 from pathlib import Path
 
 import canopen
-import cantools
 import pytest
 from canopen.objectdictionary import datatypes
 from hypothesis import given, settings
