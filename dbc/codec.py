@@ -99,7 +99,8 @@ def ab_companion(path: Path) -> Path:
 def load_database(path: Path = DBC_PATH):
     """``path`` (default ``drive.dbc``) as a cantools database, with the messages that only
     its (a, b) companion (:func:`ab_companion`) has, if there is one; without cantools'
-    warning that such a message shares a frame id (it does on purpose)."""
+    warning that such a message shares a frame id (it does on purpose). ValueError naming
+    the file when one cannot be read."""
     return _load(Path(path))[0]
 
 
@@ -112,7 +113,11 @@ def _load(path: Path) -> tuple[Any, dict[str, str | None]]:
     quiet = _DropDuplicateIdWarning()
     log.addFilter(quiet)
     try:
-        db = cantools.database.load_file(str(path))
+        try:
+            db = cantools.database.load_file(str(path))
+        except Exception as exc:  # cantools raises many kinds on a bad file
+            raise ValueError(f"{path}: not a readable DBC ({type(exc).__name__}: {exc})"
+                             ) from None
         companion = ab_companion(path)
         if not companion.is_file():
             return db, {}
@@ -144,12 +149,7 @@ def parse_dbc(path: Path = DBC_PATH) -> tuple[dict[str, _Message], dict[str, Sig
     8 bytes, a signal longer than 64 bits, a float that is not a REAL32 or REAL64, a factor
     of 0, a signal name used twice with different encodings.
     """
-    try:
-        db, alternatives = _load(Path(path))
-    except ValueError:
-        raise
-    except Exception as exc:  # cantools raises many kinds on a bad file
-        raise ValueError(f"{path}: not a readable DBC ({type(exc).__name__}: {exc})") from None
+    db, alternatives = _load(Path(path))
     messages: dict[str, _Message] = {}
     specs: dict[str, SignalSpec] = {}
     for m in db.messages:
