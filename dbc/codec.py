@@ -155,32 +155,36 @@ def parse_dbc(path: Path = DBC_PATH) -> tuple[dict[str, _Message], dict[str, Sig
     for m in db.messages:
         if not m.is_extended_frame and is_service(m.frame_id):
             continue
-        sigs = tuple(_signal_spec(path, m, s) for s in sorted(m.signals, key=lambda s: s.start))
+        where = f"{path}: message {m.name}"
+        if m.is_extended_frame:
+            raise ValueError(f"{where} has an extended (29-bit) id 0x{m.frame_id:X}; CANopen "
+                             "PDOs use 11-bit COB-IDs: give the message its PDO's COB-ID")
+        if m.is_multiplexed():
+            mux = next(s.name for s in m.signals if s.is_multiplexer)
+            raise ValueError(f"{where} is multiplexed (signal {mux}); the codec takes one "
+                             "layout per message: describe each layout as a message of its "
+                             "own (an alternative mapping in an (a, b) companion DBC)")
+        sigs = tuple(_signal_spec(where, s) for s in sorted(m.signals, key=lambda s: s.start))
         if m.length > MAX_PDO_BYTES:
-            raise ValueError(f"{path}: message {m.name} is {m.length} bytes; a CANopen PDO on "
-                             f"classical CAN has at most {MAX_PDO_BYTES}: split it into PDOs "
-                             f"of {MAX_PDO_BYTES} bytes or fewer")
+            raise ValueError(f"{where} is {m.length} bytes; a CANopen PDO on classical CAN has "
+                             f"at most {MAX_PDO_BYTES}: split it into PDOs of {MAX_PDO_BYTES} "
+                             "bytes or fewer")
         for spec in sigs:
             if specs.setdefault(spec.name, spec.unplaced) != spec.unplaced:
                 raise ValueError(f"{path}: signal {spec.name} is defined twice, differently "
                                  "(size, type or scaling): give one of them another name")
-        frame_layout(sigs, m.length)  # fits: cantools checked it; fails loudly otherwise
+        try:
+            frame_layout(sigs, m.length)  # cantools checked that they fit
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
         messages[m.name] = _Message(m.name, m.frame_id, m.length, sigs,
                                     alternatives.get(m.name))
     return messages, specs
 
 
-def _signal_spec(path: Path, m: Any, s: Any) -> SignalSpec:
-    """The :class:`SignalSpec` of cantools signal ``s`` of PDO message ``m``, or the
-    refusal of what the codec cannot take."""
-    where = f"{path}: message {m.name}"
-    if m.is_extended_frame:
-        raise ValueError(f"{where} has an extended (29-bit) id 0x{m.frame_id:X}; CANopen PDOs "
-                         "use 11-bit COB-IDs: give the message its PDO's COB-ID")
-    if s.is_multiplexer or s.multiplexer_ids:
-        raise ValueError(f"{where} is multiplexed (signal {s.name}); the codec takes one "
-                         "layout per message: describe each layout as a message of its own "
-                         "(an alternative mapping in an (a, b) companion DBC)")
+def _signal_spec(where: str, s: Any) -> SignalSpec:
+    """The :class:`SignalSpec` of cantools signal ``s`` of a PDO message (``where``: the
+    file and the message, for the refusal of what the codec cannot take)."""
     if s.length > MAX_BITS:
         raise ValueError(f"{where}: signal {s.name} is {s.length} bits; a signal is at most "
                          f"{MAX_BITS} bits: split it into signals of {MAX_BITS} bits or fewer")
