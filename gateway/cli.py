@@ -965,7 +965,7 @@ def _add_compare(sub: Any) -> None:
 
 
 def _add_reference(sub: Any) -> None:
-    """`reference` (alias `profile`): check, plot, new-drive."""
+    """`reference` (alias `profile`): check, plot, new-drive, dbc."""
     p = sub.add_parser("reference", aliases=["profile"],
                        help="check or plot a reference profile (alias: profile)",
                        description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
@@ -991,9 +991,10 @@ def _add_reference(sub: Any) -> None:
                     help="output file, .png, .svg or .pdf (default runs/profile-<FILE's "
                          "stem>.png; an existing file is replaced)")
     pp.set_defaults(func=cmd_profile_plot)
-    from gateway import newdrive  # `profile new-drive`: a drive-profile skeleton from an EDS
+    from gateway import dbcfile, newdrive  # new-drive: a skeleton; dbc: the bus's DBC
 
     newdrive.add_action(psub)
+    dbcfile.add_action(psub)
     p.set_defaults(func=lambda a: _usage(p))
 
 
