@@ -497,7 +497,20 @@ class DriveMaster:
 
     def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
         """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and
-        statusword by index)."""
+        statusword by index). A CiA 301 mapping packs objects back to back, little-endian:
+        a DBC message with gaps or Motorola signals cannot be written so."""
+        bit = 0
+        for spec in pdo.codec.signals:
+            start = bit if spec.start is None else spec.start
+            if spec.big_endian or start != bit:
+                raise UserError(
+                    f"{pdo.name}.{spec.name}: the DBC lays it out "
+                    + ("in Motorola byte order" if spec.big_endian else
+                       f"at bit {start}, not right after the signal before (bit {bit})")
+                    + ", which a PDO mapping written by SDO cannot reproduce (objects back to "
+                    "back, Intel order): map the PDO on the drive and set remap = false in "
+                    f"{self.profile.source}")
+            bit += spec.bits
         entries = []
         for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
             var = self.object_of(signal, role, pdo.name)
