@@ -21,13 +21,10 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     from gateway.drive_profile import load_drive_profile
     from gateway.faultbus import check_faults, run_bridge
     from gateway.process_data import process_data
+    from gateway.sim import load_scenario
     from gateway.units import parse_duration
-    from plant.scenario import ScenarioError, resolve_scenario
 
-    try:
-        plant = resolve_scenario(args.plant)
-    except (ScenarioError, OSError) as exc:
-        raise UserError(f"--plant {args.plant}: {exc}") from None
+    plant = load_scenario(args.plant)
     if not plant.bus_faults:
         raise UserError(f"--plant {args.plant} injects no bus faults ([[bus.fault]]): the "
                         "bridge would only forward frames")
