@@ -140,6 +140,14 @@ class FaultyBus(can.BusABC):
             if f.arbitration_id == msg.arbitration_id and bytes(f.data) == bytes(msg.data):
                 key = (f.arbitration_id, bytes(f.data))
                 self._swallow[key] = self._swallow.get(key, 0) + 1
+        if not self.bridge:
+            for f in frames:
+                if f.arbitration_id == msg.arbitration_id and bytes(f.data) != bytes(msg.data):
+                    # changed on the wire (corrupt, dlc): the drive gets it so, while the
+                    # gateway's controller reports the frame it sent
+                    key = (f.arbitration_id, bytes(f.data))
+                    self._swallow[key] = self._swallow.get(key, 0) + 1
+                    self._rx_ready.append(_copy(msg))
         return out + [(f, 0.0) for f in frames]
 
     def _sync(self, msg: can.Message, k: int) -> list[tuple[can.Message, float]]:
