@@ -32,6 +32,7 @@ examples:
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
   hil-gateway compare runs/A runs/B                  did my change help? errors side by side
+  hil-gateway report runs/A                         runs/A/report.html: the run on one page
   hil-gateway reference check profiles/paper.toml
 """
 
@@ -736,6 +737,31 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- report
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """`hil-gateway report RUN_DIR…`: one self-contained HTML page of a run (report.html in
+    its directory), or of several runs side by side (-o FILE, default ./compare.html)."""
+    from gateway import htmlreport
+    from gateway.rundir import REPORT_FILE
+
+    if args.output and Path(args.output).suffix.lower() not in htmlreport.HTML_SUFFIXES:
+        raise UserError(f"-o {args.output!r}: a report is written as "
+                        f"{' or '.join(htmlreport.HTML_SUFFIXES)} (by the suffix); e.g. -o "
+                        f"{Path(args.output).with_suffix('.html')}")
+    runs = [htmlreport.load(Path(d)) for d in args.runs]
+    if args.output:
+        out = Path(args.output)
+    elif len(runs) == 1:
+        out = runs[0].path / REPORT_FILE
+    else:
+        out = Path(htmlreport.COMPARISON_NAME)
+    written = htmlreport.write_report(runs, out)
+    print(f"wrote {written}")
+    return 0
+
+
 # ------------------------------------------------------------------------------- main
 
 
@@ -785,6 +811,7 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_parser(sub)
     check.add_parser(sub)
     _add_compare(sub)
+    _add_report(sub)
     _add_reference(sub)
     _debug_everywhere(parser)
     return parser
@@ -879,6 +906,29 @@ def _add_compare(sub: Any) -> None:
     p.add_argument("-o", "--output", metavar="FILE",
                    help="figure file, .png, .svg or .pdf (default ./compare.png)")
     p.set_defaults(func=cmd_compare)
+
+
+def _add_report(sub: Any) -> None:
+    """`report`: a run as one HTML page."""
+    p = sub.add_parser(
+        "report", help="one self-contained HTML page of a run, or of several side by side",
+        description="Write one HTML file that opens offline (figures embedded, no other "
+                    "file): the run's configuration, outcome (stop, reason, exit status, "
+                    "shutdown), identification, metrics overall and per window, figures, "
+                    "bus timing and counters, faults, and every other section of its "
+                    "summary.json. One RUN_DIR: RUN_DIR/report.html (replaced when written "
+                    "again). Several: one comparison page (outcomes and metrics side by "
+                    "side, configuration differences, errors overlaid, each run below), "
+                    "./compare.html or -o FILE. A run that did not finish (only running.json) "
+                    "is reported as such. Exit status 0 when the page is written (whatever "
+                    "the runs' own), 2 for a directory that is not a run or a file that "
+                    "cannot be written. See docs/outputs.md.")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR",
+                   help="run directories written by simulate, sim or run")
+    p.add_argument("-o", "--output", metavar="FILE.html",
+                   help="the page to write (default: RUN_DIR/report.html for one run, "
+                        "./compare.html for several); written completely or not at all")
+    p.set_defaults(func=cmd_report)
 
 
 def _add_reference(sub: Any) -> None:
