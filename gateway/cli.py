@@ -32,6 +32,8 @@ examples:
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
   hil-gateway compare runs/A runs/B                  did my change help? errors side by side
+  hil-gateway compare --baseline runs/A runs/B --tolerance examples/tolerance.toml --junit g.xml
+                                                    the regression gate: exit 1 past a limit
   hil-gateway report runs/A                         runs/A/report.html: the run on one page
   hil-gateway reference check profiles/paper.toml
 """
@@ -718,23 +720,84 @@ def cmd_profile_plot(args: argparse.Namespace) -> int:
 
 def cmd_compare(args: argparse.Namespace) -> int:
     """`hil-gateway compare RUN_DIR…`: errors side by side, configuration differences, and
-    a figure of the speed and flux errors of every run overlaid."""
+    a figure of the speed and flux errors of every run overlaid; with ``--baseline`` the
+    regression gate instead (:func:`cmd_gate`)."""
     from gateway import report
 
+    if args.baseline is not None:
+        return cmd_gate(args)
+    for given, name in ((args.tolerance, "--tolerance"), (args.junit, "--junit")):
+        if given:
+            raise UserError(f"{name} belongs to the regression gate: give --baseline RUN_DIR "
+                            "too (the run the others are measured against)")
+    out = _figure_path(args)
     runs = [report.load_run(Path(d)) for d in args.runs]
     print(report.compare_table(runs))
-    # a run directory stays as its run left it: the figure goes to the current directory
+    _write_figure(out, runs)
+    return 0
+
+
+def _figure_path(args: argparse.Namespace) -> Path:
+    """`compare`'s figure: -o FILE (.png, .svg, .pdf), else compare.png in the current
+    directory (a run directory stays as its run left it)."""
     out = Path(args.output) if args.output else Path("compare.png")
     if out.suffix.lower() not in PLOT_SUFFIXES:
         raise UserError(f"-o {args.output!r}: the figure is written as "
                         f"{', '.join(PLOT_SUFFIXES)} (by the suffix)")
+    return out
+
+
+def _write_figure(out: Path, runs: list[Any]) -> None:
+    """The runs' speed and flux errors overlaid, into ``out``."""
+    from gateway import report
+
     try:
         written = report.plot_compare(runs, out)
     except OSError as exc:
         raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
                         "file with -o") from exc
     print(f"wrote {written}" if written else "(install matplotlib for the figure)")
-    return 0
+
+
+def cmd_gate(args: argparse.Namespace) -> int:
+    """`hil-gateway compare --baseline RUN_DIR RUN_DIR… --tolerance FILE.toml [--junit
+    FILE.xml]`: each run's metrics against the baseline's within the tolerance file's
+    limits; the table of checks, the JUnit XML; exit 0 passed, 1 a metric beyond its
+    limit, 2 a metric that cannot be compared or bad input."""
+    from gateway import gate, report
+    from gateway.atomicfile import write_text_atomic
+    from gateway.junit import junit_xml
+    from gateway.rundir import run_labels
+    from gateway.tolerance import load_tolerances
+
+    if not args.tolerance:
+        raise UserError("--baseline needs --tolerance FILE.toml: the limits of each metric, "
+                        "by the dotted key of summary.json (e.g. examples/tolerance.toml)")
+    figure = _figure_path(args) if args.output else None
+    limits = load_tolerances(Path(args.tolerance))
+    baseline = report.load_summary(Path(args.baseline))
+    paths = [Path(d) for d in args.runs]
+    runs = list(zip(run_labels(paths), [report.load_summary(p) for p in paths], strict=True))
+    checks = gate.evaluate(baseline, runs, limits)
+    print(f"regression gate: baseline {args.baseline}, limits {args.tolerance}")
+    print(gate.table(checks))
+    if args.junit:
+        xml = junit_xml(checks, [("baseline", str(args.baseline)),
+                                 ("tolerance", str(args.tolerance))])
+        try:
+            write_text_atomic(Path(args.junit), xml)
+        except OSError as exc:
+            raise UserError(f"--junit {args.junit!r}: cannot write it "
+                            f"({exc.strerror or exc}); choose a writable place") from exc
+        print(f"wrote {args.junit}")
+    if figure is not None:  # only when asked for: the gate's output is the table
+        _write_figure(figure, [report.load_run(Path(args.baseline)),
+                               *(report.load_run(p) for p in paths)])
+    problems = gate.errors(checks)
+    if problems:
+        raise UserError(f"{len(problems)} metric(s) cannot be compared: "
+                        + "; ".join(problems))
+    return gate.exit_status(checks)
 
 
 # ----------------------------------------------------------------------------- report
@@ -896,15 +959,33 @@ def _add_run(sub: Any) -> None:
 def _add_compare(sub: Any) -> None:
     """`compare`: runs side by side."""
     p = sub.add_parser(
-        "compare", help="compare runs: errors side by side, configuration differences, figure",
+        "compare", help="compare runs: errors side by side, configuration differences, "
+                        "figure; or gate them against a baseline (--baseline)",
         description="Compare run directories (of simulate, sim or run): print the errors of "
                     "each side by side with the configuration keys that differ, and write a "
                     "figure with every run's speed and flux errors overlaid (compare.png in "
                     "the current directory, or -o FILE; the run directories are left as "
-                    "their runs wrote them). See docs/outputs.md.")
+                    "their runs wrote them). With --baseline, the regression gate instead: "
+                    "each RUN_DIR's metrics against the baseline run's, within the limits "
+                    "of --tolerance FILE.toml (by the dotted key of summary.json, e.g. "
+                    "\"speed_error.rms\" = { rel = 0.2, abs = 1e-4 }: a run fails when the "
+                    "metric grew by more than abs + rel·|baseline|; direction = \"down\" or "
+                    "\"both\" for a decrease or either way); prints a table of every check "
+                    "and writes JUnit XML with --junit; exit status 0 all within, 1 a "
+                    "metric beyond its limit, 2 a metric that cannot be compared (missing, "
+                    "not a number) or a bad tolerance file. See docs/outputs.md.")
     p.add_argument("runs", nargs="+", metavar="RUN_DIR")
     p.add_argument("-o", "--output", metavar="FILE",
-                   help="figure file, .png, .svg or .pdf (default ./compare.png)")
+                   help="figure file, .png, .svg or .pdf (default ./compare.png; with "
+                        "--baseline only when given)")
+    p.add_argument("--baseline", metavar="RUN_DIR",
+                   help="the run the others are measured against: the regression gate")
+    p.add_argument("--tolerance", metavar="FILE.toml",
+                   help="the limits of the regression gate, per metric (template: "
+                        "examples/tolerance.toml)")
+    p.add_argument("--junit", metavar="FILE.xml",
+                   help="write the gate's checks as JUnit XML (a test suite per run, a test "
+                        "case per metric), complete or not at all")
     p.set_defaults(func=cmd_compare)
 
 

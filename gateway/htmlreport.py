@@ -27,7 +27,7 @@ from gateway import report
 from gateway.atomicfile import write_text_atomic
 from gateway.dotted import flatten
 from gateway.errors import UserError
-from gateway.rundir import RUN_FILES, RUNNING_MARKER
+from gateway.rundir import RUN_FILES, RUNNING_MARKER, run_labels
 
 #: The default file of a comparison of several runs (in the current directory).
 COMPARISON_NAME = "compare.html"
@@ -131,7 +131,7 @@ def render_run(run: ReportRun) -> str:
 def render_comparison(runs: Sequence[ReportRun]) -> str:
     """The page of several runs: outcomes and metrics side by side, the configuration
     keys that differ, the errors overlaid, then each run's own page folded."""
-    names = _unique_names(runs)
+    names = run_labels([r.path for r in runs])
     parts = [f"<h1>Comparison of {len(runs)} runs</h1>",
              "<nav>" + "".join(f'<a href="#r{j}">{_e(n)}</a>' for j, n in enumerate(names))
              + "</nav>",
@@ -335,12 +335,6 @@ def _faults(s: Mapping[str, Any]) -> str | None:
 
 
 # ---------------------------------------------------------------------- comparison
-
-
-def _unique_names(runs: Sequence[ReportRun]) -> list[str]:
-    """Each run's name, its whole path where two runs share one."""
-    names = [r.name for r in runs]
-    return [str(r.path) if names.count(r.name) > 1 else r.name for r in runs]
 
 
 def _comparison_outcome(runs: Sequence[ReportRun], names: list[str]) -> str:

@@ -695,15 +695,30 @@ class Run:
         return self.path.name or str(self.path)
 
 
-def load_run(path: Path) -> Run:
-    """Read a run directory; :class:`UserError` naming what is missing."""
+def load_summary(path: Path) -> dict[str, Any]:
+    """A run directory's ``summary.json``; :class:`UserError` naming what is missing or
+    damaged."""
     from gateway.errors import UserError
 
     if not (path / "summary.json").is_file():
         raise UserError(f"{str(path)!r} is not a run directory (no summary.json): give "
                         "directories written by simulate, sim or run")
     try:
-        summary = json.loads((path / "summary.json").read_text())
+        summary = json.loads((path / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{str(path)!r}: cannot read the run's files ({exc})") from exc
+    if not isinstance(summary, dict):
+        raise UserError(f"{str(path / 'summary.json')!r} is not a run's summary (a JSON "
+                        "table is expected)")
+    return summary
+
+
+def load_run(path: Path) -> Run:
+    """Read a run directory; :class:`UserError` naming what is missing."""
+    from gateway.errors import UserError
+
+    summary = load_summary(path)
+    try:
         sig = read_csv(path / "signals.csv") if (path / "signals.csv").is_file() else {}
     except (OSError, ValueError, StopIteration) as exc:
         raise UserError(f"{str(path)!r}: cannot read the run's files ({exc})") from exc

@@ -24,6 +24,13 @@ RUN_FILES = ("summary.json", RUNNING_MARKER, "signals.csv", "fig1_references.png
              REPORT_FILE)
 
 
+def run_labels(paths: Sequence[Path]) -> list[str]:
+    """How to name each of several run directories: its own name, or the path as given
+    where two share a name (``a/run`` and ``b/run``)."""
+    names = [p.name or str(p) for p in paths]
+    return [str(p) if names.count(n) > 1 else n for p, n in zip(paths, names, strict=True)]
+
+
 def out_dir(arg: str | None, kind: str, force: bool = False,
              extra_files: Sequence[str] = ()) -> Path:
     """The run directory, created: ``--out`` DIR, or a new ``runs/<time>-<kind>[-n]``.
