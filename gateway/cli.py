@@ -430,14 +430,12 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
 
 
 def _drive_mode(args: argparse.Namespace) -> Any:
-    """--drive-mode; else the first the controller names (its ``drive_modes``), else the
-    paper's law's (current-fed: ideal, full-order: voltage)."""
-    from gateway.control.interface import controller_factory
+    """--drive-mode; else the controller's (:func:`gateway.spec.default_drive_mode`)."""
+    from gateway.spec import default_drive_mode
 
     if args.drive_mode is not None:
         return args.drive_mode
-    modes = getattr(controller_factory(_controller_name(args)), "drive_modes", None)
-    return modes[0] if modes else args.law.drive_modes[0]
+    return default_drive_mode(_controller_name(args), args.law)
 
 
 def _emulator_profile(args: argparse.Namespace) -> str:
@@ -584,33 +582,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     return _gateway_session(args, BusTarget(drive, open_buses, command="run"))
 
 
-#: `sim`: how long the emulated drive waits for the gateway's heartbeat (0x1016), ms.
-SIM_HEARTBEAT_TIMEOUT_MS = 1000
-
-
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
-    from gateway.drive_profile import load_drive_profile
-    from gateway.runner import BusTarget
-    from gateway.sim import TruthRecorder, open_emulator
+    from gateway.sim import sim_target
 
-    truth = TruthRecorder()
     plant = _load_scenario(args.plant)
-    profile_load = _load_profile(args.profile).load
-
-    def open_buses(spec: Any, motor: Any, node: int) -> tuple[Any, str, Callable[[], None]]:
-        return open_emulator(args.transport, node, motor, spec.drive_mode, plant,
-                             profile_load, on_sample=truth)
-
-    # The emulator runs in this interpreter: a stall of the process (a loaded host, the
-    # GIL) stops the gateway's heartbeat and the emulator's watch of it together, and the
-    # 300 ms watch of the emulator profile then tripped on busy 2-core hosts before cycle
-    # 1 (EMCY 0x8130). A dead gateway thread is still caught, within a second.
-    drive = load_drive_profile(None, _emulator_profile(args))
-    drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
-                                                    SIM_HEARTBEAT_TIMEOUT_MS))
-    return _gateway_session(args, BusTarget(drive, open_buses, command="sim", truth=truth),
-                            plant)
+    target = sim_target(_drive_mode(args), plant, _load_profile(args.profile).load,
+                        args.transport)
+    return _gateway_session(args, target, plant)
 
 
 # ---------------------------------------------------------------------------- profile

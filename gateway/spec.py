@@ -46,6 +46,15 @@ class PlantModel(Protocol):
     def describe(self) -> dict[str, Any]: ...
 
 
+def default_drive_mode(controller: str, law: Law = Law.CURRENT_FED) -> DriveMode:
+    """The drive mode a run takes when none is given: the first the controller names (its
+    ``drive_modes``), else the paper's law's (current-fed: ideal, full-order: voltage)."""
+    from gateway.control.interface import controller_factory
+
+    modes = getattr(controller_factory(controller), "drive_modes", None)
+    return modes[0] if modes else as_enum(Law, law, "law").drive_modes[0]
+
+
 _ENUMS = (("law", Law, "law"), ("flux", FluxSource, "flux source"),
           ("estimator", EstimatorKind, "estimator"), ("drive_mode", DriveMode, "drive mode"),
           ("timing", Timing, "timing"), ("discretisation", Discretisation, "discretisation"),
