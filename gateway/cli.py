@@ -227,35 +227,27 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
 
 
 def _design(args: argparse.Namespace, load: str) -> Any:
-    """--discretisation, else exact, or euler where only it has what is asked for (the load
-    observer; every estimator exists in both designs)."""
-    from gateway.control.controller import Discretisation
+    """--discretisation, else :func:`gateway.spec.default_discretisation`."""
+    from gateway.spec import default_discretisation
 
     if args.discretisation is not None:
         return args.discretisation
-    if load == "observed":
-        return Discretisation.EULER
-    return Discretisation.EXACT
+    return default_discretisation(load)
 
 
 def _load_mode(args: argparse.Namespace, plant: Any, drive: Any = None) -> str:
-    """--load; else the scenario's [load].known (told, else observed); else told where the
-    drive applies the profile's load — the emulator, or a drive profile that maps a T_L
-    signal (a dynamometer the gateway commands) — and untold where it cannot ("not
-    told against a real drive"; the laws then assume no load rather than feed forward one
-    the shaft may not carry). Not told does not mean observed: the load observer runs away
-    with a 10 mA offset or R_s +10 % even unloaded (docs/robustness.md §2), so it stays
-    opt-in."""
+    """--load; else :func:`gateway.spec.default_load` for the plant scenario and whether
+    the drive applies the profile's load (a drive profile that maps a T_L signal)."""
+    from gateway.spec import default_load
+
     if args.load:
         return args.load
-    if plant is not None and not plant.known(True):
-        return "observed"
+    applies = None
     if drive is not None:
         from gateway.process_data import process_data
 
-        if "T_L" not in process_data(drive).roles:
-            return "untold"
-    return "known"
+        applies = "T_L" in process_data(drive).roles
+    return default_load(plant, applies).value
 
 
 def _gains(args: argparse.Namespace):
@@ -439,11 +431,10 @@ def _drive_mode(args: argparse.Namespace) -> Any:
 
 
 def _emulator_profile(args: argparse.Namespace) -> str:
-    """The built-in emulator profile for the drive mode: its CiA 402 standard modes
-    (CST, CSV) or its vector modes."""
-    from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD
+    """The built-in emulator profile for the run's drive mode."""
+    from gateway.drive_profile import emulator_profile
 
-    return EMULATOR_STANDARD if _drive_mode(args).standard else EMULATOR
+    return emulator_profile(_drive_mode(args))
 
 
 def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):

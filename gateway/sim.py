@@ -119,7 +119,7 @@ def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_lo
     heartbeat is :data:`dbc.timing.SIM_HEARTBEAT_TIMEOUT_MS`; ``plant`` and
     ``reference_load`` as for :func:`open_emulator`. The emulator's full-resolution truth
     is recorded for the summary."""
-    from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, load_drive_profile
+    from gateway.drive_profile import emulator_profile, load_drive_profile
     from gateway.runner import BusTarget
 
     truth = TruthRecorder()
@@ -129,7 +129,7 @@ def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_lo
         return open_emulator(transport, node, motor, spec.drive_mode, plant, reference_load,
                              on_sample=truth)
 
-    drive = load_drive_profile(None, EMULATOR_STANDARD if mode.standard else EMULATOR)
+    drive = load_drive_profile(None, emulator_profile(mode))
     drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
                                                     SIM_HEARTBEAT_TIMEOUT_MS))
     return BusTarget(drive, open_buses, command="sim", truth=truth)
