@@ -779,10 +779,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     from gateway import htmlreport
     from gateway.rundir import REPORT_FILE
 
-    if args.output and Path(args.output).suffix.lower() not in htmlreport.HTML_SUFFIXES:
-        raise UserError(f"-o {args.output!r}: a report is written as "
-                        f"{' or '.join(htmlreport.HTML_SUFFIXES)} (by the suffix); e.g. -o "
-                        f"{Path(args.output).with_suffix('.html')}")
+    if args.output:  # checked before anything is read or drawn
+        htmlreport.check_output(Path(args.output))
     runs = [htmlreport.load(Path(d)) for d in args.runs]
     if args.output:
         out = Path(args.output)

@@ -145,13 +145,19 @@ def render_comparison(runs: Sequence[ReportRun]) -> str:
     return _page(f"comparison of {len(runs)} runs", "\n".join(parts))
 
 
-def write_report(runs: Sequence[ReportRun], out: Path) -> Path:
-    """Render ``runs`` (one: its page; several: the comparison) and write ``out`` complete
-    or not at all; :class:`UserError` when it cannot be written."""
+def check_output(out: Path) -> Path:
+    """``out`` when it names an HTML file (by its suffix); else :class:`UserError`."""
     if out.suffix.lower() not in HTML_SUFFIXES:
         raise UserError(f"-o {str(out)!r}: a report is written as "
                         f"{' or '.join(HTML_SUFFIXES)} (by the suffix); e.g. -o "
                         f"{out.with_suffix('.html')}")
+    return out
+
+
+def write_report(runs: Sequence[ReportRun], out: Path) -> Path:
+    """Render ``runs`` (one: its page; several: the comparison) and write ``out`` complete
+    or not at all; :class:`UserError` when it cannot be written."""
+    check_output(out)
     text = render_run(runs[0]) if len(runs) == 1 else render_comparison(runs)
     try:
         return write_text_atomic(out, text)
