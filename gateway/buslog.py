@@ -588,13 +588,14 @@ class _Recorder(can.Listener):
 
     def __init__(self, writer: BusRecorder, node_id: int, decode: bool,
                  csv_file: TextIO | None, prefer: Iterable[str] = (),
-                 drive: DriveProfile | None = None) -> None:
+                 drive: DriveProfile | None = None, sampler: Any = None) -> None:
         self.writer = writer
         self.node_id = node_id
         self.table = _decoders(node_id, prefer, drive)
         self.errors: Counter[str] = Counter()
         self.pdo_names = {fid: name for fid, (name, _) in self.table.items()}
-        self.decode = decode or csv_file is not None
+        self.sampler = sampler  # the live scope's rows (LatestValues), or None
+        self.decode = decode or csv_file is not None or sampler is not None
         self.lock = threading.Lock()
         self.frames = 0
         self.decoded = 0
@@ -627,6 +628,8 @@ class _Recorder(can.Listener):
                 self.decoded += 1
                 self.latest[row["name"]] = row
                 self.fresh.add(row["name"])
+                if self.sampler is not None:
+                    self.sampler.update(row["t"], row)
                 if self.csv is not None:
                     self.csv.writerow(row)
 
@@ -722,6 +725,9 @@ class LogOptions:
     prefer: Iterable[str] = ()
     drive: DriveProfile | None = None
     duration: float | None = None
+    #: the live scope's rows (:class:`gateway.scope.feed.LatestValues`), fed with every
+    #: decoded frame
+    sampler: Any = None
 
     @property
     def node(self) -> int:
@@ -786,7 +792,8 @@ def _open_recorder(p: Path, cp: Path | None, opts: LogOptions) -> _Recorder:
                 csv_file = open(cp, "w", newline="", encoding="utf-8")  # noqa: SIM115
             except OSError as exc:
                 raise UserError(f"cannot write --csv {str(cp)!r}: {exc.strerror or exc}") from exc
-        return _Recorder(writer, node_id, opts.decode, csv_file, opts.prefer, opts.drive)
+        return _Recorder(writer, node_id, opts.decode, csv_file, opts.prefer, opts.drive,
+                         opts.sampler)
     except BaseException:
         writer.stop()
         if csv_file is not None:
@@ -867,6 +874,8 @@ def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
 
 def cmd_log(args: argparse.Namespace) -> int:
     """`hil-gateway log`: record the bus; decode the drive's PDOs; print the account."""
+    from gateway.scope import live_scope
+    from gateway.scope.feed import LatestValues
     from gateway.units import format_duration, parse_duration
 
     path = check_log_path(args.output)
@@ -890,9 +899,14 @@ def cmd_log(args: argparse.Namespace) -> int:
             if what and drive is not None:
                 what += f" with {drive.source}"
             print(f"logging {cfg.label()} to {path}{what} {until}", flush=True)
-        with _stop_on_signals(stop):
+        with _stop_on_signals(stop), live_scope(args.scope, f"log {cfg.label()}") as feed:
+            sampler = None
+            if feed is not None:
+                sampler = LatestValues(c for c in csv_columns(node, (), drive)
+                                       if c not in ("t", "name"))
+                feed.attach(sampler)
             options = LogOptions(node_id=node, decode=args.decode, csv_path=args.csv,
-                                 duration=duration, drive=drive)
+                                 duration=duration, drive=drive, sampler=sampler)
             result = run_log(bus, path, options, stop=stop, quiet=args.quiet)
     finally:
         bus.shutdown()
@@ -934,5 +948,8 @@ def add_parser(sub: Any) -> None:
                         "roles and setpoint layout); default: the built-in emulator DBC")
     p.add_argument("--quiet", action="store_true",
                    help="no live output; only the account at the end")
+    p.add_argument("--scope", metavar="[HOST:]PORT",
+                   help="serve a live scope of the decoded signals at http://HOST:PORT/ "
+                        "(HOST 127.0.0.1 by default; PORT 0: any free port, printed)")
     add_bus_options(p)
     p.set_defaults(func=cmd_log)

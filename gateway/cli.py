@@ -272,6 +272,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
+    from gateway.scope import live_scope
     from gateway.session import Output, run
     from gateway.simulate import emulator_rate
     from gateway.spec import RunSpec
@@ -279,6 +280,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     plant = _load_scenario(args.plant)
+    if plant is not None and plant.bus_faults:
+        raise UserError(f"--plant {args.plant} injects bus faults ([[bus.fault]]), which act "
+                        "on a CAN bus: run it over the bus with `hil-gateway sim --plant "
+                        f"{args.plant}`")
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
     duration = parse_duration(args.duration, "--duration") if args.duration else None
@@ -298,9 +303,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                              f"simulating {total:g} s at {label}")
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
-        result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
-                                                         args.force),
-                     windows=report.profile_windows(profile, args.windows), progress=progress)
+        with live_scope(args.scope, f"simulate {profile.name}") as scope:
+            result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
+                                                             args.force),
+                         windows=report.profile_windows(profile, args.windows),
+                         progress=progress, watcher=scope)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -419,6 +426,11 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
                         "profile), paper ([0,0.5), [0.5,1.5), [1.5,end)), none, or boundaries "
                         "in s such as 0.5,1.5 (docs/outputs.md)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.add_argument("--scope", metavar="[HOST:]PORT",
+                   help="serve a live scope of the run at http://HOST:PORT/ (HOST 127.0.0.1 "
+                        "by default; PORT 0: any free port, printed): speed, flux, currents, "
+                        "voltages, torque, timing, the drive's state and stop reason, with "
+                        "signal choice, pause, zoom, time base and a trigger")
 
 
 def _drive_mode(args: argparse.Namespace) -> Any:
@@ -519,6 +531,7 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     run (:func:`gateway.session.run`), the report, the exit status."""
     from gateway import report
     from gateway.loop import LoopRow
+    from gateway.scope import live_scope
     from gateway.session import Output, run
 
     kind, drive = target.command, target.drive
@@ -539,9 +552,11 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     target = replace(target, node=node, gateway_node=args.gateway_node)
     progress = Progress(kind, True if args.progress else None)
     try:
-        result = run(spec, profile, motor, target=target,
-                     output=Output(args.out, kind, args.force),
-                     windows=report.profile_windows(profile, args.windows), progress=progress)
+        with live_scope(args.scope, f"{kind} {profile.name}") as scope:
+            result = run(spec, profile, motor, target=target,
+                         output=Output(args.out, kind, args.force),
+                         windows=report.profile_windows(profile, args.windows),
+                         progress=progress, watcher=scope)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -578,8 +593,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from gateway.sim import sim_target
 
     plant = _load_scenario(args.plant)
-    target = sim_target(_drive_mode(args), plant, _load_profile(args.profile).load,
-                        args.transport)
+    profile = _load_profile(args.profile)
+    target = sim_target(_drive_mode(args), plant, profile.load, args.transport,
+                        args.gateway_node, f"--plant {args.plant}")
     return _gateway_session(args, target, plant)
 
 
@@ -843,6 +859,7 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_parser(sub)
     _add_compare(sub)
     _add_report(sub)
+    _add_scope(sub)
     _add_reference(sub)
     _debug_everywhere(parser)
     return parser
@@ -924,6 +941,54 @@ def _add_run(sub: Any) -> None:
     p.set_defaults(func=cmd_run)
 
 
+def cmd_scope(args: argparse.Namespace) -> int:
+    """`hil-gateway scope RUN_DIR`: a finished run in the live scope's page."""
+    import time
+
+    from gateway import report
+    from gateway.scope import ScopeFeed, ScopeServer, parse_address
+
+    run = report.load_run(Path(args.run))
+    host, port = parse_address(args.scope)
+    if not run.signals:
+        raise UserError(f"{args.run}: no signals.csv to show (the run wrote none)")
+    feed = ScopeFeed(f"{run.name} (finished)")
+    feed.load(run.signals)
+    feed.finish(run.summary)
+    server = ScopeServer(feed, host, port)
+    until = f"for {args.hold:g} s" if args.hold else "until Ctrl-C"
+    print(f"scope: {server.url} shows {args.run} ({len(run.signals['t'])} rows); serving "
+          f"{until}", flush=True)
+    try:
+        time.sleep(args.hold) if args.hold else _wait_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.close()
+    return 0
+
+
+def _wait_forever() -> None:
+    import threading
+
+    threading.Event().wait()
+
+
+def _add_scope(sub: Any) -> None:
+    p = sub.add_parser(
+        "scope", help="open a finished run in the live scope's web page",
+        description="Serve a run directory's signals.csv in the live scope's page (the page "
+                    "that --scope serves while a run happens): choose signals, pause, zoom, "
+                    "time base, trigger. Serves until Ctrl-C (or --hold seconds).")
+    p.add_argument("run", metavar="RUN_DIR", help="a run directory (with signals.csv)")
+    p.add_argument("--scope", metavar="[HOST:]PORT", default="127.0.0.1:8765",
+                   help="where to serve the page (default 127.0.0.1:8765; PORT 0: any free "
+                        "port, printed)")
+    p.add_argument("--hold", type=float, default=0.0, metavar="S",
+                   help="serve for this many seconds, then exit (default: until Ctrl-C)")
+    p.set_defaults(func=cmd_scope)
+
+
 def _add_compare(sub: Any) -> None:
     """`compare`: runs side by side."""
     p = sub.add_parser(
@@ -981,7 +1046,7 @@ def _add_report(sub: Any) -> None:
 
 
 def _add_reference(sub: Any) -> None:
-    """`reference` (alias `profile`): check, plot, new-drive."""
+    """`reference` (alias `profile`): check, plot, new-drive, dbc."""
     p = sub.add_parser("reference", aliases=["profile"],
                        help="check or plot a reference profile (alias: profile)",
                        description="Validate or plot a reference profile ω*(t), ψ*(t), T_L(t) "
@@ -1007,9 +1072,10 @@ def _add_reference(sub: Any) -> None:
                     help="output file, .png, .svg or .pdf (default runs/profile-<FILE's "
                          "stem>.png; an existing file is replaced)")
     pp.set_defaults(func=cmd_profile_plot)
-    from gateway import newdrive  # `profile new-drive`: a drive-profile skeleton from an EDS
+    from gateway import dbcfile, newdrive  # new-drive: a skeleton; dbc: the bus's DBC
 
     newdrive.add_action(psub)
+    dbcfile.add_action(psub)
     p.set_defaults(func=lambda a: _usage(p))
 
 

@@ -48,7 +48,7 @@ CYCLE_COLUMNS = ("t", "w_ref", "psi_ref", "T_L", "w_m", "psi_r_mod", "i_sa", "i_
 #: statusword and SYNC-counter echo; SYNC period, SYNC → last TPDO and last TPDO → RPDOs sent
 #: (reaction), s; missed cycles so far; 1.0 when the cycle's setpoints were withheld.
 BUS_COLUMNS = ("statusword", "sync_counter", "sync_period", "sync_to_tpdo", "reaction",
-               "missed", "withheld")
+               "missed", "withheld", "faults")
 
 
 @functools.cache

@@ -137,6 +137,10 @@ def run_scenario(profile: str | Path = "quick", *, where: Where | str = Where.SI
     except ProfileError as exc:
         raise UserError(str(exc)) from exc
     scenario = load_scenario(plant) if plant is not None else None
+    if scenario is not None and scenario.bus_faults and where is not Where.SIM:
+        raise UserError(f"plant {plant!r} injects bus faults ([[bus.fault]]), which act on "
+                        "the bus between the gateway and the emulated drive in this process: "
+                        "run it with where='sim'")
     spec = _spec(where, controller, controller_params, scenario, duration, drive_mode, period,
                  options)
     motor_params = _motor(motor)
@@ -154,7 +158,8 @@ def run_scenario(profile: str | Path = "quick", *, where: Where | str = Where.SI
     if where is Where.SIM:
         from gateway.sim import sim_target
 
-        target = sim_target(spec.drive_mode, scenario, ref.load)
+        target = sim_target(spec.drive_mode, scenario, ref.load,
+                            plant_label=f"plant {plant!r}")
         result = session.run(spec, ref, motor_params, target=target,
                              output=session.Output(str(out), "sim"), windows=win)
     else:

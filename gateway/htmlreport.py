@@ -43,7 +43,8 @@ _METRICS = (("speed error ω−ω*", "speed_error", "rad/s"),
 _KNOWN = frozenset({
     "speed_error", "flux_error", "estimation_error", "peak_current", "peak_voltage",
     "truth", "quantisation", "configuration", "configuration_notes", "identification",
-    "run", "timing", "shutdown", "faults", "stopped_early", "wall_time_s", "write_errors"})
+    "run", "timing", "shutdown", "faults", "stopped_early", "wall_time_s", "write_errors",
+    "bus_faults"})
 #: Keys of ``run`` the bus section shows (the outcome section shows the stop).
 _BUS_COUNTERS = ("cycles", "missed_cycles", "late_rpdo", "rpdo_after_sync",
                  "last_good_cycle", "stop_cycle", "bus_log", "bus_frames_logged",
@@ -187,6 +188,7 @@ def _run_body(run: ReportRun, ids: str) -> str:
         ("figures", "Figures", _figures(run)),
         ("bus", "Bus: timing and counters", _bus(s)),
         ("faults", "Faults", _faults(s)),
+        ("injected", "Injected bus faults and the reaction", _injected(s)),
     ]
     sections += [(f"x-{key}", _title(key), _value(s[key])) for key in s if key not in _KNOWN]
     shown = [(f"{ids}{a}", t, h) for a, t, h in sections if h is not None]
@@ -340,6 +342,19 @@ def _faults(s: Mapping[str, Any]) -> str | None:
     return _value(s["faults"]) if s["faults"] else "<p>none</p>"
 
 
+def _injected(s: Mapping[str, Any]) -> str | None:
+    """The faults a plant scenario injected on the bus (``bus_faults``: each, and how often
+    it acted), then what the run did: its stop, the TPDO events it counted."""
+    if not s.get("bus_faults"):
+        return None
+    r = s.get("run") or {}
+    reaction = [("stop", r.get("stop")), ("stop reason", r.get("stop_reason")),
+                ("exit status", r.get("exit_status"))]
+    reaction += [(k, r[k]) for k in ("tpdo_events", "max_consecutive_missed", "error_frames")
+                 if k in r]
+    return _value(s["bus_faults"]) + "<h3>Reaction</h3>" + _kv_table(reaction)
+
+
 # ---------------------------------------------------------------------- comparison
 
 
@@ -437,7 +452,9 @@ def _scalar(x: Any) -> str:
 
 
 def _cell(x: Any) -> str:
-    if isinstance(x, Mapping | list | tuple) and x and not _all_scalar(x):
+    if isinstance(x, Mapping):
+        return f"<td>{_value(x) if x else 'none'}</td>"
+    if isinstance(x, list | tuple) and x and not _all_scalar(x):
         return f"<td>{_value(x)}</td>"
     if isinstance(x, list | tuple):
         return f"<td>{_e(', '.join(_scalar(v) for v in x))}</td>"

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -66,9 +66,22 @@ class RunResult:
         return list(self.summary.get("write_errors", []))
 
 
+class Watcher(Protocol):
+    """Something that watches a run while it happens (the live scope,
+    :class:`gateway.scope.feed.ScopeFeed`): given the record before the first cycle, asked
+    for its own account for summary.json, told the summary at the end."""
+
+    def attach(self, record: report.Record) -> None: ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+    def finish(self, summary: dict[str, Any]) -> None: ...
+
+
 def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = None,
         output: Output | None = None, windows: tuple = report.DEFAULT_WINDOWS,
-        progress: Progress | None = None, signals: StopSignals | None = None) -> RunResult:
+        progress: Progress | None = None, signals: StopSignals | None = None,
+        watcher: Watcher | None = None) -> RunResult:
     """Run ``spec`` on ``profile`` with the controller's ``motor``: in this process
     (``target`` None) or against ``target`` (:class:`gateway.runner.BusTarget`) on its bus.
 
@@ -76,17 +89,20 @@ def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = No
     returns the record and summary; a bus run needs one, for its bus log). ``windows``: the
     metric windows (:func:`gateway.report.profile_windows`). ``progress``: called with the
     fraction done. ``signals``: the stop requests (SIGINT/SIGTERM, installed here when
-    this is the main thread; a caller may request a stop through it too)."""
+    this is the main thread; a caller may request a stop through it too). ``watcher``: a
+    live view of the run (:class:`Watcher`); its account goes into summary.json as
+    ``scope``."""
     signals = signals or StopSignals()
     if target is None:
         if output is None:
-            return _simulate(spec, profile, motor, None, windows, progress, signals)
+            return _simulate(spec, profile, motor, None, windows, progress, signals, watcher)
         with run_dir(output.dir, output.name, output.force) as out:
-            return _simulate(spec, profile, motor, out, windows, progress, signals)
+            return _simulate(spec, profile, motor, out, windows, progress, signals, watcher)
     if output is None:
         raise ValueError("a bus run writes its bus log: give it an Output")
     with run_dir(output.dir, output.name, output.force, (spec.bus_log,)) as out:
-        return _on_bus(spec, profile, motor, target, out, windows, progress, signals)
+        return _on_bus(spec, profile, motor, target, out, windows, progress, signals,
+                       watcher)
 
 
 def _writing_politely(signals: StopSignals) -> None:
@@ -100,8 +116,16 @@ def _writing_politely(signals: StopSignals) -> None:
 # --------------------------------------------------------------------------- in process
 
 
+def _watched(summary: dict[str, Any], watcher: Watcher | None) -> None:
+    """The watcher's account into the summary, and the summary to the watcher."""
+    if watcher is not None:
+        summary["scope"] = watcher.stats()
+        watcher.finish(summary)
+
+
 def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
-              windows: tuple, progress: Progress | None, signals: StopSignals) -> RunResult:
+              windows: tuple, progress: Progress | None, signals: StopSignals,
+              watcher: Watcher | None = None) -> RunResult:
     """The simulation, its summary and (``out``) its files. The signal handlers stay
     installed until every file is written: a second Ctrl-C (or one that comes while the
     figures are drawn) must not lose the run's files."""
@@ -115,7 +139,8 @@ def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | N
     t0 = time.perf_counter()
     with installed:
         try:
-            rec = simulate.run(profile, motor, spec, progress, stop, watch)
+            rec = simulate.run(profile, motor, spec, progress, stop, watch,
+                               None if watcher is None else watcher.attach)
         except ValueError as exc:  # also a plant scenario's error (ScenarioError)
             raise UserError(f"the simulation could not run: {exc}") from exc
         _writing_politely(signals)
@@ -128,6 +153,7 @@ def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | N
                                       signals.reason if stop.is_set() else "", wall)
         if rec.identification is not None:
             summary["identification"] = rec.identification
+        _watched(summary, watcher)
         if out is None:
             return RunResult(sig, summary)
         files = write_results(out, sig, summary, figures=True,
@@ -170,13 +196,15 @@ def _delay_s(spec: RunSpec) -> float:
 
 
 def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, out: Path,
-            windows: tuple, progress: Progress | None, signals: StopSignals) -> RunResult:
+            windows: tuple, progress: Progress | None, signals: StopSignals,
+            watcher: Watcher | None = None) -> RunResult:
     """The loop on the target's bus (opened and closed here), then its results, written
     once with the emulator's truth merged first."""
     from gateway.runner import RUNNING_MARKER, run_gateway
 
     with signals.installed():
-        done = run_gateway(target, profile, motor, spec, out, progress, signals)
+        done = run_gateway(target, profile, motor, spec, out, progress, signals,
+                           None if watcher is None else watcher.attach)
         _writing_politely(signals)
         summary = done.summary
         drive = target.drive
@@ -188,6 +216,7 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
                       else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
             summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb, on_bus)
             summary.update(report.metrics(done.sig, windows))
+        _watched(summary, watcher)
         files = write_results(out, done.sig, summary, figures=bool(drive.truth),
                               limits=_figure_limits(spec, drive.emulator),
                               delay_s=_delay_s(spec), errors=summary.pop("write_errors", []))

@@ -78,7 +78,8 @@ def emulator_rate() -> float:
 
 def run(profile: Profile, motor: MotorParams, spec: RunSpec,
         progress: Progress | None = None, stop: threading.Event | None = None,
-        watch: DivergenceWatch | None = None) -> Record:
+        watch: DivergenceWatch | None = None,
+        on_record: Callable[[Record], None] | None = None) -> Record:
     """Simulate the profile; the record holds one row per period (or record step).
 
     ``stop``: when set, the run ends after the current cycle (continuous time: the current
@@ -86,10 +87,11 @@ def run(profile: Profile, motor: MotorParams, spec: RunSpec,
     guard of the bus loop (:class:`gateway.guard.DivergenceWatch`); when it trips the record
     ends with the cycle (continuous time: the record step) that tripped it and
     ``watch.reason`` says why. None (the benchmarks): the run goes on whatever happens.
+    ``on_record``: called with the record before its first row (a live scope reads it).
     """
     if spec.sampling is None:
-        return run_continuous(profile, motor, spec, progress, stop, watch)
-    return run_sampled(profile, motor, spec, progress, stop, watch)
+        return run_continuous(profile, motor, spec, progress, stop, watch, on_record)
+    return run_sampled(profile, motor, spec, progress, stop, watch, on_record)
 
 
 # --------------------------------------------------------------------------- sampled
@@ -174,7 +176,8 @@ def _sampled_drive(profile: Profile, motor: MotorParams, spec: RunSpec, T: float
 
 def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
                 progress: Progress | None = None, stop: threading.Event | None = None,
-                watch: DivergenceWatch | None = None) -> Record:
+                watch: DivergenceWatch | None = None,
+                on_record: Callable[[Record], None] | None = None) -> Record:
     """The sampled loop, cycle by cycle exactly as on the bus (docs/ARCHITECTURE.md): the
     drive's timing rule (:func:`plant.timing.sync_cycle`) and the gateway's cycle
     (:class:`gateway.cycle.ControlCycle`), with the PDO codec between them."""
@@ -191,6 +194,8 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     link = PdoLink(spec.quantize, sampling.setpoint_frame,
                    EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
     rec = Record(cycle.row_type)
+    if on_record is not None:
+        on_record(rec)
     step_progress = max(1, n_cycles // 100)
     for k in range(1, n_cycles + 1):
         meas = sync_cycle(side.advance, side.latch, sampling.apply)
@@ -213,7 +218,8 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
 
 def run_continuous(profile: Profile, motor: MotorParams, spec: RunSpec,
                    progress: Progress | None = None, stop: threading.Event | None = None,
-                   watch: DivergenceWatch | None = None) -> Record:
+                   watch: DivergenceWatch | None = None,
+                   on_record: Callable[[Record], None] | None = None) -> Record:
     """The paper's continuous-time closed loop, integrated by scipy (LSODA, tight tolerances).
 
     Current-fed law with an ideal current source: state (ω, ψ_ra, ψ_rb, ε0, ω̂); the
@@ -239,6 +245,8 @@ def run_continuous(profile: Profile, motor: MotorParams, spec: RunSpec,
     if not sol.success:
         raise RuntimeError(f"continuous simulation failed: {sol.message}")
     rec = Record(CycleRow)
+    if on_record is not None:
+        on_record(rec)
     prev: tuple[complex, complex] | None = None
     for j, t in enumerate(sol.t):
         row, prev = loop.row(t, sol.y[:, j], prev, h)

@@ -70,13 +70,15 @@ def _report(capsys, *args: str) -> tuple[int, str, str]:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """A short simulation, the same over CANopen in this process (`sim`), and a
-    simulation that diverged and stopped early."""
+    """A short simulation, the same over CANopen in this process (`sim`), a `sim` run with
+    a fault injected on its bus, and a simulation that diverged and stopped early."""
     base = tmp_path_factory.mktemp("runs")
     assert main(["simulate", "--profile", QUICK, "--duration", "0.2s",
                  "--out", str(base / "simulated")]) == 0
     assert main(["sim", "--profile", QUICK, "--duration", "0.2s",
                  "--out", str(base / "bus")]) == 0
+    assert main(["sim", "--profile", QUICK, "--plant", "bus-babble",
+                 "--out", str(base / "babble")]) == 1
     assert main(["simulate", "--profile", str(ROOT / "profiles" / "zero-speed.toml"),
                  "--plant", "rs+10", "--estimator", "drift-free", "--discretisation", "euler",
                  "--out", str(base / "diverged")]) == 1
@@ -138,6 +140,17 @@ def test_a_run_that_stopped_early_says_why_and_its_exit_status(runs, tmp_path, c
     assert '<div class="status bad">' in page_text
     assert "Stopped: DIVERGED" in page.plain() and "exit status 1" in page.plain()
     assert summary["run"]["stop_reason"] in page.plain()
+
+
+def test_injected_bus_faults_are_shown_with_the_reaction(runs, tmp_path, capsys):
+    run = _copy(runs, "babble", tmp_path)
+    assert _report(capsys, str(run))[0] == 0
+    text = (run / "report.html").read_text(encoding="utf-8")
+    page = Page(text)
+    assert {"Injected bus faults and the reaction", "Reaction"} <= set(page.headings)
+    assert {"fault", "kind", "acted"} <= set(page.table_heads)
+    assert "Stopped: FOREIGN_WRITER" in page.plain() and '<div class="status bad">' in text
+    assert "<td>{}</td>" not in text  # an empty table of TPDO events reads "none"
 
 
 def test_sections_the_report_does_not_know_are_shown_as_tables(runs, tmp_path, capsys):

@@ -3,9 +3,10 @@
 Run ``python tools/gen_eds.py`` after changing either; ``tests/test_contract.py`` checks that
 the committed EDS and the DBC agree. The PDO signal objects take their data type from
 the DBC signal (bits, signedness) and their ParameterName from the signal name; the
-default PDO mappings are the DBC messages (``RPDO2_AB`` is the alternative of RPDO2 and
-is not a default). Parameter defaults are those of :mod:`dbc.motor` and
-:mod:`plant.params`. This is a development tool, not part of the installed packages.
+default PDO mappings are the DBC messages (``RPDO2_AB``, from the (a, b) companion
+``drive_ab.dbc``, is the alternative of RPDO2 and is not a default). Parameter defaults are
+those of :mod:`dbc.motor` and :mod:`plant.params`. This is a development tool, not part of
+the installed packages.
 
 The text keeps to CiA 306 so that other EDS readers load it (``tests/test_eds.py``: python-
 canopen, objdictgen, eds-utils, and a lint): nothing before [FileInfo], only CiA 306 keys
