@@ -852,11 +852,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_sim(sub)
     _add_run(sub)
-    from gateway import buslog, check, scan
+    from gateway import bridgecmd, buslog, check, scan
 
     buslog.add_parser(sub)
     scan.add_parser(sub)
     check.add_parser(sub)
+    bridgecmd.add_parser(sub)
     _add_compare(sub)
     _add_report(sub)
     _add_scope(sub)

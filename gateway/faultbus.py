@@ -56,8 +56,11 @@ class FaultyBus(can.BusABC):
     docstring). :attr:`schedule` holds what acted, cycle by cycle."""
 
     def __init__(self, inner: can.BusABC, schedule: FaultSchedule, ids: FrameIds,
-                 other: can.BusABC | None = None) -> None:
+                 other: can.BusABC | None = None, bridge: bool = False) -> None:
         self.inner, self.schedule, self.ids, self.other = inner, schedule, ids, other
+        #: a bridge between two buses (:func:`run_bridge`): ``inner`` is the drive's side,
+        #: which echoes nothing; the gateway gets its own echoes from its own bus
+        self.bridge = bridge
         self._lock = threading.Lock()
         self.k = 0  #: SYNCs the gateway sent (the current cycle)
         self._echoes = 0  # SYNC echoes received
@@ -123,6 +126,8 @@ class FaultyBus(can.BusABC):
             self.k += 1
             k = self.k
             out += [(m, 0.0) for m in self._release(self._held_tx, k)]
+            if self.bridge:  # no echo on the drive's side: received frames go by SYNCs sent
+                self._rx_ready.extend(self._release(self._held_rx, k))
             return out + self._sync(msg, k)
         if msg.arbitration_id == HEARTBEAT_BASE + self.ids.gateway_node and \
                 self._heartbeat_stopped("gateway"):
@@ -149,7 +154,8 @@ class FaultyBus(can.BusABC):
                 delay += self.schedule.rng(i).uniform(0.0, f.jitter)
         self._others(k)
         if missing:  # the drive does not see it; the gateway's own echo it still gets
-            self._rx_ready.append(_copy(msg))
+            if not self.bridge:
+                self._rx_ready.append(_copy(msg))
             return []
         return [(msg, delay)]
 
@@ -248,7 +254,7 @@ class FaultyBus(can.BusABC):
                 frames = [m, _copy(m)]
             elif f.kind is FaultKind.DELAY:
                 n = max(1, math.ceil(f.delay / self.schedule.period - 1e-9))
-                held.append(((self._echoes if rx else k) + n, m))
+                held.append(((self._echoes if rx and not self.bridge else k) + n, m))
                 frames = []
             elif f.kind is FaultKind.CORRUPT and m.dlc:
                 rng = self.schedule.rng(i)
@@ -269,11 +275,14 @@ class FaultyBus(can.BusABC):
         return due
 
     def shutdown(self) -> None:
+        """Cancel the delayed frames; the buses it wraps are closed with it, except a
+        bridge's (its caller's)."""
         for t in self._timers:
             t.cancel()
-        self.inner.shutdown()
-        if self.other is not None:
-            self.other.shutdown()
+        if not self.bridge:
+            self.inner.shutdown()
+            if self.other is not None:
+                self.other.shutdown()
         super().shutdown()
 
 
@@ -311,3 +320,51 @@ def inject(bus: can.BusABC, faults: tuple[BusFault, ...], period: float, pd: obj
     ids = FrameIds({p.name: p.cob_id for p in pdos}, node, gateway_node,
                    frozenset(p.cob_id for p in pdos if not p.tx))
     return FaultyBus(bus, FaultSchedule(faults, period), ids, other)
+
+
+class _BothSides:
+    """Another node on a bridged bus: what it sends, both sides see."""
+
+    def __init__(self, *buses: can.BusABC) -> None:
+        self.buses = buses
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        for b in self.buses:
+            b.send(msg, timeout)
+
+    def shutdown(self) -> None:
+        """The buses are the bridge's; it shuts them down."""
+
+
+def run_bridge(gateway_side: can.BusABC, drive_side: can.BusABC,
+               faults: tuple[BusFault, ...], period: float, pd: object, node: int,
+               gateway_node: int, stop: threading.Event) -> FaultyBus:
+    """Forward every frame between two buses (the gateway's and the drive's), injecting
+    ``faults`` on the way, until ``stop`` is set; returns the bus that holds the account.
+    Neither side is modified: each sees the other through the bridge."""
+    pdos = getattr(pd, "pdos", ())
+    ids = FrameIds({p.name: p.cob_id for p in pdos}, node, gateway_node,
+                   frozenset(p.cob_id for p in pdos if not p.tx))
+    faulty = FaultyBus(drive_side, FaultSchedule(faults, period), ids,
+                       _BothSides(gateway_side, drive_side), bridge=True)  # type: ignore[arg-type]
+
+    def to_drive() -> None:
+        while not stop.is_set():
+            msg = gateway_side.recv(0.05)
+            if msg is None:
+                continue
+            with contextlib.suppress(can.CanError):  # bus-off: the gateway's frame is lost
+                faulty.send(msg)
+
+    thread = threading.Thread(target=to_drive, name="bridge-to-drive", daemon=True)
+    thread.start()
+    try:
+        while not stop.is_set():
+            msg = faulty.recv(0.05)
+            if msg is not None:
+                gateway_side.send(msg)
+    finally:
+        stop.set()
+        thread.join(1.0)
+        faulty.shutdown()
+    return faulty

@@ -215,8 +215,9 @@ class CycleLoop:
                                       is_extended_id=False)
         self._producer_start = time.time()  # real time: when the SYNC producer started
         self._sync_thread: threading.Thread | None = None
-        self._rpdo_sent: Counter[int] = Counter()  # RPDO frames sent, by COB-ID
-        self._rpdo_seen: Counter[int] = Counter()  # frames seen on them (echo and others)
+        #: the RPDO frames sent whose echo has not come back yet, by COB-ID (oldest first)
+        self._rpdo_sent: dict[int, deque[bytes]] = {p.cob_id: deque(maxlen=64)
+                                                    for p in pd.rpdos}
         self._errors: deque[int] = deque()  # the cycles of recent error frames
         for cob_id in self._ids:
             subscribe(cob_id, self._on_tpdo)
@@ -280,9 +281,12 @@ class CycleLoop:
         the bus now), or, beyond the frames sent, another node writing on it."""
         with self._lock:
             self._unechoed.discard(can_id)
-            self._rpdo_seen[can_id] += 1
-            ours = self._rpdo_sent[can_id] if self.own_echo else 0  # echoes we may get
-            if self._done.is_set() or self._rpdo_seen[can_id] <= ours:
+            pending = self._rpdo_sent[can_id]
+            if self.own_echo and bytes(data) in pending:  # the echo of one we sent
+                while pending.popleft() != bytes(data):
+                    pass  # older ones whose echo was lost
+                return
+            if self._done.is_set():
                 return
             self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
             self._finish(StopReason.FOREIGN_WRITER,
@@ -479,7 +483,7 @@ class CycleLoop:
             if self.own_echo and cfg.timing is Timing.REALTIME:
                 self._unechoed = {cob_id for cob_id, _, _ in frames}
             for cob_id, _name, data in frames:
-                self._rpdo_sent[cob_id] += 1
+                self._rpdo_sent[cob_id].append(bytes(data))
                 if not self._send(send, can.Message(arbitration_id=cob_id, data=data,
                                                     is_extended_id=False)):
                     return
