@@ -281,3 +281,9 @@ def test_drive_run_over_vcan_sends_what_sim_sends(drive_run):
     sim = drive_run("quick", where="sim", controller="ifoc", duration="0.2s")
     for name in ("i_sd_ref", "i_sq_ref", "eps_0", "w_0", "T_ref"):
         assert np.array_equal(run.column(name), sim.column(name)), name
+    # a `run` directory makes a report like any other
+    from gateway.cli import main
+
+    assert main(["report", str(run.out)]) == 0
+    page = (run.out / "report.html").read_text(encoding="utf-8")
+    assert "over CANopen (socketcan, lockstep)" in page and "median, µs" in page
