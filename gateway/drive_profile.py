@@ -189,6 +189,12 @@ EMULATOR = "emulator"
 EMULATOR_STANDARD = "emulator-standard"
 
 
+def emulator_profile(mode: DriveMode) -> str:
+    """The built-in emulator profile for a drive mode: its CiA 402 standard modes (CST,
+    CSV, CSP, …) or its vector modes."""
+    return EMULATOR_STANDARD if mode.standard else EMULATOR
+
+
 def load_drive_profile(path: str | Path | None = None, builtin: str = EMULATOR
                        ) -> DriveProfile:
     """Read a drive profile; None gives a built-in emulator profile (``builtin``:

@@ -243,17 +243,19 @@ def test_sim_runs_the_speed_pi_over_cst_and_equals_simulate(tmp_path):
 
 @pytest.mark.parametrize("mode, target", [("velocity", 1.5), ("torque", 1.5),
                                           ("position", 3.0)])
-def test_stream_sends_the_profile_as_the_target(tmp_path, mode, target):
+def test_stream_sends_the_profile_as_the_target(drive_run, mode, target):
     """`stream`: CSV streams ω* (the drive's speed loop tracks it), CSP ∫ω* dt (its
-    position loop), CST the torque that makes ω* against the profile's load (open loop)."""
-    from gateway.cli import main
+    position loop), CST the torque that makes ω* against the profile's load (open loop);
+    over CANopen (the pytest plugin's drive_run)."""
+    from gateway.drivecheck import assert_no_fault
 
-    out = tmp_path / mode
-    assert main(["sim", "--controller", "stream", "--drive-mode", mode, "--duration", "1.2s",
-                 "--out", str(out)]) == 0
-    s = _summary(out)
+    run = drive_run("paper", where="sim", controller="stream", drive_mode=mode,
+                    duration="1.2s")
+    assert_no_fault(run)
+    s = run.summary
     assert s["speed_error"]["rms"] < target, s["speed_error"]
     assert s["configuration"]["drive_mode"] == mode
+    assert s["configuration"]["drive_profile"] == "<emulator-standard>"
 
 
 def test_csp_streams_the_integral_of_the_speed_profile_and_equals_simulate(tmp_path):
