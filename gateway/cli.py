@@ -35,6 +35,10 @@ examples:
   hil-gateway compare --baseline runs/A runs/B --tolerance examples/tolerance.toml --junit g.xml
                                                     the regression gate: exit 1 past a limit
   hil-gateway report runs/A                         runs/A/report.html: the run on one page
+  hil-gateway sim --scope 8765                      watch the run live at http://127.0.0.1:8765/
+  hil-gateway sim --plant bus-drop                  a bus fault injected (plant/scenarios/bus-*)
+  hil-gateway profile new-drive --eds drive.eds --node 5 -o mydrive.toml
+                                                    a drive profile from the drive's EDS
   hil-gateway reference check profiles/paper.toml
 """
 
