@@ -1,6 +1,6 @@
 """``hil-plant``: run the emulated CiA 402 drive on a CAN bus.
 
-``hil-plant run [-i IF] [-c CH] [-b BITRATE] [--node N] [--motor FILE] [--drive-mode M]
+``hil-plant run [-i IF] [-c CH] [-b BITRATE] [--node N] [--motor FILE] [--drive-mode MODE]
 [--plant SCENARIO]``
 opens the bus (python-can conventions; what is not given comes from python-can's config
 file or the CAN_INTERFACE / CAN_CHANNEL / CAN_BITRATE environment variables), starts the
@@ -19,10 +19,15 @@ import threading
 from typing import Any
 
 from dbc.bus import add_bus_options, bus_config, open_bus
+from dbc.cia402 import OperationMode
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 
 EXIT_OK, EXIT_USAGE, EXIT_FAILURE = 0, 2, 1
+#: The emulated drive's standard modes beyond :class:`DriveMode` (which the gateway runs):
+#: the profile modes, for a master that sends a target and lets the drive ramp to it.
+PROFILE_MODES: dict[str, OperationMode] = {"profile-velocity": OperationMode.PROFILE_VELOCITY,
+                                           "profile-torque": OperationMode.PROFILE_TORQUE}
 
 
 def _debug_option(p: argparse.ArgumentParser, default: Any) -> None:
@@ -50,10 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
                           "paper's), its sensor and inverter errors and drifts apply, and its "
                           "dynamometer adds the extra torque to RPDO3's T_L (torque = "
                           "\"profile\" needs the gateway's profile: simulate/sim only)")
-    run.add_argument("--drive-mode", type=DriveMode, choices=list(DriveMode),
-                     default=DriveMode.CURRENT_LOOP,
-                     help="default drive model (0x6060/0x2202; the master may change it by "
-                          "SDO); default current-loop")
+    run.add_argument("--drive-mode", choices=[*(m.value for m in DriveMode), *PROFILE_MODES],
+                     default=DriveMode.CURRENT_LOOP.value, metavar="MODE",
+                     help="default drive model and mode (0x2202, 0x6060; the master may change "
+                          "them by SDO): ideal or current-loop (current vector mode -1), "
+                          "voltage (-2), velocity (CSV 9), torque (CST 10), profile-velocity "
+                          "(PV 3), profile-torque (PT 4); default current-loop")
     run.add_argument("--log-level", default="WARNING",
                      choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                      help="logging level on stderr (default WARNING)")
@@ -77,7 +84,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         plant = resolve_scenario(args.plant) if args.plant else PlantScenario()
         motor = plant.plant_motor(motor)
-        params = plant.drive_params(DriveParams(mode=args.drive_mode))
+        profile_mode = PROFILE_MODES.get(args.drive_mode)
+        params = plant.drive_params(DriveParams(
+            mode=DriveMode.CURRENT_LOOP if profile_mode else DriveMode(args.drive_mode)))
         options = plant.drive_options(None)
     except ScenarioError as exc:
         raise UserError(f"bad --plant scenario: {exc}") from None
@@ -86,7 +95,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from plant.device import DriveDevice
 
     stop = threading.Event()
-    device = DriveDevice(bus, args.node, motor, params, drive_options=options)
+    device = DriveDevice(bus, args.node, motor, params, drive_options=options,
+                         mode=profile_mode)
     old = {}
     if threading.current_thread() is threading.main_thread():
         old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
