@@ -60,14 +60,17 @@ from typing import Any
 import can
 from canopen.objectdictionary import datatypes
 
-from dbc import scaling, signal_specs
+from dbc import scaling
 from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState
 from dbc.cia402 import (
+    CURRENT_ACTUAL,
     CW_HALT_BIT,
+    DC_LINK_VOLTAGE,
     MAX_TORQUE,
     POSITION_ACTUAL,
     PROFILE_ACCELERATION,
     PROFILE_DECELERATION,
+    SUPPORTED_MODES,
     TORQUE_ACTUAL,
     TORQUE_DEMAND,
     TORQUE_SLOPE,
@@ -79,6 +82,7 @@ from dbc.cia402 import (
     VELOCITY_WINDOW_TIME,
     OperationMode,
 )
+from dbc.edsfile import configured
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from plant import od as odm
@@ -93,7 +97,7 @@ from plant.rpdo import setpoints_from_rpdos
 from plant.sdo import SdoHooks, SdoServer, Sender
 from plant.servo import Servo, servo_for
 from plant.timing import sync_cycle
-from plant.units import EMULATOR, TARGETS, Quantity
+from plant.units import EMULATOR, TARGETS, DriveUnits, Quantity, units_from
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +126,8 @@ class DriveDevice:
                  drive_params: DriveParams | None = None,
                  drive_options: dict[str, Any] | None = None,
                  on_sample: Callable[[int, Measurement], None] | None = None,
-                 mode: OperationMode | None = None) -> None:
+                 mode: OperationMode | None = None,
+                 dictionary: odm.Dictionary | None = None) -> None:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
@@ -134,7 +139,10 @@ class DriveDevice:
                        else OperationMode(self._params0.mode.mode_of_operation))
         self._units = EMULATOR
         self._drive_options = dict(drive_options or {})
-        self._store = odm.ObjectStore(node_id, self._overrides())
+        if dictionary is None:
+            dictionary = odm.Dictionary.emulator(node_id)
+        self._store = odm.ObjectStore(node_id, self._overrides(dictionary), dictionary,
+                                      f_pwm=self._params0.f_pwm)
         self._values = self._store.values
         self._send = Sender(bus)
         self._lock = threading.RLock()
@@ -145,8 +153,11 @@ class DriveDevice:
                             start=self._enter_operational, pdos_off=self._pdos_off,
                             reset_node=self._reset_node,
                             reset_communication=self._reset_communication_state,
-                            heartbeat_lost=lambda: self._fault(Emcy.HEARTBEAT))
-        self.emcy = EmcyProducer(self._values, self._send.send_message, lambda: self.nmt.state)
+                            heartbeat_lost=lambda: self._fault(Emcy.HEARTBEAT),
+                            own=dictionary.own)
+        history = max((sub for i, sub in self._store.vars if i == 0x1003), default=0)
+        self.emcy = EmcyProducer(self._values, self._send.send_message, lambda: self.nmt.state,
+                                 history)
         self.pdo = PdoRuntime(self._store, bus)
         self.sdo = SdoServer(self._store, self._send, SdoHooks(
             nmt_state=lambda: self.nmt.state,
@@ -157,8 +168,8 @@ class DriveDevice:
             clear_error_history=self.emcy.clear_history, clear_account=self._clear_account,
             signal=self._signal_written))
         self._sm = PowerStateMachine()
-        self._factor = {n: scaling(n)[0] for n in self._store.by_name if n in signal_specs()}
-        self._k = {n: self._store.by_name[n] for n in self._store.by_name}
+        self._k = self._store.signals  # the emulator's own signal objects (none in a twin)
+        self._factor = {n: scaling(n)[0] for n in self._k}
         self._setpoint_keys = tuple(k for n, k in self._k.items() if n in SETPOINT_SIGNALS)
         self._logged: set[tuple[str, type]] = set()  # internal errors logged with traceback
         # account (cumulative since construction)
@@ -235,8 +246,21 @@ class DriveDevice:
         return self._drive
 
     # ---- defaults and resets ----------------------------------------------------------------
-    def _overrides(self) -> dict[odm.Key, Any]:
-        m, p = self._motor0, self._params0
+    def _overrides(self, dictionary: odm.Dictionary) -> dict[odm.Key, Any]:
+        """The defaults the device sets: the emulator's parameters (its own dictionary), or
+        a twin's truths: 0x6502 the modes it offers, 0x6061 its default mode, 0x6079 the
+        DC link voltage."""
+        p = self._params0
+        if not dictionary.own:
+            od, out = dictionary.od, {}
+            if SUPPORTED_MODES in od:
+                out[(SUPPORTED_MODES, 0)] = sum(m.supported_bit for m in dictionary.modes)
+            if 0x6060 in od and 0x6061 in od:
+                out[(0x6061, 0)] = configured(od[0x6060]) or 0
+            if DC_LINK_VOLTAGE in od:
+                out[(DC_LINK_VOLTAGE, 0)] = min(round(p.u_dc * 1000), 0xFFFFFFFF)
+            return out
+        m = self._motor0
         o: dict[odm.Key, Any] = {(odm.MOTOR, k): float(getattr(m, n))
                                  for k, n in enumerate(odm.MOTOR_SUBS, 1)}
         o.update({
@@ -256,6 +280,11 @@ class DriveDevice:
 
     def _drive_params(self) -> tuple[MotorParams, DriveParams]:
         v = self._values
+        if not self._store.own:  # a twin: the device's motor and inverter, at its period
+            model = self._params0.mode
+            return self._motor0, replace(
+                self._params0, mode=model if model in (DriveMode.IDEAL, DriveMode.CURRENT_LOOP)
+                else DriveMode.CURRENT_LOOP, f_pwm=self._store.internal_rate)
         motor = MotorParams.from_mapping(
             {n: v[(odm.MOTOR, k)] for k, n in enumerate(odm.MOTOR_SUBS, 1)}, "0x2200")
         mode = DriveMode.VOLTAGE if v[(0x6060, 0)] == DriveMode.VOLTAGE.mode_of_operation else (
@@ -273,11 +302,18 @@ class DriveDevice:
         return motor, params
 
     def _operation_mode(self) -> OperationMode | None:
-        """The mode 0x6060 selects, None for a value that is no mode of the emulator."""
-        try:
-            return OperationMode(self._values[(0x6060, 0)])
-        except ValueError:
-            return None
+        """The mode 0x6060 selects, None for a value that is no mode the device offers."""
+        value = self._values.get((0x6060, 0))
+        return OperationMode(value) if value in self._store.modes else None
+
+    def _units_now(self) -> DriveUnits:
+        """The units of the standard objects: the emulator's, or a twin's from its present
+        values (:mod:`plant.units`)."""
+        if self._store.own:
+            return EMULATOR
+        v = self._values
+        return units_from(lambda index, sub: v.get((index, sub)) if (index, sub) in
+                          self._store.vars else None)[0]
 
     def _make_servo(self, motor: MotorParams, params: DriveParams) -> None:
         """The drive's own control in a standard mode (0x6060 3, 4, 8, 9 or 10), with the
@@ -288,7 +324,7 @@ class DriveDevice:
         self._profile: ProfileRamp | None = None
         if mode is None or not mode.standard:
             return
-        T = v[(0x1006, 0)] / 1e6
+        T = self._store.period
         self._servo = servo_for(motor, params.i_trip, T, v.get((MAX_TORQUE, 0)),
                                 self._drive.state.w_m, self._units.torque)
         if mode.profiled:
@@ -297,6 +333,7 @@ class DriveDevice:
     def _reset_application(self) -> None:
         """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
         self._store.reset()
+        self._units = self._units_now()
         motor, params = self._drive_params()
         self._drive = Drive(motor, params, **self._drive_options)
         self._make_servo(motor, params)
@@ -341,6 +378,7 @@ class DriveDevice:
         new.set_setpoints(old.setpoints)
         new.enable(self._sm.power)
         self._drive = new
+        self._units = self._units_now()
         self._make_servo(motor, params)
         self._params_dirty = False
 
@@ -482,7 +520,9 @@ class DriveDevice:
             if profile is not None:
                 profile.stop()
             return
-        mode = OperationMode(self._values[(0x6060, 0)])
+        mode = self._operation_mode()
+        if mode is None:
+            return
         target = self._target(mode)
         if profile is not None:
             target = profile.step(target, self._settings(), self._halt, servo.w_enc)
@@ -596,13 +636,14 @@ class DriveDevice:
         u = self._units  # the standard actual values, in the units of the dictionary
         self._put(VELOCITY_ACTUAL, meas.w_m / u.velocity)
         self._put(TORQUE_ACTUAL, meas.T_e / u.torque)
+        self._put(CURRENT_ACTUAL, abs(meas.i_s_ab) / u.current)
         if self._servo is not None:  # the encoder counts in the standard modes
             self._servo.sample(meas.w_m)
             self._put(POSITION_ACTUAL, self._servo.theta / u.position, wrap=True)
-            if self._profile is not None:
-                mode = OperationMode(self._values[(0x6060, 0)])
-                self._profile.supervise(meas.w_m, self._target(mode), self._settings(),
-                                        self._halt)
+            profile = self._profile
+            if profile is not None:
+                profile.supervise(meas.w_m, self._target(profile.mode), self._settings(),
+                                  self._halt)
         self.pdo.sample(meas, self._statusword(meas.limit_active), counter)
         self.pdo.transmit(m)
         return meas

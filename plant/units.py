@@ -134,7 +134,7 @@ def units_from(value: Lookup) -> tuple[DriveUnits, list[str]]:
     elif feed is not None:
         position = 2.0 * math.pi * gear / feed
         notes.append(f"position: 1/{feed:g} of a shaft revolution (0x6092), "
-                     f"{gear:g} motor revolutions per shaft revolution"
+                     f"{gear:g} motor revolution(s) per shaft revolution"
                      + (" (0x6091)" if value(GEAR_RATIO, 1) is not None else " (assumed)"))
     else:
         counts = increments or ENCODER_INCREMENTS

@@ -1,7 +1,7 @@
 """A master we did not write: python-canopen's BaseNode402 against an emulated drive (the
 emulator, or a twin of another drive's EDS) on a python-can ``virtual`` bus, in lockstep:
 the target by RPDO1, a SYNC, the TPDOs back (tests/test_standard_modes.py,
-tests/test_profile_modes.py, tests/test_twin.py)."""
+tests/test_profile_modes.py, tests/test_twin.py); or against a drive in another process."""
 
 from __future__ import annotations
 
@@ -18,18 +18,23 @@ from plant.device import DriveDevice
 
 
 class Master402:
-    """``make_device(bus)`` started at node ``node`` on a fresh virtual channel; a
-    BaseNode402 built from ``eds`` on another Bus object of that channel."""
+    """``make_device(bus)`` started at node ``node`` on a fresh virtual channel, or (None) a
+    drive already on ``interface``/``channel``; a BaseNode402 built from ``eds`` on another
+    Bus object of that channel."""
 
-    def __init__(self, make_device: Callable[[can.BusABC], DriveDevice], node: int,
-                 eds: Path | str) -> None:
-        channel = f"test-402-{uuid.uuid4().hex}"
-        self.dev_bus = can.Bus(interface="virtual", channel=channel)
-        self.dev = make_device(self.dev_bus)
+    def __init__(self, make_device: Callable[[can.BusABC], DriveDevice] | None, node: int,
+                 eds: Path | str | canopen.ObjectDictionary, interface: str = "virtual",
+                 channel: str | None = None) -> None:
+        channel = channel or f"test-402-{uuid.uuid4().hex}"
+        self.dev_bus = self.dev = None
+        if make_device is not None:
+            self.dev_bus = can.Bus(interface=interface, channel=channel)
+            self.dev = make_device(self.dev_bus)
         self.net = canopen.Network()
         self.net.NOTIFIER_CYCLE = 0.05
-        self.net.connect(interface="virtual", channel=channel)
-        self.node = BaseNode402(node, str(eds))
+        self.net.connect(interface=interface, channel=channel)
+        self.node = BaseNode402(node, eds if isinstance(eds, canopen.ObjectDictionary)
+                                else str(eds))
         self.net.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = 0.5
         # a loaded host may hold either side for a while: the state walk waits, not fails
@@ -38,6 +43,8 @@ class Master402:
         self.node.TIMEOUT_SWITCH_OP_MODE = 5.0
         self.node.TIMEOUT_CHECK_TPDO = 5.0
         self.target: int | None = None
+        if self.dev is None:
+            return
         booted: list[int] = []
         self.node.nmt.add_heartbeat_callback(booted.append)  # before the device boots
         self.dev.start()
@@ -47,10 +54,11 @@ class Master402:
             time.sleep(0.005)
 
     def close(self) -> None:
-        self.net.sync.stop()
-        self.dev.stop()
+        if self.dev is not None:
+            self.dev.stop()
         self.net.disconnect()
-        self.dev_bus.shutdown()
+        if self.dev_bus is not None:
+            self.dev_bus.shutdown()
 
     def configure(self, mode: str, target: int | None,
                   rpdo1: Sequence[int] | None = None,
@@ -92,9 +100,11 @@ class Master402:
             node.rpdo[1][target].raw = 0
         node.rpdo[1].start(0.005)
         self.net.sync.start(0.005)
-        node.state = "OPERATION ENABLED"
-        self.net.sync.stop()
-        node.rpdo[1].stop()
+        try:
+            node.state = "OPERATION ENABLED"
+        finally:  # stopped once (SocketCAN's broadcast manager refuses a second stop)
+            self.net.sync.stop()
+            node.rpdo[1].stop()
 
     def cycle(self, value: int | None = None) -> int:
         """One lockstep cycle: ``value`` (if given) as the target in RPDO1, RPDO1, SYNC, and
