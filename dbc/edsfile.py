@@ -81,12 +81,15 @@ class _Text:
                     self.where.setdefault((section.lower(), key.strip().lower()), n)
 
     def error(self, section: str, key: str, value: str | None, what: str) -> UserError:
+        """What is wrong with ``key`` of ``[section]`` (None ``value``: the key is absent),
+        with the line of the key, else of the section."""
         line = self.where.get((section.lower(), key.lower()),
                               self.where.get((section.lower(), "")))
-        at = f"{self.path}" + (f", line {line}" if line else "")
         item = f"[{section}]" + (f" {key}={value}" if key and value is not None else
                                  f" {key}" if key else "")
-        return UserError(f"{at}: {item}: {what}; fix the file or {HINT}")
+        return UserError(f"the EDS {str(self.path)!r} cannot be read: "
+                         + (f"line {line}, " if line else "") + f"{item}: {what}; correct it in "
+                         "the file")
 
 
 def _int(text: str) -> int:

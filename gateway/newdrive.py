@@ -27,7 +27,6 @@ action on the `reference`/`profile` subcommand.
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import re
 import textwrap
@@ -200,35 +199,14 @@ class DriveEds:
 
 
 def read_eds(path: str | Path, node: int = 1) -> DriveEds:
-    """Load an EDS or DCF with python-canopen; :class:`UserError` when it cannot be read."""
-    import canopen
+    """Load an EDS or DCF with python-canopen (:func:`dbc.edsfile.read_eds`);
+    :class:`UserError` when it cannot be read."""
     from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
+    from dbc.edsfile import read_eds as load
+
     p = Path(path)
-    hint = ("give the drive's CiA 306 EDS or DCF (from the vendor's website or "
-            "configuration tool)")
-    if not p.is_file():
-        raise UserError(f"the EDS {str(p)!r} does not exist or is not a file; {hint}")
-    if p.suffix.lower() not in (".eds", ".dcf"):
-        raise UserError(f"the EDS {str(p)!r} does not end in .eds or .dcf; {hint}")
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise UserError(f"cannot read the EDS {str(p)!r}: {exc.strerror or exc}") from None
-    if b"\0" in raw:
-        raise UserError(f"the EDS {str(p)!r} is a binary file, not a CiA 306 text; {hint}")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError:  # vendors' EDS files are often Latin-1/Windows-1252
-        text = raw.decode("cp1252", errors="replace")
-    src = io.StringIO(text)
-    src.name = str(p)  # python-canopen picks the format by the name's suffix
-    try:
-        od = canopen.import_od(src, node)
-    except Exception as exc:  # configparser, UnicodeDecodeError, ValueError, KeyError...
-        msg = " ".join(str(exc).split())[:200]
-        raise UserError(f"the EDS {str(p)!r} cannot be read as CiA 306 "
-                        f"({type(exc).__name__}: {msg}); {hint}") from None
+    od = load(p, node).od
     objects: dict[tuple[int, int], EdsObject] = {}
     for obj in od.values():
         if isinstance(obj, ODVariable):
@@ -241,9 +219,6 @@ def read_eds(path: str | Path, node: int = 1) -> DriveEds:
             objects[(v.index, v.subindex)] = EdsObject(
                 v.index, v.subindex, name, int(v.data_type or 0), str(v.access_type or ""),
                 bool(v.pdo_mappable), v.default)
-    if not objects:
-        raise UserError(f"the EDS {str(p)!r} has no object sections ([1000], [6040], ...); "
-                        f"{hint}")
     mapped: dict[str, set[tuple[int, int]]] = {RX: set(), TX: set()}
     for (index, sub), o in objects.items():
         direction = RX if 0x1600 <= index < 0x1800 else TX if 0x1A00 <= index < 0x1C00 else None

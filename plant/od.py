@@ -377,18 +377,30 @@ class ObjectStore:
         if value:
             self._mappable(value, rx)
 
-    def _mappable(self, entry: int, rx: bool) -> ODVariable:
-        """The object a mapping entry names, if a PDO can carry it: mappable, writable for an
-        RPDO, of the entry's length, 8, 16 or 32 bits (the PDO codec's); else 0x06040041."""
+    def _mappable(self, entry: int, rx: bool) -> None:
+        """A mapping entry names an object a PDO can carry, else 0x06040041."""
+        if self.unmappable(entry, rx) is not None:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+
+    def unmappable(self, entry: int, rx: bool) -> str | None:
+        """Why a PDO (``rx``: an RPDO) cannot carry the object a mapping entry names, None if
+        it can: it must exist, be PDO-mappable, writable for an RPDO, of the entry's length,
+        and of 8, 16 or 32 bits (the PDO codec's)."""
         index, sub, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+        name = f"0x{index:04X} sub {sub}"
         try:
             var = self.var(index, sub)
         except SdoAbortedError:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE) from None
-        if (not var.pdo_mappable or (rx and not var.writable) or bits != len(var)
-                or bits not in (8, 16, 32)):
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        return var
+            return f"{name} is not in the dictionary"
+        if not var.pdo_mappable:
+            return f"{name} is not PDO-mappable"
+        if rx and not var.writable:
+            return f"{name} is {var.access_type}: an RPDO writes it"
+        if bits != len(var):
+            return f"{name} has {len(var)} bits, the entry {bits}"
+        if bits not in (8, 16, 32):
+            return f"{name} has {bits} bits: the emulator's PDOs carry 8, 16 or 32"
+        return None
 
     def mapping_problem(self, comm: int) -> str | None:
         """Why the present mapping of the PDO ``comm`` cannot be served, None if it can: an
@@ -399,12 +411,9 @@ class ObjectStore:
             return f"sub-index 0 = {count} mapped objects (at most 8)"
         for k in range(1, count + 1):
             entry = self.values.get((mapping, k), 0)
-            try:
-                self._mappable(entry, rx)
-            except SdoAbortedError:
-                return (f"sub-index {k} = 0x{entry:08X} maps no {'writable ' if rx else ''}"
-                        f"PDO-mappable object of {entry & 0xFF} bits (8, 16 or 32) that the "
-                        "file defines")
+            why = self.unmappable(entry, rx)
+            if why is not None:
+                return f"sub-index {k} = 0x{entry:08X}: {why}"
             bits += entry & 0xFF
         return f"{bits} bits (at most 64)" if bits > 64 else None
 

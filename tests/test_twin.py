@@ -223,15 +223,16 @@ def _edit(objs: dict, section: str, key: str, value: str | None) -> dict:
 
 
 @pytest.mark.parametrize("edit, words", [
-    (lambda o: _edit(o, "6072", "DataType", "zz"), r"line \d+: \[6072\] DataType=zz: the data "
-                                                   "type must be a number"),
-    (lambda o: _edit(o, "2000", "AccessType", "rx"), r"line \d+: \[2000\] AccessType=rx: not an "
-                                                     "access type"),
-    (lambda o: _edit(o, "6076", "DefaultValue", "five"), r"line \d+: \[6076\] DefaultValue=five: "
-                                                         "not an integer"),
+    (lambda o: _edit(o, "6072", "DataType", "zz"),
+     r"cannot be read: line \d+, \[6072\] DataType=zz: the data type must be a number"),
+    (lambda o: _edit(o, "2000", "AccessType", "rx"),
+     r"cannot be read: line \d+, \[2000\] AccessType=rx: not an access type"),
+    (lambda o: _edit(o, "6076", "DefaultValue", "five"),
+     r"cannot be read: line \d+, \[6076\] DefaultValue=five: not an integer"),
     (lambda o: _edit(o, "6040", "", None), "needs the CiA 301/402 objects 0x6040 controlword"),
     (lambda o: _edit(o, "1A00sub2", "DefaultValue", "0x60770020"),
-     r"TPDO1's mapping 0x1A00 cannot be served: sub-index 2 = 0x60770020"),
+     r"TPDO1.s mapping 0x1A00 cannot be served: sub-index 2 = 0x60770020: 0x6077 sub 0 "
+     "has 16 bits, the entry 32"),
     (lambda o: _edit(o, "1006", "DefaultValue", "50"), "0x1006 communication cycle period 50"),
     (lambda o: {**o, "3000sub1": o["2000"]}, r"\[3000sub1\]: a sub-index of object 3000"),
 ])
