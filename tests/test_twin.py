@@ -34,6 +34,8 @@ from dbc.edsfile import read_eds
 from dbc.motor import MotorParams
 from plant.cli import main
 from plant.device import DriveDevice
+from plant.profile import ProfileSettings
+from plant.servo import ServoParams
 from plant.twin import load_twin
 
 NODE = 23
@@ -127,6 +129,23 @@ def test_cst_torque_in_the_files_rated_torque(master):
     i_s = abs(master.dev.drive.state.i_s_ab)
     assert master.node.sdo[0x6078].raw == pytest.approx(i_s / CURRENT_UNIT, abs=2)
     assert master.node.sdo[0x6079].raw == 560000  # the emulated DC link, mV
+
+
+def test_pv_without_profile_objects_ramps_at_the_emulators_default(master):
+    """Profile velocity in a twin whose file has no 0x6083/0x6084: the target (in RPDO1, in
+    the file's units) is reached along the emulator's default ramp, 1000 rev/min per s."""
+    a = ProfileSettings().acceleration
+    master.configure("PROFILED VELOCITY", 0x60FF, period_us=None)
+    for _ in range(300):
+        master.cycle(0)
+    speeds = []
+    for _ in range(700):
+        sw = master.cycle(round(50.0 / VELOCITY_UNIT))
+        speeds.append(master.value(0x606C) * VELOCITY_UNIT)
+    lag = a / (math.e * ServoParams().w_bw) + a * 1e-3  # tests/test_profile_modes.py
+    for k in (100, 200, 300, 400):  # on the ramp (it ends after 477 periods)
+        assert speeds[k] == pytest.approx(a * (k + 1) * 1e-3, abs=lag), k
+    assert abs(speeds[-1] - 50.0) < 0.05 and sw & 0x0400  # target reached
 
 
 def test_plain_storage_reads_back_the_files_values(master):
