@@ -519,6 +519,7 @@ class DriveDevice:
             servo.reset()
             if profile is not None:
                 profile.stop()
+                self._put(TORQUE_DEMAND if profile.mode.torque else VELOCITY_DEMAND, 0.0)
             return
         mode = self._operation_mode()
         if mode is None:
@@ -566,10 +567,16 @@ class DriveDevice:
 
     def _put(self, index: int, value: float, wrap: bool = False) -> None:
         """A standard object's value (sub 0), rounded, saturated at (``wrap``: modulo) the
-        range of its data type; nothing if the dictionary lacks it."""
+        range of its integer type (a twin's REAL type: as it is); nothing if the dictionary
+        lacks it."""
         key = (index, 0)
         var = self._store.vars.get(key)
         if var is None:
+            return
+        if var.data_type in datatypes.FLOAT_TYPES:
+            self._values[key] = float(value)
+            return
+        if var.data_type not in datatypes.INTEGER_TYPES:
             return
         bits, signed = len(var), var.data_type in datatypes.SIGNED_TYPES
         x = round(value)
