@@ -8,14 +8,19 @@ like a python-canopen node of parts, each in its module:
   to defaults, boot-up), heartbeat producer 0x1017 and consumer 0x1016. PDOs only in
   OPERATIONAL, SDO not in STOPPED.
 * ``sdo`` (:mod:`plant.sdo`): python-canopen's ``LocalNode``/``SdoServer`` with the
-  dictionary of ``dbc/drive.eds`` and the access rules of :mod:`plant.od`.
+  dictionary and the access rules of :mod:`plant.od`.
 * ``pdo`` (:mod:`plant.pdo`): the RPDOs and TPDOs built on entering OPERATIONAL.
 * ``emcy`` (:mod:`plant.emcy`): error register 0x1001, 0x1003, 0x603F, the EMCY frame.
 * the CiA 402 power state machine (:mod:`plant.cia402`): controlword 0x6040 by SDO (at
   once) or by RPDO (applied with the other RPDO data), statusword 0x6041. The power stage
   (``Drive.enable``) is on only in "Operation enabled".
+* in a standard mode the drive's own control (:mod:`plant.servo`; a profile mode's ramp
+  and statusword bits, :mod:`plant.profile`), with the targets and actual values in the
+  units of the dictionary (:mod:`plant.units`).
 
-This module composes them and runs the cycle.
+The dictionary is ``dbc/drive.eds``, or a twin's (``dictionary``, :mod:`plant.twin`):
+another drive's EDS/DCF, whose standard objects the model backs and whose other objects
+are plain storage. This module composes the parts and runs the cycle.
 
 * Sampled timing (docs/ARCHITECTURE.md): on each SYNC in OPERATIONAL the drive (1) with
   RPDO apply = on receipt (0x2203 = 1) makes the data received since the last SYNC active,

@@ -176,3 +176,23 @@ def test_the_ramps_alone():
     assert ramp.supervise(0.0, 50.0, ProfileSettings(), False) == SW_TARGET_REACHED
     ramp.stop()
     assert ramp.demand is None and ramp.bits == 0
+
+
+@pytest.mark.parametrize("word, mode", [("profile-velocity", 3), ("profile-torque", 4),
+                                        ("velocity", 9), ("current-loop", -1)])
+def test_hil_plant_run_drive_mode_sets_the_default_mode(monkeypatch, word, mode):
+    """`hil-plant run --drive-mode profile-velocity|profile-torque` starts the emulator in
+    that mode (0x6060, 0x6061) over its current loop (0x2202 = 1)."""
+    from plant import device as device_module
+    from plant.cli import main
+
+    seen = {}
+
+    def start(self):
+        seen.update(mode=self._values[(0x6060, 0)], display=self._values[(0x6061, 0)],
+                    model=self._values[(0x2202, 0)])
+        raise KeyboardInterrupt  # stop at once: hil-plant's Ctrl-C
+
+    monkeypatch.setattr(device_module.DriveDevice, "start", start)
+    assert main(["run", "-i", "virtual", "-c", "cli-mode", "--drive-mode", word]) == 0
+    assert seen == {"mode": mode, "display": mode, "model": 1}
