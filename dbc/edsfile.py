@@ -165,6 +165,7 @@ def _check(t: _Text, cp: configparser.RawConfigParser) -> None:
         for k in range(1, (lines or 0) + 1):
             if not cp.has_option("Comments", f"Line{k}"):
                 raise t.error("Comments", f"Line{k}", None, f"missing (Lines={lines})")
+    objects = {s.upper() for s in cp.sections() if _OBJECT.match(s)}
     for section in cp.sections():
         if re.fullmatch(r"[Dd]ummy[Uu]sage", section):
             for k in range(1, 8):
@@ -177,7 +178,7 @@ def _check(t: _Text, cp: configparser.RawConfigParser) -> None:
                                                   and cp.has_option(section, "CompactSubObj")):
                 _check_variable(t, cp, section)
         elif m := _SUB.match(section):
-            if not cp.has_section(m.group(1)) and not cp.has_section(m.group(1).upper()):
+            if m.group(1).upper() not in objects:
                 raise t.error(section, "", None, f"a sub-index of object {m.group(1)}, which "
                               f"the file does not define (no [{m.group(1)}] section)")
             _check_variable(t, cp, section)
