@@ -314,11 +314,7 @@ class DriveDevice:
     def _units_now(self) -> DriveUnits:
         """The units of the standard objects: the emulator's, or a twin's from its present
         values (:mod:`plant.units`)."""
-        if self._store.own:
-            return EMULATOR
-        v = self._values
-        return units_from(lambda index, sub: v.get((index, sub)) if (index, sub) in
-                          self._store.vars else None)[0]
+        return EMULATOR if self._store.own else units_from(self._store.lookup)[0]
 
     def _make_servo(self, motor: MotorParams, params: DriveParams) -> None:
         """The drive's own control in a standard mode (0x6060 3, 4, 8, 9 or 10), with the

@@ -226,6 +226,11 @@ class ObjectStore:
             if not communication_only or 0x1000 <= key[0] < 0x2000:
                 self.values[key] = value
 
+    def lookup(self, index: int, subindex: int) -> Any:
+        """The present value of a sub-object the dictionary has; None if it has none (a
+        value the runtime keeps for an object a twin's file lacks included)."""
+        return self.values.get((index, subindex)) if (index, subindex) in self.vars else None
+
     def var(self, index: int, subindex: int) -> ODVariable:
         """The sub-object, or SdoAbortedError 0x06020000 / 0x06090011."""
         if index not in self.od:

@@ -110,7 +110,7 @@ def _modes(f: EdsFile) -> tuple[frozenset[OperationMode], list[str]]:
     od = f.od
     supported = configured(od[SUPPORTED_MODES]) if SUPPORTED_MODES in od else None
     if not isinstance(supported, int):
-        return frozenset(), ["modes: none (the file has no 0x6502 supported drive modes); "
+        return frozenset(), ["modes: none (the file gives no 0x6502 supported drive modes); "
                              "0x6060 refuses every mode"]
     offered, missing = [], []
     for mode in sorted(OperationMode.offered(supported)):
@@ -184,7 +184,6 @@ def load_twin(path: str | Path, node_id: int | None = None, f_pwm: float = 10e3)
     dictionary = odm.Dictionary(f.od, own=False, modes=modes, runtime=_runtime(f.node_id))
     store = odm.ObjectStore(f.node_id, dictionary=dictionary, f_pwm=f_pwm)
     _check(f, store)
-    _, unit_notes = units_from(lambda i, s: store.values.get((i, s))
-                               if (i, s) in store.vars else None)
+    _, unit_notes = units_from(store.lookup)
     notes = (*mode_notes, "units: " + "; ".join(unit_notes))
     return Twin(f, dictionary, _storage(f, store), notes)

@@ -283,3 +283,36 @@ def test_a_mode_option_with_a_twin_is_refused(eds, capsys):
     assert main(["run", "-i", "virtual", "-c", "x", "--eds", str(eds), "--drive-mode",
                  "velocity"]) == 2
     assert "a twin's modes are its file's" in capsys.readouterr().err
+
+
+def test_a_twin_of_the_emulators_own_eds_has_its_units():
+    """drive.eds states its velocity unit (0x60A9: 0.001 rev/min) and rated torque; its
+    position unit is the assumed 65536 increments per revolution: the emulator's units."""
+    import dbc
+    from plant import od as odm
+    from plant.units import EMULATOR, units_from
+
+    twin = load_twin(dbc.EDS_PATH, 3)
+    units, _ = units_from(odm.ObjectStore(3, dictionary=twin.dictionary).lookup)
+    for name in ("position", "velocity", "acceleration", "torque", "current"):
+        assert getattr(units, name) == pytest.approx(getattr(EMULATOR, name), rel=1e-12), name
+    assert not {m for m in twin.dictionary.modes if not m.standard}  # no vector modes
+
+
+@pytest.mark.parametrize("objects, position, velocity", [
+    ({}, 2 * math.pi / 65536, 2 * math.pi / 65536),  # CiA 402 defaults, assumed encoder
+    ({(0x608F, 1): 10000}, 2 * math.pi / 10000, 2 * math.pi / 10000),
+    ({(0x6092, 1): 360, (0x6091, 1): 5, (0x6091, 2): 1}, 2 * math.pi * 5 / 360,
+     2 * math.pi * 5 / 360),  # a degree of the shaft behind a 5:1 gear
+    ({(0x60A8, 0): 0xFCB40000, (0x60A9, 0): 0x00B44700}, 2 * math.pi * 1e-4,
+     2 * math.pi / 60),  # 1e-4 rev, rev/min
+    ({(0x60A9, 0): 0xFD100300}, 2 * math.pi / 65536, 1e-3),  # mrad/s
+    ({(0x60A9, 0): 0x00010300}, 2 * math.pi / 65536, 2 * math.pi / 65536),  # m/s: not ours
+])
+def test_units_from_the_files_objects(objects, position, velocity):
+    from plant.units import units_from
+
+    units, notes = units_from(lambda index, sub: objects.get((index, sub)))
+    assert units.position == pytest.approx(position, rel=1e-12)
+    assert units.velocity == pytest.approx(velocity, rel=1e-12)
+    assert units.acceleration == units.velocity and len(notes) == 5
