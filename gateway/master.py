@@ -70,7 +70,7 @@ from dbc.cia402 import (
     mode_bit,
     modes_in,
 )
-from dbc.edsfile import EdsError, load_od
+from dbc.edsfile import read_eds
 from dbc.timing import LOCKSTEP_BACKSTOP_S
 from gateway.drive_profile import DriveProfile
 from gateway.eds import find_object, object_for
@@ -173,8 +173,8 @@ class DriveMaster:
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1
         try:
-            self.node = canopen.RemoteNode(self.node_id, load_od(profile.eds, self.node_id))
-        except EdsError as exc:
+            self.node = canopen.RemoteNode(self.node_id, read_eds(profile.eds, self.node_id).od)
+        except UserError as exc:
             raise UserError(f"drive profile {profile.source}: {exc}") from None
         self.node.sdo.RESPONSE_TIMEOUT = profile.sdo_timeout_s
         self.network.add_node(self.node)

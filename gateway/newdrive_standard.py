@@ -273,7 +273,8 @@ def render_dbc(eds: DriveEds, p: StandardPlan, node: int) -> str:
                        f'"{s.unit}" {receiver}')
             o = eds.objects[(s.index, 0)]
             note = (f"0x{s.index:04X} {o.name} ({o.type_name}); {s.source}"
-                    + ("; TODO: confirm the unit" if s.todo else "")).replace('"', "'")
+                    + ("; TODO: confirm the unit" if s.todo else "")).replace(
+                '"', "'").replace("·", ".")  # DBC files are ASCII
             comments.append(f'CM_ SG_ {fid} {s.name} "{note}";')
             bit += s.bits
         out.append("")

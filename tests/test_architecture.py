@@ -20,7 +20,8 @@ PACKAGES = ("dbc", "gateway", "plant")
 ASSEMBLERS = {"gateway/sim.py", "gateway/simulate.py"}
 PURE = ("dbc/cia301.py", "dbc/cia402.py", "dbc/modes.py", "dbc/signals.py", "dbc/timing.py",
         "dbc/motor.py", "plant/params.py", "plant/motor.py", "plant/drive.py",
-        "plant/timing.py", "plant/cia402.py", "gateway/cycle.py", "gateway/control",
+        "plant/timing.py", "plant/cia402.py", "plant/profile.py", "plant/units.py",
+        "plant/servo.py", "gateway/cycle.py", "gateway/control",
         "gateway/reference/signals.py", "gateway/reference/demand.py")
 
 
