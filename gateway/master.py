@@ -846,9 +846,10 @@ class DriveMaster:
                 self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
                 report.steps.append("NMT pre-operational")
                 # confirmed off: the drive need no longer watch the gateway's heartbeat
-                self._entry(0x1016, 1).raw = 0
-                report.supervision_off = True
-                report.steps.append("0x1016:1 = 0")
+                if self.has(0x1016):
+                    self._entry(0x1016, 1).raw = 0
+                    report.supervision_off = True
+                    report.steps.append("0x1016:1 = 0")
             except Exception as exc:
                 report.steps.append(f"NMT pre-operational / 0x1016 off failed: "
                                     f"{type(exc).__name__}: {exc}")

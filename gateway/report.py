@@ -155,18 +155,17 @@ def metrics(
     """The summary metrics (SI units).
 
     speed_error = ω − ω*, flux_error = |ψ_r| − ψ*, estimation_error = ω̂ − ω, each with
-    max |·|, RMS, final value and per-window max/RMS (estimation_error only for a controller
-    that logs a speed estimate ``w_hat``); peak_current = max |i_s|,
-    peak_voltage = max |u_s| (average over a period). ``windows``: (from, to) or
-    (from, to, label) in s, e.g. :func:`profile_windows`; those the run did not reach are
-    left out.
+    max |·|, RMS, final value and per-window max/RMS (flux_error only where the run has a
+    flux, estimation_error only for a controller that logs a speed estimate ``w_hat``);
+    peak_current = max |i_s|, peak_voltage = max |u_s| (average over a period).
+    ``windows``: (from, to) or (from, to, label) in s, e.g. :func:`profile_windows`;
+    those the run did not reach are left out.
     """
     windows = tuple(windows)
     t = sig["t"]
-    out = {
-        "speed_error": _error_stats(t, sig["w_m"] - sig["w_ref"], windows),
-        "flux_error": _error_stats(t, sig["psi_r_mod"] - sig["psi_ref"], windows),
-    }
+    out = {"speed_error": _error_stats(t, sig["w_m"] - sig["w_ref"], windows)}
+    if not np.all(np.isnan(sig["psi_r_mod"])):  # a standard drive reports no flux
+        out["flux_error"] = _error_stats(t, sig["psi_r_mod"] - sig["psi_ref"], windows)
     if "w_hat" in sig:  # a controller with a speed estimate (the paper's)
         out["estimation_error"] = _error_stats(t, sig["w_hat"] - sig["w_m"], windows)
     out["peak_current"] = float(np.max(np.hypot(sig["i_sa"], sig["i_sb"])))

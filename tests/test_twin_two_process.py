@@ -44,3 +44,38 @@ def test_a_twin_in_its_own_process_is_identified_and_driven_in_csv(vcan_channel,
     account = re.search(r"stopped; (\d+) cycles, (\d+) SYNC gaps, (\d+) faults", proc.stdout())
     assert account is not None, proc.stdout()
     assert int(account[1]) >= 1500 and account[3] == "0", account[0]
+
+
+def test_a_profile_written_from_the_eds_runs_its_twin_over_vcan(vcan_channel, tmp_path):
+    """The user's path to a standard drive before the hardware arrives: `profile new-drive`
+    on the drive's EDS at node 23 writes a profile and DBC that load and pass `profile
+    check`; against `hil-plant run --eds FILE --node 23` in its own process they pass
+    `check` and `run` the quick profile in CSV, with the figures of target against actual."""
+    import json
+
+    from twoproc_support import gateway_cmd, run
+
+    eds = write_drive_file(tmp_path / "servo.eds")
+    prof = tmp_path / "servo.toml"
+    for args, name in ((["profile", "new-drive", "--eds", str(eds), "--node", str(NODE), "-o",
+                         str(prof)], "new-drive"), (["profile", "check", str(prof)], "pcheck")):
+        p = run([*gateway_cmd(), *args], tmp_path, name, 120)
+        assert p.popen.returncode == 0, p.describe()
+    with plant(vcan_channel, tmp_path, "--eds", str(eds), "--node", str(NODE)) as proc:
+        wait_for(lambda: "0x6073 Max current" in proc.stdout(), 30, "the twin's listing", proc)
+        check = run([*gateway_cmd(), "check", "-i", "socketcan", "-c", vcan_channel, "--drive",
+                     str(prof), "--json", str(tmp_path / "check.json")], tmp_path, "check",
+                    300)
+        assert check.popen.returncode == 0, check.describe()
+        gw = run([*gateway_cmd(), "run", "-i", "socketcan", "-c", vcan_channel, "--drive",
+                  str(prof), "--reference", "profiles/quick.toml", "--out",
+                  str(tmp_path / "run")], tmp_path, "run", 600)
+        assert gw.popen.returncode == 0, gw.describe()
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["run"]["stop"] == "END_OF_PROFILE" and s["run"]["cycles"] == 500
+    assert s["configuration"]["drive_mode"] == "velocity"
+    assert s["configuration"]["controller"]["name"] == "stream"
+    assert s["truth"].startswith("TPDO1.velocity_actual, the drive's measured speed")
+    assert s["speed_error"]["rms"] < 5.0 and abs(s["speed_error"]["final"]) < 0.5
+    assert "flux_error" not in s and s["shutdown"]["safe"]
+    assert (tmp_path / "run" / "fig1_references.png").is_file()
