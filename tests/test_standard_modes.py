@@ -248,3 +248,32 @@ def test_run_drives_a_device_in_cst_over_the_bus(emulator, tmp_path):
     assert s["quantisation"]["source"] == "standard.dbc"
     assert "w_m" not in s["quantisation"]["signals"]
     assert_disabled(emu)
+
+
+@pytest.mark.parametrize("key, value, controller", [("velocity", 3, "stream"),
+                                                     ("torque", 4, "speed-pi")])
+def test_profile_modes_from_the_drive_profile(emulator, tmp_path, key, value, controller):
+    """A drive without cyclic modes: the profile's [modes] names profile velocity (3) or
+    profile torque (4); the gateway checks it against 0x6502, writes 0x6060 and streams
+    the same targets over PDO; the drive ramps them itself (0x6083/0x6084, 0x6087), at
+    rates its [[sdo]] start-up writes raise for the paper's speed step (at the defaults,
+    104.7 rad/s² and 100 N·m/s, the step outruns the ramp and the guard stops the run)."""
+    from gw_support import _patient_drive_profile, assert_disabled, gateway_run
+
+    emu = emulator("current-loop")
+    text = _patient_drive_profile("emulator-standard").read_text()
+    text = text.replace(f"{key} = {9 if key == 'velocity' else 10} ", f"{key} = {value} ")
+    text += "".join(f"\n[[sdo]]\nindex = 0x{i:04X}\nsub = 0\nvalue = {v}\n" for i, v in (
+        (0x6083, 20_000_000), (0x6084, 20_000_000), (0x6087, 1_000_000)))  # 2094 rad/s²
+    profile = tmp_path / "pv.toml"
+    profile.write_text(text)
+    mode = "velocity" if key == "velocity" else "torque"
+    out = tmp_path / "run"
+    assert gateway_run(emu, out, "--drive", str(profile), "--controller", controller,
+                       "--drive-mode", mode, "--duration", "0.6s") == 0
+    assert emu.device._values[(0x6060, 0)] == value
+    s = _summary(out)
+    assert s["run"]["stop"] == "END_OF_PROFILE" and s["run"]["cycles"] == 600
+    # the drive's own ramp (104.7 rad/s² by default in PV) lags the paper's speed step
+    assert s["speed_error"]["rms"] < 15.0 and s["shutdown"]["safe"]
+    assert_disabled(emu)
