@@ -7,6 +7,8 @@ else of ours). One home per concept:
 module                 what
 =====================  ================================================================
 :mod:`dbc.codec`       ``drive.eds`` / ``drive.dbc`` paths, the fast PDO codec, scalings
+:mod:`dbc.frame`       a signal's encoding and place in a frame; packing by struct or cantools
+:mod:`dbc.busdbc`      the built-in DBCs of the whole bus, for any node (third-party tools)
 :mod:`dbc.signals`     the PDO signal groups and which message carries which frame
 :mod:`dbc.cia301`      NMT states and commands, COB-ID bases, SYNC counter, EMCY codes
 :mod:`dbc.cia402`      power states, statusword decoding, controlword commands
@@ -20,9 +22,11 @@ The codec's names are re-exported here (``from dbc import load_codec``).
 """
 
 from dbc.codec import (
+    AB_DBC_PATH,
     DBC_PATH,
     EDS_PATH,
     INT_SIGNALS,
+    STANDARD_DBC_PATH,
     WRAPPING_SIGNALS,
     MessageCodec,
     PdoCodec,
@@ -36,9 +40,11 @@ from dbc.codec import (
 )
 
 __all__ = [
+    "AB_DBC_PATH",
     "DBC_PATH",
     "EDS_PATH",
     "INT_SIGNALS",
+    "STANDARD_DBC_PATH",
     "WRAPPING_SIGNALS",
     "MessageCodec",
     "PdoCodec",

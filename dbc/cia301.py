@@ -34,6 +34,19 @@ def pdo_of(cob_id: int) -> tuple[bool, int]:
                          "set (0x180..0x57F)") from None
 
 
+TIME_ID = 0x100
+LSS_IDS = (0x7E4, 0x7E5)  #: LSS slave → master, master → slave
+
+
+def is_service(cob_id: int) -> bool:
+    """Whether an 11-bit COB-ID is one of CiA 301's services of the pre-defined connection
+    set (NMT, SYNC, EMCY, TIME, SDO, heartbeat / boot-up, LSS) and so not process data."""
+    node = cob_id & 0x7F
+    return (cob_id in (NMT_ID, SYNC_ID, TIME_ID, *LSS_IDS)
+            or (cob_id & 0x780 in (EMCY_BASE, SDO_TX_BASE, SDO_RX_BASE, HEARTBEAT_BASE)
+                and node != 0))
+
+
 #: SYNC counter overflow (0x1019) the gateway configures: the counter runs 1..240.
 SYNC_OVERFLOW = 240
 

@@ -1,34 +1,54 @@
 """The PDO frames: ``drive.eds`` (object dictionary), ``drive.dbc`` (frames and scalings)
-and a fast struct-based codec built once from the DBC.
+and a fast codec built once from a DBC.
 
 Scalings live only in ``drive.dbc``. Every manufacturer object a PDO maps has an EDS
 ParameterName equal to its DBC signal name, so the device derives each object's factor
-from the name (:func:`scaling`). Encoding rounds to nearest and saturates at the integer
-range, except ``eps_0``, which wraps modulo 2π (modulo 65536 counts).
+from the name (:func:`scaling`). Encoding rounds to nearest and saturates at the raw range,
+except ``eps_0``, which wraps modulo 2π (modulo 65536 counts).
+
+:func:`parse_dbc` takes what a DBC allows for a PDO: Intel or Motorola byte order, any start
+bit, integers of 1..64 bits, REAL32/REAL64 floats, offsets, gaps between signals and bytes
+after them. Byte-aligned little-endian integers and floats of struct's sizes are packed by
+:mod:`struct`, everything else by cantools (:mod:`dbc.frame`). The messages on CiA 301's
+service COB-IDs (NMT, SYNC, EMCY, SDO, heartbeat: :func:`dbc.cia301.is_service`) describe
+the rest of the bus for other tools and are not process data: the codec skips them.
+
+A DBC ``X.dbc`` may come with ``X_ab.dbc``: the same bus with the setpoints in the (a, b)
+frame (no DBC tool can tell two layouts on one COB-ID apart, so each file has one). The
+codec reads both: the messages only ``X_ab.dbc`` has (``RPDO2_AB``) are alternatives of the
+message of ``X.dbc`` on their COB-ID.
 
 ``load_codec(node_id)`` returns a :class:`PdoCodec`: ``encode``/``decode``/``quantize``
 per message name (``RPDO1``, ``RPDO2``, ``RPDO2_AB``, ``RPDO3``, ``TPDO1``..``TPDO3``)
-with COB-ID = DBC id − 1 + node id. cantools is used only while loading.
+with COB-ID = DBC id − 1 + node id.
 """
 
 from __future__ import annotations
 
 import functools
 import logging
+import math
 import struct
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
+
+from dbc.cia301 import is_service
+from dbc.frame import FLOAT_BITS, MAX_BITS, SignalSpec, frame_layout
 
 __all__ = [
+    "AB_DBC_PATH",
     "DBC_PATH",
     "EDS_PATH",
     "INT_SIGNALS",
+    "STANDARD_DBC_PATH",
     "WRAPPING_SIGNALS",
     "MessageCodec",
     "PdoCodec",
     "SignalSpec",
+    "ab_companion",
     "load_codec",
     "load_database",
     "message_codec",
@@ -40,43 +60,25 @@ __all__ = [
 _FILES = resources.files("dbc")
 #: CiA 306 EDS of the emulated drive (``canopen.import_od(str(EDS_PATH), node_id)``).
 EDS_PATH: Path = Path(str(_FILES / "drive.eds"))
-#: DBC of the default PDO frames for node 1 (scalings: the single source).
+#: DBC of the emulated drive's bus for node 1, (d, q) setpoints (scalings: the single
+#: source).
 DBC_PATH: Path = Path(str(_FILES / "drive.dbc"))
+#: The same bus with the setpoints in the (a, b) frame (``RPDO2_AB`` on RPDO2's COB-ID).
+AB_DBC_PATH: Path = Path(str(_FILES / "drive_ab.dbc"))
+#: The emulated drive's bus in CiA 402's standard cyclic modes (CST, CSV), node 1.
+STANDARD_DBC_PATH: Path = Path(str(_FILES / "standard.dbc"))
+#: What the name of a DBC's (a, b) companion adds to its stem.
+AB_SUFFIX = "_ab"
 
 #: Signals decoded as ``int`` (bit fields and counters, factor 1).
 INT_SIGNALS: frozenset[str] = frozenset({"controlword", "statusword", "sync_counter"})
-#: Signals that wrap instead of saturating (angles).
+#: Signals that wrap instead of saturating (angles). A float signal has no integer range to
+#: wrap in: it carries the value as it is.
 WRAPPING_SIGNALS: frozenset[str] = frozenset({"eps_0"})
 #: The DBC ids are those of node 1.
 DBC_NODE_ID = 1
-#: Alternative mappings that share the COB-ID of a default one.
-ALTERNATIVES: Mapping[str, str] = {"RPDO2_AB": "RPDO2"}
-
-
-@dataclass(frozen=True, slots=True)
-class SignalSpec:
-    """One PDO signal: name, physical value = raw × factor, raw integer of ``bits`` bits."""
-
-    name: str
-    factor: float
-    bits: int
-    signed: bool
-
-    @property
-    def lo(self) -> int:
-        """Smallest raw value."""
-        return -(1 << (self.bits - 1)) if self.signed else 0
-
-    @property
-    def hi(self) -> int:
-        """Largest raw value."""
-        return (1 << (self.bits - 1)) - 1 if self.signed else (1 << self.bits) - 1
-
-    @property
-    def struct_char(self) -> str:
-        """The :mod:`struct` code of the raw integer."""
-        code = {8: "b", 16: "h", 32: "i"}[self.bits]
-        return code if self.signed else code.upper()
+#: The longest PDO on classical CAN, bytes.
+MAX_PDO_BYTES = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,67 +86,126 @@ class _Message:
     name: str
     frame_id: int  # node 1
     length: int
-    signals: tuple[SignalSpec, ...]
+    signals: tuple[SignalSpec, ...]  # placed: each with its start bit
+    #: the message of the main DBC on the same COB-ID, for one of its (a, b) companion
+    alternative_of: str | None = None
+
+
+def ab_companion(path: Path) -> Path:
+    """Where the (a, b) companion of the DBC ``path`` would be (``X.dbc`` → ``X_ab.dbc``)."""
+    return path.with_name(f"{path.stem}{AB_SUFFIX}{path.suffix}")
 
 
 def load_database(path: Path = DBC_PATH):
-    """``path`` (default ``drive.dbc``) as a cantools database, without cantools' warning
-    that RPDO2 and RPDO2_AB share a frame id (they do on purpose)."""
+    """``path`` (default ``drive.dbc``) as a cantools database, with the messages that only
+    its (a, b) companion (:func:`ab_companion`) has, if there is one; without cantools'
+    warning that such a message shares a frame id (it does on purpose). ValueError naming
+    the file when one cannot be read."""
+    return _load(Path(path))[0]
+
+
+def _load(path: Path) -> tuple[Any, dict[str, str | None]]:
+    """The database of :func:`load_database` and its messages taken from the companion:
+    name → the message of ``path`` on the same frame id (None if none)."""
     import cantools
 
     log = logging.getLogger("cantools.database.can.database")
     quiet = _DropDuplicateIdWarning()
     log.addFilter(quiet)
     try:
-        return cantools.database.load_file(str(path))
+        try:
+            db = cantools.database.load_file(str(path))
+        except Exception as exc:  # cantools raises many kinds on a bad file
+            raise ValueError(f"{path}: not a readable DBC ({type(exc).__name__}: {exc})"
+                             ) from None
+        companion = ab_companion(path)
+        if not companion.is_file():
+            return db, {}
+        try:
+            ab = cantools.database.load_file(str(companion))
+        except Exception as exc:
+            raise ValueError(f"{companion}: the (a, b) companion of {path.name} is not a "
+                             f"readable DBC ({type(exc).__name__}: {exc})") from None
+        by_id = {m.frame_id: m.name for m in db.messages}
+        known = {m.name for m in db.messages}
+        alternatives: dict[str, str | None] = {}
+        for m in ab.messages:
+            if m.name not in known:
+                db.messages.append(m)
+                alternatives[m.name] = by_id.get(m.frame_id)
+        db.refresh()
+        return db, alternatives
     finally:
         log.removeFilter(quiet)
 
 
 @functools.cache
 def parse_dbc(path: Path = DBC_PATH) -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
-    """Parse a DBC once with cantools (immutable result): messages and signals by name.
+    """Parse a DBC (and its (a, b) companion) once with cantools (immutable result): its
+    PDO messages and their signals by name; the CANopen service messages are skipped.
 
-    The fast codec needs byte-aligned little-endian 8/16/32-bit integer signals without
-    offset, filling their message; anything else raises :class:`ValueError` naming it.
+    What the codec cannot take raises :class:`ValueError` naming it and what to do: an
+    unreadable file, a multiplexed message, an extended (29-bit) id, a message longer than
+    8 bytes, a signal longer than 64 bits, a float that is not a REAL32 or REAL64, a factor
+    of 0, a signal name used twice with different encodings.
     """
-    try:
-        db = load_database(path)
-    except Exception as exc:  # cantools raises many kinds on a bad file
-        raise ValueError(f"{path}: not a readable DBC ({type(exc).__name__}: {exc})") from None
+    db, alternatives = _load(Path(path))
     messages: dict[str, _Message] = {}
     specs: dict[str, SignalSpec] = {}
     for m in db.messages:
-        sigs = []
-        bit = 0
-        for s in sorted(m.signals, key=lambda s: s.start):
-            if s.byte_order != "little_endian" or s.start != bit or s.length not in (8, 16, 32):
-                raise ValueError(
-                    f"{path}: signal {m.name}.{s.name} is not a byte-aligned little-endian "
-                    f"8/16/32-bit integer following the previous one; the fast codec needs that"
-                )
-            if s.offset != 0 or s.is_float:
-                raise ValueError(f"{path}: signal {s.name} has an offset or is a float")
-            bit += s.length
-            spec = SignalSpec(s.name, float(s.scale), s.length, bool(s.is_signed))
-            if specs.setdefault(s.name, spec) != spec:
-                raise ValueError(f"{path}: signal {s.name} is defined twice, differently")
-            sigs.append(spec)
-        if bit != 8 * m.length:
-            raise ValueError(
-                f"{path}: message {m.name} is {m.length} bytes, signals {bit} bits"
-            )
-        messages[m.name] = _Message(m.name, m.frame_id, m.length, tuple(sigs))
+        if not m.is_extended_frame and is_service(m.frame_id):
+            continue
+        where = f"{path}: message {m.name}"
+        if m.is_extended_frame:
+            raise ValueError(f"{where} has an extended (29-bit) id 0x{m.frame_id:X}; CANopen "
+                             "PDOs use 11-bit COB-IDs: give the message its PDO's COB-ID")
+        if m.is_multiplexed():
+            mux = next(s.name for s in m.signals if s.is_multiplexer)
+            raise ValueError(f"{where} is multiplexed (signal {mux}); the codec takes one "
+                             "layout per message: describe each layout as a message of its "
+                             "own (an alternative mapping in an (a, b) companion DBC)")
+        sigs = tuple(_signal_spec(where, s) for s in sorted(m.signals, key=lambda s: s.start))
+        if m.length > MAX_PDO_BYTES:
+            raise ValueError(f"{where} is {m.length} bytes; a CANopen PDO on classical CAN has "
+                             f"at most {MAX_PDO_BYTES}: split it into PDOs of {MAX_PDO_BYTES} "
+                             "bytes or fewer")
+        for spec in sigs:
+            if specs.setdefault(spec.name, spec.unplaced) != spec.unplaced:
+                raise ValueError(f"{path}: signal {spec.name} is defined twice, differently "
+                                 "(size, type or scaling): give one of them another name")
+        try:
+            frame_layout(sigs, m.length)  # cantools checked that they fit
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        messages[m.name] = _Message(m.name, m.frame_id, m.length, sigs,
+                                    alternatives.get(m.name))
     return messages, specs
 
 
+def _signal_spec(where: str, s: Any) -> SignalSpec:
+    """The :class:`SignalSpec` of cantools signal ``s`` of a PDO message (``where``: the
+    file and the message, for the refusal of what the codec cannot take)."""
+    if s.length > MAX_BITS:
+        raise ValueError(f"{where}: signal {s.name} is {s.length} bits; a signal is at most "
+                         f"{MAX_BITS} bits: split it into signals of {MAX_BITS} bits or fewer")
+    if s.is_float and s.length not in FLOAT_BITS:
+        raise ValueError(f"{where}: signal {s.name} is a {s.length}-bit float; a float signal "
+                         "is a REAL32 (32 bits) or a REAL64 (64 bits)")
+    if not s.scale or not math.isfinite(s.scale) or not math.isfinite(s.offset):
+        raise ValueError(f"{where}: signal {s.name} has the scaling ({s.scale},{s.offset}); "
+                         "give a finite, non-zero factor and a finite offset")
+    return SignalSpec(s.name, float(s.scale), s.length, bool(s.is_signed) or bool(s.is_float),
+                      float(s.offset), bool(s.is_float), s.start,
+                      s.byte_order == "big_endian")
+
+
 def _parse_dbc() -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
-    """The built-in ``drive.dbc``, parsed."""
+    """The built-in ``drive.dbc`` (with its (a, b) companion), parsed."""
     return parse_dbc(DBC_PATH)
 
 
 class _DropDuplicateIdWarning(logging.Filter):
-    """RPDO2 and RPDO2_AB share a frame id on purpose."""
+    """An (a, b) companion's message shares a frame id on purpose."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         return "identical masked frame ids" not in record.getMessage()
@@ -168,31 +229,62 @@ def scaling(signal_name: str) -> tuple[float, int, bool]:
 
 
 def _build_raw_function(signals: tuple[SignalSpec, ...]) -> Callable[[Mapping], tuple]:
-    """Generate ``values -> raw tuple`` (round to nearest, saturate; wrap for angles)."""
+    """Generate ``values -> raw tuple``: (value − offset) / factor rounded to nearest (a
+    float: to the nearest REAL32/REAL64) and saturated at the raw range; integers of
+    :data:`WRAPPING_SIGNALS` wrap modulo their range instead. NaN raises ValueError."""
     lines = ["def raw(v):"]
     out = []
     for k, s in enumerate(signals):
         x = f"x{k}"
-        lines.append(f"    {x} = v[{s.name!r}] / {s.factor!r}")
-        if s.name in WRAPPING_SIGNALS:
+        value = f"v[{s.name!r}]" if not s.offset else f"(v[{s.name!r}] - {s.offset!r})"
+        lines.append(f"    {x} = {value}" if _exact_int(s) else f"    {x} = {value} / {s.factor!r}")
+        if s.is_float:
+            nearest = f"_real32({x})" if s.bits == 32 else x
+            lines += [f"    if {x} != {x}:", f"        _nan({s.name!r})",
+                      f"    {x} = {s.hi!r} if {x} >= {s.hi!r} else "
+                      f"({s.lo!r} if {x} <= {s.lo!r} else {nearest})"]
+        elif s.name in WRAPPING_SIGNALS and not s.signed:
             lines.append(f"    {x} = round({x}) & {s.hi}")
+        elif s.name in WRAPPING_SIGNALS:
+            lines.append(f"    {x} = ((round({x}) - {s.lo}) & {s.hi - s.lo}) + {s.lo}")
         else:
             lines.append(
                 f"    {x} = {s.hi} if {x} >= {s.hi} else ({s.lo} if {x} <= {s.lo} else round({x}))"
             )
         out.append(x)
     lines.append(f"    return ({', '.join(out)},)" if out else "    return ()")
-    ns: dict = {}
+    ns: dict = {"_real32": _real32, "_nan": _nan}
     exec("\n".join(lines), ns)
     return ns["raw"]
 
 
+def _exact_int(s: SignalSpec) -> bool:
+    """An integer signal of factor 1 wider than a float's 53-bit mantissa: its values stay
+    ints, or a float would round them (as cantools does)."""
+    return not s.is_float and s.bits > 53 and s.factor == 1.0 and not s.offset
+
+
+_REAL32 = struct.Struct("<f")
+
+
+def _real32(x: float) -> float:
+    """The REAL32 nearest to ``x`` (|x| within the REAL32 range)."""
+    return _REAL32.unpack(_REAL32.pack(x))[0]
+
+
+def _nan(name: str) -> None:
+    raise ValueError(f"{name} is NaN: a signal carries numbers")
+
+
 def _build_phys_function(signals: tuple[SignalSpec, ...]) -> Callable[[tuple], dict]:
-    """Generate ``raw tuple -> {name: raw × factor}`` (ints for :data:`INT_SIGNALS`)."""
+    """Generate ``raw tuple -> {name: raw × factor + offset}`` (the raw value itself, an
+    int, for :data:`INT_SIGNALS`)."""
     items = []
     for k, s in enumerate(signals):
-        if s.name in INT_SIGNALS:
+        if (s.name in INT_SIGNALS and not s.is_float) or _exact_int(s):
             items.append(f"{s.name!r}: r[{k}]")
+        elif s.offset:
+            items.append(f"{s.name!r}: r[{k}] * {s.factor!r} + {s.offset!r}")
         else:
             items.append(f"{s.name!r}: r[{k}] * {s.factor!r}")
     ns: dict = {}
@@ -203,24 +295,29 @@ def _build_phys_function(signals: tuple[SignalSpec, ...]) -> Callable[[tuple], d
 class MessageCodec:
     """Encoder/decoder of one PDO layout (a DBC message or a mapping built by the device).
 
-    ``raw(values)`` → tuple of raw integers; ``encode(values)`` → bytes;
-    ``decode_raw(data)`` → tuple; ``decode(data)`` → {name: physical value};
-    ``phys(raws)`` → {name: physical value}. ``length`` in bytes; ``names`` in order.
-    ``decode``/``decode_raw`` raise :class:`struct.error` on a wrong length.
+    ``raw(values)`` → tuple of raw values (ints; floats for REAL32/REAL64 signals);
+    ``pack(*raws)`` → bytes; ``encode(values)`` → bytes; ``decode_raw(data)`` → tuple;
+    ``decode(data)`` → {name: physical value}; ``phys(raws)`` → {name: physical value}.
+    ``length`` in bytes (default: up to the last signal); ``names`` in order; ``fast``: packed
+    by :mod:`struct` (else by cantools, :mod:`dbc.frame`). Signals with a start bit sit there;
+    signals without follow each other from bit 0. ``decode``/``decode_raw`` raise
+    :class:`struct.error` on a wrong length.
     """
 
-    __slots__ = ("decode_raw", "frame_id", "length", "name", "names", "pack", "phys", "raw",
-                 "signals")
+    __slots__ = ("decode_raw", "fast", "frame_id", "length", "name", "names", "pack", "phys",
+                 "raw", "signals")
 
-    def __init__(self, name: str, frame_id: int, signals: Iterable[SignalSpec]) -> None:
+    def __init__(self, name: str, frame_id: int, signals: Iterable[SignalSpec],
+                 length: int | None = None) -> None:
         self.name = name
         self.frame_id = frame_id
         self.signals = tuple(signals)
         self.names = tuple(s.name for s in self.signals)
-        st = struct.Struct("<" + "".join(s.struct_char for s in self.signals))
-        self.length = st.size
-        self.pack = st.pack
-        self.decode_raw = st.unpack
+        layout = frame_layout(self.signals, length)
+        self.length = layout.length
+        self.pack = layout.pack
+        self.decode_raw = layout.unpack
+        self.fast = layout.fast
         self.raw = _build_raw_function(self.signals)
         self.phys = _build_phys_function(self.signals)
 
@@ -229,7 +326,7 @@ class MessageCodec:
         return self.pack(*self.raw(values))
 
     def decode(self, data: bytes | bytearray) -> dict[str, float]:
-        """Frame data → physical values (raw × factor)."""
+        """Frame data → physical values (raw × factor + offset)."""
         return self.phys(self.decode_raw(data))
 
     def __repr__(self) -> str:
@@ -262,11 +359,12 @@ class PdoCodec:
         parsed = _parse_dbc()[0]
         off = node_id - DBC_NODE_ID
         self.messages: dict[str, MessageCodec] = {
-            m.name: MessageCodec(m.name, m.frame_id + off, m.signals) for m in parsed.values()
+            m.name: MessageCodec(m.name, m.frame_id + off, m.signals, m.length)
+            for m in parsed.values()
         }
         self.names: tuple[str, ...] = tuple(self.messages)
         self.by_frame_id: dict[int, str] = {
-            c.frame_id: c.name for c in self.messages.values() if c.name not in ALTERNATIVES
+            m.frame_id + off: m.name for m in parsed.values() if m.alternative_of is None
         }
         self._enc = {n: c.encode for n, c in self.messages.items()}
         self._dec = {n: c.decode for n, c in self.messages.items()}

@@ -48,7 +48,7 @@ CYCLE_COLUMNS = ("t", "w_ref", "psi_ref", "T_L", "w_m", "psi_r_mod", "i_sa", "i_
 #: statusword and SYNC-counter echo; SYNC period, SYNC → last TPDO and last TPDO → RPDOs sent
 #: (reaction), s; missed cycles so far; 1.0 when the cycle's setpoints were withheld.
 BUS_COLUMNS = ("statusword", "sync_counter", "sync_period", "sync_to_tpdo", "reaction",
-               "missed", "withheld")
+               "missed", "withheld", "faults")
 
 
 @functools.cache
@@ -83,11 +83,14 @@ NO_TRUTH = Truth(math.nan, complex(math.nan, math.nan), math.nan)
 
 
 def truth_from(measured: Mapping[str, float]) -> Truth:
-    """The truth the emulator sends (TPDO3, INT16 resolution), or :data:`NO_TRUTH`."""
+    """The truth the emulator sends (TPDO3, INT16 resolution), or a standard drive's
+    measured speed (and torque) without a flux (NaN), or :data:`NO_TRUTH`."""
     if "w_m" not in measured:
         return NO_TRUTH
-    return Truth(measured["w_m"], complex(measured["psi_ra"], measured["psi_rb"]),
-                 measured["T_e"])
+    nan = math.nan
+    return Truth(measured["w_m"],
+                 complex(measured.get("psi_ra", nan), measured.get("psi_rb", nan)),
+                 measured.get("T_e", nan))
 
 
 def sample_from(measured: Mapping[str, float]) -> Sample:

@@ -65,10 +65,25 @@ MISS_WINDOW = 0.1
 FOREIGN_SYNC_SLACK = 2
 #: Frames kept for the summary of a stop.
 RECENT_FRAMES = 24
+#: Error frames the loop tolerates within any :data:`MISS_WINDOW` before it stops: a few
+#: are a disturbance the bus recovers from; a stream of them is a damaged bus.
+MAX_ERROR_FRAMES = 50
 
 #: Real-time SYNC thread: how long before a deadline it stops sleeping and spins, s. On the
 #: project's VM, time.sleep overshoots by 107 µs median, 217 µs p99 (2.9 ms p99.9).
 SPIN_MARGIN = 0.0003
+
+
+class ErrorFrames(can.Listener):
+    """Calls ``on_error`` for every error frame the bus delivers (python-canopen's
+    listeners ignore them)."""
+
+    def __init__(self, on_error: Callable[[], None]) -> None:
+        self.on_error = on_error
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.on_error()
 
 
 def loop_row_type(signals: tuple[str, ...]) -> type[Any]:
@@ -124,8 +139,11 @@ class LoopStats:
     stop: StopReason | None = None
     stop_reason: str = ""
     stop_cycle: int = 0  #: the cycle open when the loop stopped (0: before the first)
-    #: TPDOs not used, with why: '<PDO> late', 'early', 'stale', 'wrong length'
+    #: TPDOs not used, with why: '<PDO> late', 'early', 'stale', 'wrong length',
+    #: 'duplicate' (a second frame of it in one cycle: the first is used)
     tpdo_events: Counter[str] = field(default_factory=Counter)
+    max_consecutive_missed: int = 0  #: the longest run of missed cycles (the worst gap)
+    error_frames: int = 0  #: error frames received
     last_good_cycle: int = 0  #: the last cycle completed and sent
     wall_time: float = 0.0
 
@@ -144,8 +162,11 @@ class CycleLoop:
         own_echo: bool = True,
         fault: threading.Event | None = None,
         fault_cause: Callable[[], tuple[StopReason, str] | None] | None = None,
+        fault_marks: Callable[[int], int] | None = None,
     ) -> None:
         self.bus = bus
+        #: the bus faults injected in a cycle (bits of dbc.busfaults.FaultKind.bit), if any
+        self._marks = fault_marks or (lambda k: 0)
         self.pd = pd
         self.ctl = controller
         self.cycle = ControlCycle(controller, profile, cfg.sampling)
@@ -194,13 +215,16 @@ class CycleLoop:
                                       is_extended_id=False)
         self._producer_start = time.time()  # real time: when the SYNC producer started
         self._sync_thread: threading.Thread | None = None
+        #: the RPDO frames sent whose echo has not come back yet, by COB-ID (oldest first)
+        self._rpdo_sent: dict[int, deque[bytes]] = {p.cob_id: deque(maxlen=64)
+                                                    for p in pd.rpdos}
+        self._errors: deque[int] = deque()  # the cycles of recent error frames
         for cob_id in self._ids:
             subscribe(cob_id, self._on_tpdo)
         subscribe(SYNC_ID, self._on_own_sync if own_echo else self._on_foreign_sync)
         self._unechoed: set[int] = set()  # RPDOs of the last cycle sent, not yet echoed
-        if own_echo:
-            for p in pd.rpdos:
-                subscribe(p.cob_id, self._on_own_rpdo)
+        for p in pd.rpdos:  # the echo of ours (own_echo), and anyone else's on our COB-IDs
+            subscribe(p.cob_id, self._on_own_rpdo)
 
     # ------------------------------------------------------------------- frames in
 
@@ -253,9 +277,42 @@ class CycleLoop:
                 f"in {time.time() - self._producer_start:.3f} s")
 
     def _on_own_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """The bus's echo of an RPDO the gateway sent: it is on the bus now."""
+        """A frame on an RPDO's COB-ID: the bus's echo of one the gateway sent (it is on
+        the bus now), or, beyond the frames sent, another node writing on it."""
         with self._lock:
             self._unechoed.discard(can_id)
+            pending = self._rpdo_sent[can_id]
+            if self.own_echo and bytes(data) in pending:  # the echo of one we sent
+                while pending.popleft() != bytes(data):
+                    pass  # older ones whose echo was lost
+                return
+            if self._done.is_set():
+                return
+            self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
+            self._finish(StopReason.FOREIGN_WRITER,
+                         f"a frame on COB-ID 0x{can_id:03X} (the gateway's "
+                         f"{self._rpdo_name(can_id)}) that the gateway did not send (data "
+                         f"{bytes(data).hex() or '-'}): another node writes the drive's "
+                         "setpoints; find it (`hil-gateway scan`, candump) and take it off")
+
+    def _rpdo_name(self, can_id: int) -> str:
+        return next((p.name for p in self.pd.rpdos if p.cob_id == can_id), "RPDO")
+
+    def on_error_frame(self) -> None:
+        """An error frame on the bus (the notifier's listener): counted; beyond
+        :data:`MAX_ERROR_FRAMES` within any :data:`MISS_WINDOW` the loop stops."""
+        with self._lock:
+            self.stats.error_frames += 1
+            k = self._k
+            errors = self._errors
+            errors.append(k)
+            while errors and errors[0] <= k - self._miss_window:
+                errors.popleft()
+            if len(errors) > MAX_ERROR_FRAMES and not self._done.is_set():
+                self._finish(StopReason.BUS_ERRORS,
+                             f"{len(errors)} error frames within {self._miss_window} cycles "
+                             f"({self.stats.error_frames} in all): the bus is damaged "
+                             "(cabling, termination, bitrate, a faulty node)")
 
     def _on_foreign_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Without own echo the gateway never receives its SYNC: any SYNC is another's."""
@@ -301,6 +358,8 @@ class CycleLoop:
         k = self._k
         self.stats.missed += 1
         self._consecutive_missed += 1
+        self.stats.max_consecutive_missed = max(self.stats.max_consecutive_missed,
+                                                self._consecutive_missed)
         self._missed_names = set(self._expected) - set(self._frames)
         self._k_done = k
         self.ctl.coast()
@@ -366,6 +425,9 @@ class CycleLoop:
             else:
                 if name in self._suspects:
                     self.stats.tpdo_events[f"{name} late"] += 1
+                elif name in self._frames:
+                    self.stats.tpdo_events[f"{name} duplicate"] += 1
+                    return  # the first one counts
                 self._suspects.discard(name)
             self._frames[name] = bytes(data)
             if len(self._frames) < len(self._expected) or self._suspects:
@@ -421,7 +483,10 @@ class CycleLoop:
             if self.own_echo and cfg.timing is Timing.REALTIME:
                 self._unechoed = {cob_id for cob_id, _, _ in frames}
             for cob_id, _name, data in frames:
-                send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+                self._rpdo_sent[cob_id].append(bytes(data))
+                if not self._send(send, can.Message(arbitration_id=cob_id, data=data,
+                                                    is_extended_id=False)):
+                    return
                 self.recent.append((time.time(), "tx", cob_id, data.hex()))
         t_sent = time.perf_counter()
         self._k_done = k
@@ -432,6 +497,7 @@ class CycleLoop:
             *row, float(sw), float(measured.get("sync_counter", 0)),
             self._sync_time - self._sync_prev, self._tpdo_time - self._sync_time,
             t_sent - t_arrival, float(self.stats.missed), float(withheld),
+            float(self._marks(k)),
         ))
         self._progress_at = time.monotonic()
         if k >= cfg.n_cycles:
@@ -454,13 +520,25 @@ class CycleLoop:
             return
         msg = self._sync_message(k)
         every = self.cfg.heartbeat_every
-        if every and (k - 1) % every == 0:
-            self.bus.send(self._heartbeat)
+        if every and (k - 1) % every == 0 and not self._send(self.bus.send, self._heartbeat):
+            return
         self._syncs_sent = k
         if not self.own_echo:
             self._open_locked(time.time())
-        self.bus.send(msg)
-        self.recent.append((time.time(), "tx", SYNC_ID, bytes(msg.data).hex()))
+        if self._send(self.bus.send, msg):
+            self.recent.append((time.time(), "tx", SYNC_ID, bytes(msg.data).hex()))
+
+    def _send(self, send: Callable[[can.Message], None], msg: can.Message) -> bool:
+        """Send a frame; a bus that refuses it (bus-off, a full queue, an adapter gone)
+        stops the loop with that cause, not as an error of the control cycle (lock held)."""
+        try:
+            send(msg)
+        except can.CanError as exc:
+            self._finish(StopReason.BUS_OFF,
+                         f"the gateway could not send 0x{msg.arbitration_id:03X} in cycle "
+                         f"{self._k}: {exc} (bus-off, or the adapter's queue full or gone)")
+            return False
+        return True
 
     def _finish(self, stop: StopReason, message: str) -> None:
         if self.stats.stop is None:
@@ -590,7 +668,10 @@ class CycleLoop:
             try:
                 self.bus.send(self._sync_message(k))
             except can.CanError as exc:
-                log.warning("SYNC send failed: %s", exc)
+                with self._lock:
+                    self._finish(StopReason.BUS_OFF, f"the gateway could not send SYNC {k}: "
+                                 f"{exc} (bus-off, or the adapter's queue full or gone)")
+                break
 
     def _stop_sync_producer(self) -> None:
         if self._sync_task is not None:

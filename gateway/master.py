@@ -70,7 +70,7 @@ from dbc.cia402 import (
     mode_bit,
     modes_in,
 )
-from dbc.edsfile import EdsError, load_od
+from dbc.edsfile import read_eds
 from dbc.timing import LOCKSTEP_BACKSTOP_S
 from gateway.drive_profile import DriveProfile
 from gateway.eds import find_object, object_for
@@ -142,6 +142,10 @@ class ShutdownReport:
     supervision_off: bool = False
 
 #: CiA 402 states in which the power stage applies no voltage to the motor.
+#: How long the shutdown retries while the bus refuses frames (a controller recovering
+#: from bus-off), s.
+BUS_OFF_RETRY_S = 3.0
+
 POWER_OFF_STATES = (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
                     State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.FAULT)
 
@@ -169,8 +173,8 @@ class DriveMaster:
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1
         try:
-            self.node = canopen.RemoteNode(self.node_id, load_od(profile.eds, self.node_id))
-        except EdsError as exc:
+            self.node = canopen.RemoteNode(self.node_id, read_eds(profile.eds, self.node_id).od)
+        except UserError as exc:
             raise UserError(f"drive profile {profile.source}: {exc}") from None
         self.node.sdo.RESPONSE_TIMEOUT = profile.sdo_timeout_s
         self.network.add_node(self.node)
@@ -184,6 +188,7 @@ class DriveMaster:
         self._connected = False
         self._configured = False  # we wrote to it (configure())
         self._refused = False  # the shutdown's SDO was answered with an abort
+        self._send_refused = False  # the bus refused the shutdown's frames (bus-off)
         self.identity: Identity | None = None  #: the device at the node, once identified
         self._armed = False  # the NMT watch: set by start(), cleared by shutdown()
         self._lockstep = False  # the loop's time is the SYNC count (start())
@@ -492,7 +497,20 @@ class DriveMaster:
 
     def _objects_of(self, pdo: Pdo) -> list[tuple[int, int, int]]:
         """The EDS objects a PDO maps: named like its DBC signals (CiA 402's controlword and
-        statusword by index)."""
+        statusword by index). A CiA 301 mapping packs objects back to back, little-endian:
+        a DBC message with gaps or Motorola signals cannot be written so."""
+        bit = 0
+        for spec in pdo.codec.signals:
+            start = bit if spec.start is None else spec.start
+            if spec.big_endian or start != bit:
+                raise UserError(
+                    f"{pdo.name}.{spec.name}: the DBC lays it out "
+                    + ("in Motorola byte order" if spec.big_endian else
+                       f"at bit {start}, not right after the signal before (bit {bit})")
+                    + ", which a PDO mapping written by SDO cannot reproduce (objects back to "
+                    "back, Intel order): map the PDO on the drive and set remap = false in "
+                    f"{self.profile.source}")
+            bit += spec.bits
         entries = []
         for (signal, role), spec in zip(pdo.signals, pdo.codec.signals, strict=True):
             var = self.object_of(signal, role, pdo.name)
@@ -751,6 +769,11 @@ class DriveMaster:
             self._refused = True
             log.warning("disable voltage on node %d refused: %s", self.node_id, exc)
             return False
+        except can.CanError as exc:  # the bus refused the frame: bus-off, adapter gone
+            if not any(s.startswith("the bus refused") for s in report.steps):
+                report.steps.append(f"the bus refused the SDO request ({exc})")
+            self._send_refused = True
+            return False
         except Exception as exc:
             report.steps.append(f"no SDO answer ({type(exc).__name__}: {exc})")
             log.warning("disable voltage on node %d failed: %s", self.node_id, exc)
@@ -773,14 +796,35 @@ class DriveMaster:
         report.steps.append("no boot-up after the reset")
         return False
 
+    def _across_bus_off(self, report: ShutdownReport) -> bool:
+        """The bus refuses to send (bus-off): retry the power-off every 50 ms for
+        :data:`BUS_OFF_RETRY_S` while the controller recovers."""
+        t_end = time.monotonic() + BUS_OFF_RETRY_S
+        tries = 0
+        while time.monotonic() < t_end:
+            time.sleep(0.05)
+            tries += 1
+            self._send_refused = False
+            if self._power_off_confirmed(report):
+                report.steps.insert(len(report.steps) - 2, f"the bus took frames again after "
+                                    f"{tries} retries (bus-off recovered)")
+                return True
+            if not self._send_refused:  # it sends again, but the drive did not confirm
+                return False
+        report.steps.append(f"the bus still refused frames after {BUS_OFF_RETRY_S:g} s")
+        return False
+
     def bring_down(self) -> ShutdownReport:
         """Power stage off, confirmed (see the module docstring, step 5). NMT reset node is
         the last resort, only for a drive the gateway configured and that stopped answering
         SDO; a drive that answers with an SDO abort is not reset."""
         report = ShutdownReport()
         self._refused = False
+        self._send_refused = False
         reset = False
         safe = self._power_off_confirmed(report)
+        if not safe and self._send_refused:
+            safe = self._across_bus_off(report)
         if not safe:
             try:
                 self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
@@ -802,9 +846,10 @@ class DriveMaster:
                 self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
                 report.steps.append("NMT pre-operational")
                 # confirmed off: the drive need no longer watch the gateway's heartbeat
-                self._entry(0x1016, 1).raw = 0
-                report.supervision_off = True
-                report.steps.append("0x1016:1 = 0")
+                if self.has(0x1016):
+                    self._entry(0x1016, 1).raw = 0
+                    report.supervision_off = True
+                    report.steps.append("0x1016:1 = 0")
             except Exception as exc:
                 report.steps.append(f"NMT pre-operational / 0x1016 off failed: "
                                     f"{type(exc).__name__}: {exc}")

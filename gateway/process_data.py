@@ -201,5 +201,5 @@ def process_data(profile: DriveProfile, node: int | None = None,
         cob_id = m.frame_id
         if (cob_id & 0x7F) == base and 0x180 <= cob_id < 0x580:
             cob_id += node - base
-        pdos.append(Pdo(msg, cob_id, MessageCodec(msg, cob_id, specs), signals, tx))
+        pdos.append(Pdo(msg, cob_id, MessageCodec(msg, cob_id, specs, m.length), signals, tx))
     return ProcessData(pdos, profile.source)

@@ -68,6 +68,16 @@ def write_results(out: Path, sig: Mapping[str, np.ndarray] | None, summary: dict
     them: never a false "wrote")."""
     errors = list(errors or [])
     written: list[Path] = []
+    if not out.is_dir():  # deleted or moved while the run went on
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            errors.append(f"the run directory {out} was deleted or moved during the run: "
+                          "made again for the results; what was written into it before "
+                          "(the bus log) went with it")
+            summary.setdefault("run", {})["bus_log_error"] = "deleted with the run directory"
+        except OSError as exc:
+            errors.append(f"the run directory {out} was deleted during the run and cannot be "
+                          f"made again ({exc.strerror or exc}): nothing could be written")
     if sig is not None:
         n = len(errors)
         _try_write(errors, out / "signals.csv", lambda p: report.write_columns_csv(p, sig),

@@ -33,12 +33,13 @@ from gateway.control.interface import ControllerContext, summary_of
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.guard import Envelope, Plausibility, profile_envelope
-from gateway.loop import CycleLoop, LoopConfig
+from gateway.loop import CycleLoop, ErrorFrames, LoopConfig
 from gateway.master import DriveMaster
 from gateway.process_data import ProcessData, process_data
 from gateway.reference import Profile
 from gateway.reference.demand import sample_times
 from gateway.results import TruthColumns
+from gateway.rundir import RUNNING_MARKER
 from gateway.spec import RunSpec
 from gateway.stop import StopReason, StopSignals
 
@@ -145,12 +146,6 @@ class BusRun:
     summary: dict[str, Any]
 
 
-#: The marker a bus run writes into its directory before the loop starts (the run's
-#: configuration, ``run.status = "running"``); removed once summary.json is written, so a
-#: crash leaves it behind.
-RUNNING_MARKER = "running.json"
-
-
 @dataclass(frozen=True)
 class _Plan:
     """What a run is checked and set up with before the bus is touched: its target,
@@ -227,6 +222,7 @@ def _run_on(bus: can.BusABC, label: str, plan: _Plan, out: Path,
         report.write_summary(out / RUNNING_MARKER, {
             "run": {"status": "running", "started": t_start}, "configuration": configuration})
         signals.on_stop = loop.request_stop
+        master.network.notifier.add_listener(ErrorFrames(loop.on_error_frame))
         if on_record is not None:
             on_record(loop.record)
         if signals.requested.is_set():
@@ -284,8 +280,10 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
         f = master.first_fault
         return None if f is None else (f.reason, f.describe())
 
+    schedule = getattr(bus, "schedule", None)  # a FaultyBus: the faults it injects
     return CycleLoop(bus, master.network.subscribe, plan.pd, ctl, profile, loop_cfg,
-                     own_echo=own_echo, fault=master.fault, fault_cause=fault_cause)
+                     own_echo=own_echo, fault=master.fault, fault_cause=fault_cause,
+                     fault_marks=None if schedule is None else schedule.marks)
 
 
 def _emulator_settings(master: DriveMaster, drive: DriveProfile, spec: RunSpec
@@ -342,6 +340,8 @@ def _run_account(stats: Any, stop: StopReason, message: str, exit_status: int,
         "rpdo_after_sync": stats.rpdo_after_sync if stats else 0,
         "last_good_cycle": stats.last_good_cycle if stats else 0,
         "tpdo_events": dict(stats.tpdo_events) if stats else {},
+        "max_consecutive_missed": stats.max_consecutive_missed if stats else 0,
+        "error_frames": stats.error_frames if stats else 0,
         "stop_cycle": stats.stop_cycle if stats else 0,
         "wall_time_s": stats.wall_time if stats else time.time() - t_start,
     }
@@ -374,6 +374,9 @@ def _summarise(loop: CycleLoop | None, stats: Any, master: DriveMaster,
     summary["faults"] = [{"time": f.time, "kind": f.kind, "code": f.code, "text": f.text,
                           "reason": f.reason.name} for f in master.state.faults]
     summary["configuration"] = configuration
+    schedule = getattr(master.bus, "schedule", None)  # a FaultyBus
+    if schedule is not None:
+        summary["bus_faults"] = schedule.account()
     found = summary_of(loop.ctl) if loop is not None else None
     if found is not None:
         summary["identification"] = found

@@ -227,19 +227,33 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         drive = target.drive
         summary["quantisation"] = report.quantisation(True, drive.setpoints, dbc=drive.dbc,
                                                       messages=drive.messages)
-        if done.sig is not None and drive.truth:  # tracking errors need the truth
+        speed = _maps_speed(drive)
+        if done.sig is not None and speed:  # tracking errors need the drive's speed
             where, lsb = _speed_signal(drive)
-            on_bus = (report.TRUTH_TPDO3 if where == f"{drive.truth}.w_m"
-                      else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
-            summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb, on_bus)
+            if drive.truth:
+                on_bus = (report.TRUTH_TPDO3 if where == f"{drive.truth}.w_m"
+                          else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
+                summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb,
+                                               on_bus)
+            else:  # a standard drive: its velocity actual value, no flux
+                summary["truth"] = (f"{where}, the drive's measured speed, ω to {lsb:.3g} "
+                                    "rad/s; no rotor flux")
             summary.update(report.metrics(done.sig, windows))
         _watched(summary, watcher)
-        files = write_results(out, done.sig, summary, figures=bool(drive.truth),
+        files = write_results(out, done.sig, summary, figures=speed,
                               limits=_figure_limits(spec, drive.emulator),
                               delay_s=_delay_s(spec), errors=summary.pop("write_errors", []))
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)
+
+
+def _maps_speed(drive: Any) -> bool:
+    """The drive's process data carry its speed (role ``w_m``: the emulator's truth, or a
+    standard drive's velocity actual value)."""
+    from gateway.process_data import process_data
+
+    return "w_m" in process_data(drive).roles
 
 
 def _speed_signal(drive: Any) -> tuple[str, float]:

@@ -10,7 +10,8 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Callable
-from typing import Any
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
 
 import can
 import numpy as np
@@ -18,6 +19,7 @@ import numpy as np
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
 from gateway.transport import InProcessChannel
 from plant.device import DriveDevice
 from plant.drive import Measurement
@@ -29,6 +31,9 @@ from plant.scenario import (
     resolve_scenario,
     scenario_source,
 )
+
+if TYPE_CHECKING:
+    from gateway.runner import BusTarget
 
 
 class TruthRecorder:
@@ -86,6 +91,7 @@ def scenario_from_text(text: str, source: str) -> PlantScenario:
 def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode,
                   plant: PlantScenario | None = None, reference_load: Any = None,
                   on_sample: Callable[[int, Measurement], None] | None = None,
+                  wrap: Callable[[can.BusABC, can.BusABC], can.BusABC] | None = None,
                   ) -> tuple[can.BusABC, str, Callable[[], None]]:
     """Start the emulated drive at ``node`` on a new in-process bus; returns the gateway's
     bus, its label ('inprocess:hil-sim-…') and the function that stops and closes it all.
@@ -93,15 +99,21 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
     ``plant``: how the emulated plant differs from the controller's model (the controller's
     ``motor`` × the scenario); ``reference_load``: the reference profile's load signal, for
     a scenario whose dynamometer follows the profile; ``on_sample``: the device's per-cycle
-    hook (e.g. a :class:`TruthRecorder`)."""
+    hook (e.g. a :class:`TruthRecorder`); ``wrap``: given the gateway's bus and a bus of
+    another node on the same medium, the bus the gateway uses (the scenario's bus faults,
+    :func:`gateway.faultbus.inject`)."""
     if transport == "virtual":
         channel = f"hil-sim-{os.getpid()}"
         bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
         bus_dev = can.Bus(interface="virtual", channel=channel)
+        if wrap is not None:
+            bus_gw = wrap(bus_gw, can.Bus(interface="virtual", channel=channel))
     else:
         medium = InProcessChannel("hil-sim")
         channel = medium.name
         bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
+        if wrap is not None:
+            bus_gw = wrap(bus_gw, medium.bus())
     plant = plant or PlantScenario()
     try:
         device = DriveDevice(
@@ -126,6 +138,53 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
         close()
         raise
     return bus_gw, f"{transport}:{channel}", close
+
+
+def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_load: Any = None,
+               transport: str = "inprocess", gateway_node: int | None = None,
+               plant_label: str = "the plant scenario") -> BusTarget:
+    """`sim`'s target: the emulated drive in ``mode`` started in this process on a new bus
+    (``transport``: "inprocess" or python-can's "virtual") for each run, with its built-in
+    drive profile (the standard one for a standard ``mode``), whose watch of the gateway's
+    heartbeat is :data:`dbc.timing.SIM_HEARTBEAT_TIMEOUT_MS`; ``plant`` and
+    ``reference_load`` as for :func:`open_emulator`, the scenario's bus faults injected
+    between the gateway (``gateway_node``; None: the profile's) and the drive, a fault on
+    a message the drive has not named with ``plant_label`` before the bus opens. The
+    emulator's full-resolution truth is recorded for the summary."""
+    from gateway.drive_profile import emulator_profile, load_drive_profile
+    from gateway.runner import BusTarget
+
+    truth = TruthRecorder()
+    drive = load_drive_profile(None, emulator_profile(mode))
+    drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
+                                                    SIM_HEARTBEAT_TIMEOUT_MS))
+
+    def open_buses(spec: Any, motor: MotorParams, node: int
+                   ) -> tuple[can.BusABC, str, Callable[[], None]]:
+        wrap = _fault_wrapper(plant, spec.period, drive, node,
+                              gateway_node or drive.gateway_node, plant_label)
+        return open_emulator(transport, node, motor, spec.drive_mode, plant, reference_load,
+                             on_sample=truth, wrap=wrap)
+
+    return BusTarget(drive, open_buses, command="sim", truth=truth)
+
+
+def _fault_wrapper(plant: PlantScenario | None, period: float, drive: Any, node: int,
+                   gateway_node: int, label: str
+                   ) -> Callable[[can.BusABC, can.BusABC], can.BusABC] | None:
+    """The scenario's bus faults between the gateway and the drive (None: none)."""
+    faults = getattr(plant, "bus_faults", ())
+    if not faults:
+        return None
+    from gateway.faultbus import check_faults, inject
+    from gateway.process_data import process_data
+
+    pd = process_data(drive, node)
+    check_faults(faults, pd, label)
+
+    def wrap(bus: can.BusABC, other: can.BusABC) -> can.BusABC:
+        return inject(bus, faults, period, pd, node, gateway_node, other)
+    return wrap
 
 
 def emulator_rate() -> float:

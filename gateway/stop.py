@@ -26,6 +26,9 @@ class StopReason(StrEnum):
     IMPLAUSIBLE = "implausible measurement"  #: beyond the drive's ranges, or not finite
     DIVERGED = "diverged"  #: the loop left the envelope of the profile's demand
     DRIVE_LOST = "drive lost"  #: cycles without the drive's TPDOs (in a row, or too many)
+    BUS_OFF = "bus off"  #: the gateway could not send: its controller left the bus
+    BUS_ERRORS = "bus errors"  #: error frames beyond the limit
+    FOREIGN_WRITER = "foreign writer"  #: another node sends on the gateway's RPDO COB-ID
     CONTROL_ERROR = "error in the control cycle"
     UNSAFE = "drive not confirmed safe"  #: the shutdown could not confirm the power stage off
 

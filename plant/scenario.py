@@ -34,6 +34,14 @@ load the controller may or may not be told::
     steps = [{ t = 1.2, value = 1.0, ramp = 0.01 }]  # a profile's [load]), unknown to the
                                                       # controller
 
+    [[bus.fault]]              # faults on the bus between gateway and drive (dbc/busfaults.py;
+    kind = "drop"              # a bus run: sim, run)
+    message = "TPDO1"
+    start = 0.5                # s (or cycle = N)
+    duration = 0.1             # s; omitted: to the end
+    probability = 0.2          # per frame; omitted: every one
+    seed = 3
+
 Load (the dynamometer of the emulator):
 
 * ``torque = "rpdo"`` (default): the T_L the gateway sends in
@@ -77,6 +85,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from dbc.busfaults import BusFault, BusFaultError, parse_bus_faults
 from dbc.motor import MotorParams, ParamsError
 from plant.params import DriveParams
 
@@ -91,7 +100,7 @@ SENSOR_KEYS = ("offset_a", "offset_b", "gain_a", "gain_b", "noise", "seed")
 INVERTER_KEYS = ("dead_time", "dc_ripple", "dc_ripple_hz")
 LOAD_KEYS = ("known", "torque", "initial", "steps")
 LOAD_SOURCES = ("rpdo", "profile", "none")
-TABLES = ("scenario", "motor", "sensors", "inverter", "load")
+TABLES = ("scenario", "motor", "sensors", "inverter", "load", "bus")
 
 LoadFunction = Callable[[float, float], float]
 
@@ -136,6 +145,9 @@ class PlantScenario:
     load_torque: str = "rpdo"
     load_initial: float = 0.0
     load_steps: tuple[TorqueStep, ...] = ()
+    #: faults injected on the bus between gateway and drive ([[bus.fault]];
+    #: :mod:`dbc.busfaults`); a bus run only: simulate refuses them
+    bus_faults: tuple[BusFault, ...] = ()
 
     # ---- what the plant is --------------------------------------------------------------
     def factor(self, name: str) -> float:
@@ -302,7 +314,20 @@ def parse_scenario(text: str, source: str = "<string>") -> PlantScenario:
     kw |= _sensors_part(source, data)
     kw |= _inverter_part(source, data)
     kw |= _load_part(source, data)
+    kw |= _bus_part(source, data)
     return PlantScenario(**kw)
+
+
+def _bus_part(src: str, data: Mapping[str, Any]) -> dict[str, Any]:
+    """``bus_faults`` from [[bus.fault]] (:func:`dbc.busfaults.parse_bus_faults`)."""
+    bus = _table(src, data, "bus")
+    _keys(src, "bus", bus, ("fault",))
+    if "fault" not in bus:
+        return {}
+    try:
+        return {"bus_faults": parse_bus_faults(bus["fault"], src)}
+    except BusFaultError as exc:
+        raise ScenarioError(str(exc)) from None
 
 
 def _parse_toml(text: str, src: str) -> dict[str, Any]:

@@ -20,7 +20,8 @@ PACKAGES = ("dbc", "gateway", "plant")
 ASSEMBLERS = {"gateway/sim.py", "gateway/simulate.py"}
 PURE = ("dbc/cia301.py", "dbc/cia402.py", "dbc/modes.py", "dbc/signals.py", "dbc/timing.py",
         "dbc/motor.py", "plant/params.py", "plant/motor.py", "plant/drive.py",
-        "plant/timing.py", "plant/cia402.py", "gateway/cycle.py", "gateway/control",
+        "plant/timing.py", "plant/cia402.py", "plant/profile.py", "plant/units.py",
+        "plant/servo.py", "gateway/cycle.py", "gateway/control",
         "gateway/reference/signals.py", "gateway/reference/demand.py")
 
 
@@ -98,7 +99,7 @@ def test_a_can_run_does_not_load_the_simulation():
     assert not {"gateway.simulate", "gateway.sim"} & imports(ROOT / "gateway/runner.py")
 
 
-@pytest.mark.parametrize("path", sorted((ROOT / "examples").rglob("*.py")), ids=_rel)
+@pytest.mark.parametrize("path", sorted((ROOT / "examples").glob("*/src/**/*.py")), ids=_rel)
 def test_example_controllers_use_the_interface_alone(path):
     """A user's controller package needs nothing of ours but the controller interface
     (docs/controllers.md): the example shows that."""

@@ -10,13 +10,13 @@ import timeit
 from pathlib import Path
 
 import canopen
-import cantools
 import pytest
 from canopen.objectdictionary import datatypes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import dbc
+from dbc.cia301 import is_service
 
 
 def _load_tool(name: str):
@@ -40,7 +40,8 @@ BITS = {datatypes.UNSIGNED8: (8, False), datatypes.UNSIGNED16: (16, False),
 
 @pytest.fixture(scope="module")
 def db():
-    return cantools.database.load_file(str(dbc.DBC_PATH))
+    """drive.dbc with the alternative mapping of its (a, b) companion drive_ab.dbc."""
+    return dbc.load_database()
 
 
 @pytest.fixture(scope="module")
@@ -95,10 +96,11 @@ def test_every_signal_has_an_object_and_vice_versa(db, od):
     """Every signal of the DBC is an object of the emulator's own; the other mappable
     objects are CiA 402's standard ones, whose PDOs carry the raw values in the units of
     the EDS (the emulator packs them by data type)."""
-    signals = {s.name for m in db.messages for s in m.signals}
+    signals = {s.name for m in db.messages if not is_service(m.frame_id) for s in m.signals}
     mappable = {o.name for o in od.values()
                 if isinstance(o, canopen.objectdictionary.ODVariable) and o.pdo_mappable}
-    standard = {od[i].name for i in (0x6064, 0x606C, 0x6071, 0x6077, 0x607A, 0x60FF)}
+    standard = {od[i].name for i in (0x6064, 0x606B, 0x606C, 0x6071, 0x6074, 0x6077, 0x607A,
+                                      0x6083, 0x6084, 0x6087, 0x60FF)}
     assert signals == mappable - standard
     assert set(gen_eds.SIGNAL_INDEX) == signals
 

@@ -77,7 +77,8 @@ def test_example_motor_file_is_the_paper_motor():
 
 @pytest.mark.parametrize("argv", [["--help"], ["simulate", "--help"], ["sim", "--help"],
                                   ["run", "--help"], ["compare", "--help"],
-                                  ["campaign", "--help"], ["campaign", "show", "--help"]])
+                                  ["report", "--help"], ["campaign", "--help"],
+                                  ["campaign", "show", "--help"]])
 def test_help_cites_only_shipped_files(argv, capsys):
     from gateway.cli import main
 
@@ -100,8 +101,8 @@ def test_user_facing_text_cites_no_issue_numbers(capsys):
               *(ROOT / "plant" / "scenarios").glob("*.toml"),
               *(ROOT / "campaigns").glob("*.toml")]}
     for argv in (["--help"], ["simulate", "--help"], ["sim", "--help"], ["run", "--help"],
-                 ["compare", "--help"], ["log", "--help"], ["check", "--help"],
-                 ["campaign", "--help"], ["campaign", "show", "--help"]):
+                 ["compare", "--help"], ["report", "--help"], ["log", "--help"],
+                 ["check", "--help"], ["campaign", "--help"], ["campaign", "show", "--help"]):
         with pytest.raises(SystemExit):
             main(argv)
         texts[" ".join(argv)] = capsys.readouterr().out

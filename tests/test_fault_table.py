@@ -1,6 +1,6 @@
 """README's fault table agrees with the code (gateway/stop.py) and the tests that inject
-each fault (tests/test_faults.py, tests/test_gateway.py, and the lockstep and foreign-drive
-tests of the supervision's time base)."""
+each fault (tests/test_faults.py, tests/test_gateway.py, tests/test_bus_faults.py, and the
+lockstep and foreign-drive tests of the supervision's time base)."""
 
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ def test_every_stop_reason_has_a_row_and_every_row_a_reason():
 def test_every_row_names_tests_that_exist():
     sources = "".join((ROOT / "tests" / f).read_text(encoding="utf-8")
                       for f in ("test_faults.py", "test_gateway.py",
-                                "test_lockstep_determinism.py", "test_foreign_drive.py"))
+                                "test_lockstep_determinism.py", "test_foreign_drive.py",
+                                "test_bus_faults.py"))
     for r in _table():
         tests = re.findall(r"`(test_\w+)`", r[6])
         assert tests, r

@@ -188,7 +188,30 @@ def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
 
 @pytest.mark.timing
 def test_drive_fault_stops_the_loop(emulator, tmp_path):
-    """An EMCY (here: a PDO of wrong length, 0x8210) stops the run and is reported."""
+    """The drive faults mid-run (its over-current trip, EMCY 0x2310, statusword fault bit):
+    the run stops by that cause and the drive ends disabled."""
+    from dbc.cia301 import Emcy
+
+    emu = emulator()
+    signals = StopSignals()
+    cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
+    th, result = run_in_thread(emu, tmp_path, cfg, signals)
+    wait_cycles(emu.device, 100)
+    with emu.device._lock:  # as its own over-current check does, in its own lock
+        emu.device._fault(Emcy.OVERCURRENT)
+    th.join(10)
+    assert not th.is_alive()
+    s = result["summary"]
+    assert s["run"]["stop"] == "DRIVE_FAULT", s["run"]["stop_reason"]
+    assert "0x2310" in s["run"]["stop_reason"] or "Fault" in s["run"]["stop_reason"]
+    assert any(f["code"] == 0x2310 for f in s["faults"])
+    assert_disabled(emu)
+
+
+def test_a_foreign_writer_on_the_rpdo_stops_the_loop(emulator, tmp_path):
+    """Another node sending on the gateway's RPDO2 COB-ID (here a 2-byte frame, which the
+    drive also refuses with EMCY 0x8210): the gateway sees a frame on its COB-ID it did not
+    send, in bus order before the drive's EMCY, and stops by that cause."""
     emu = emulator()
     signals = StopSignals()
     cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
@@ -199,8 +222,9 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     th.join(10)
     assert not th.is_alive()
     s = result["summary"]
-    assert s["run"]["stop"] == "DRIVE_FAULT" and "0x8210" in s["run"]["stop_reason"]
-    assert any(f["code"] == 0x8210 for f in s["faults"])
+    assert s["run"]["stop"] == "FOREIGN_WRITER", s["run"]["stop_reason"]
+    assert "0x301" in s["run"]["stop_reason"] and "0001" in s["run"]["stop_reason"]
+    assert s["run"]["exit_status"] == 1 and s["shutdown"]["safe"]
     assert_disabled(emu)
 
 

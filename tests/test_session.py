@@ -89,3 +89,32 @@ def test_a_bus_run_writes_each_file_once_and_leaves_no_marker(tmp_path):
     assert (tmp_path / "o" / "bus.blf").stat().st_size > 0
     assert result.summary["run"]["cycles"] == 200
     assert result.summary["configuration"]["bus"] == opened[0]
+
+
+def test_a_run_directory_deleted_during_the_run_is_made_again_and_said(tmp_path):
+    """Deleted mid-run (a user's rm, a cleaner): the results are written into it made
+    again, the lost bus log is named, exit 1; never a false "wrote"."""
+    import shutil
+
+    drive = load_drive_profile(None)
+    out = tmp_path / "o"
+
+    def open_bus(spec, motor, node):
+        return open_emulator("inprocess", node, motor, spec.drive_mode)
+
+    deleted = []
+
+    def progress(fraction: float) -> None:
+        if fraction > 0.3 and not deleted:
+            shutil.rmtree(out)
+            deleted.append(fraction)
+
+    result = run(RunSpec(duration=0.4), QUICK, MOTOR, target=BusTarget(drive, open_bus),
+                 output=Output(str(out)), progress=progress)
+    assert deleted and result.exit_status == 1
+    errors = result.summary["write_errors"]
+    assert any("deleted or moved during the run" in e for e in errors), errors
+    assert (out / "signals.csv").is_file() and (out / "summary.json").is_file()
+    assert not (out / "bus.blf").exists()
+    assert result.summary["run"]["bus_log_error"] == "deleted with the run directory"
+    assert json.loads((out / "summary.json").read_text())["write_errors"] == errors
