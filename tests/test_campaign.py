@@ -122,11 +122,31 @@ variant = [{label = "true flux", flux = "true"},
     assert not q.plant_changed and "--plant=rs+10" in q.options  # reproduced by its name
 
 
+def test_bus_fault_keys_are_set_in_every_fault_of_the_named_scenario():
+    text = """
+[campaign]
+name = "faults"
+command = "sim"
+[base]
+plant = "bus-drop"
+[grid]
+"bus.probability" = [0.1, 0.5]
+"""
+    points, _ = plan(campaign(text), ROOT)
+    assert [p.values["bus.probability"] for p in points] == [0.1, 0.5]
+    scenario = points[1].plant[0]
+    assert "probability = 0.5" in scenario and 'kind = "drop"' in scenario
+    assert points[1].plant_changed
+    with pytest.raises(UserError) as exc:
+        plan(campaign(text.replace('plant = "bus-drop"\n', "")), ROOT)
+    assert "has no [[bus.fault]]" in str(exc.value) and "bus-drop" in str(exc.value)
+
+
 @pytest.mark.parametrize(("text", "words"), [
     ('[campaign]\nname = "x"\n[base]\nperiode = "1ms"\n',
      ["'periode' is not an option", "period"]),
     ('[campaign]\nname = "x"\n[base]\nout = "d"\n', ["'out' cannot be set by a campaign"]),
-    ('[campaign]\nname = "x"\n[grid]\n"bus.drop" = [0.1]\n', ["bus faults are not available"]),
+    ('[campaign]\nname = "x"\n[grid]\n"bus.fault.kind" = ["drop"]\n', ["bus.probability"]),
     ('[campaign]\nname = "x"\n[pass]\nspeed_rms = 0.05\n', ['e.g. "< 0.05"']),
     ('[campaign]\nname = "x"\n[pass]\nspeed = "< 1"\n', ["'speed' is not a metric", "speed_rms"]),
     ('[campaign]\nname = "x"\n[base]\nidentify = "yes"\n', ["--identify is a flag"]),

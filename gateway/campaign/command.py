@@ -54,7 +54,8 @@ campaign file:
   [pass]      criteria on the table's metrics: speed_rms = "< 0.05", exit_status = "== 0"
   An axis is an option, a plant scenario key plant.<motor|sensors|inverter|load>.<key>
   (plant/scenario.py; set in the scenario the plant option names, or the nominal one), a
-  controller parameter controller.<name>, or a table of settings per value.
+  controller parameter controller.<name>, a bus fault key bus.<key> (set in every
+  [[bus.fault]] of the point's scenario; sim), or a table of settings per value.
 
 examples:
   hil-gateway campaign campaigns/motor-population.toml          local cluster, all cores

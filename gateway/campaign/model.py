@@ -29,14 +29,12 @@ An axis is a command option (``period``, ``delay``, ``profile``, ``motor``, ``co
 ``k-w``, ...), a plant scenario key ``plant.<table>.<key>`` (plant/scenario.py: motor
 factors, sensors, inverter, load; merged into the ``plant`` option's scenario, or the
 nominal one), a controller parameter ``controller.<name>`` (merged into
-``controller-params``), or a table of such settings per value (its ``label`` names it in
-the table). An axis overrides [base]. Distributions: ``uniform`` and ``loguniform`` (low,
-high), ``normal`` (mean, std), ``integers`` (low, high, both included), ``choice`` (values).
-
-Bus faults (``bus.<...>``) are the axis kind still to come: :class:`AxisKind` has its
-place and :func:`classify` refuses it with a message until the emulator can inject them;
-adding one means a branch in :func:`gateway.campaign.points.configure` that puts the
-fault's settings into the point's configuration.
+``controller-params``), a bus fault key ``bus.<key>`` (set in every ``[[bus.fault]]`` of
+the point's plant scenario, dbc/busfaults.py: ``bus.probability``, ``bus.start``; the
+scenario names the faults, e.g. ``plant = ["bus-drop", "bus-delay"]``; `sim` only), or a
+table of such settings per value (its ``label`` names it in the table). An axis overrides
+[base]. Distributions: ``uniform`` and ``loguniform`` (low, high), ``normal`` (mean,
+std), ``integers`` (low, high, both included), ``choice`` (values).
 """
 
 from __future__ import annotations
@@ -68,7 +66,7 @@ class AxisKind(Enum):
     PLANT = "plant"  #: a plant scenario key, plant.<table>.<key>
     CONTROLLER = "controller"  #: a controller parameter, controller.<name>
     SETTINGS = "settings"  #: a table of the above per value, named by its label
-    BUS_FAULT = "bus"  #: a bus fault, bus.<...>: not yet (see the module docstring)
+    BUS_FAULT = "bus"  #: a key of every [[bus.fault]] of the plant scenario, bus.<key>
 
 
 class Dist(StrEnum):
@@ -233,8 +231,11 @@ def classify(key: str, value: Any, options: Mapping[str, Option], where: str
     if head == "controller" and rest:
         return AxisKind.CONTROLLER, rest
     if head == "bus" and rest:
-        raise UserError(f"{where}: {key!r}: bus faults are not available as campaign axes "
-                        "yet (the emulator cannot inject them); remove the key")
+        if "." in rest:
+            raise UserError(f"{where}: {key!r}: a bus fault key is bus.<key>, set in every "
+                            "[[bus.fault]] of the point's plant scenario (dbc/busfaults.py), "
+                            "e.g. bus.probability")
+        return AxisKind.BUS_FAULT, rest
     if isinstance(value, dict) and key not in options:
         return AxisKind.SETTINGS, key
     return AxisKind.OPTION, option(options, key, where).name

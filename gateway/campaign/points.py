@@ -156,6 +156,7 @@ def configure(campaign: Campaign, index: int, values: Mapping[str, Any], files: 
     plant_keys = {k[len("plant."):]: v for k, v in settings.items() if k.startswith("plant.")}
     params_keys = {k[len("controller."):]: v for k, v in settings.items()
                    if k.startswith("controller.")}
+    bus_keys = {k[len("bus."):]: v for k, v in settings.items() if k.startswith("bus.")}
     plant_arg = options.pop(PLANT_OPTION, None)
     params_arg = options.pop(PARAMS_OPTION, None)
     opts: Mapping[str, Option] = campaign.options
@@ -172,7 +173,8 @@ def configure(campaign: Campaign, index: int, values: Mapping[str, Any], files: 
             argv += opt.argv(value)
             identity[name] = value
     plant: tuple[str, str] | None = None
-    if plant_keys or plant_arg is not None:
+    changed = bool(plant_keys or bus_keys)
+    if changed or plant_arg is not None:
         doc, source = files.plant(str(plant_arg)) if plant_arg is not None else ({}, "")
         for key, v in plant_keys.items():
             table, _, name = key.partition(".")
@@ -180,11 +182,12 @@ def configure(campaign: Campaign, index: int, values: Mapping[str, Any], files: 
             if not isinstance(section, dict):
                 raise UserError(f"--plant {plant_arg}: [{table}] is not a table")
             section[name] = v
-        if plant_keys:
+        _set_bus_keys(doc, bus_keys, plant_arg)
+        if changed:
             source = f"<{campaign.name} point {index}>"
         plant = (tomltext.dumps(doc), source)
         identity["plant"] = doc
-        if not plant_keys:
+        if not changed:
             written.append(f"--plant={plant_arg}")
     params: dict[str, Any] | None = None
     if params_keys or params_arg is not None:
@@ -199,7 +202,23 @@ def configure(campaign: Campaign, index: int, values: Mapping[str, Any], files: 
     return PointConfig(index, digest, campaign.command, tuple(argv), plant, params,
                        {k: (v.label if isinstance(v, Settings) else v)
                         for k, v in values.items()},
-                       tuple(written), bool(plant_keys), bool(params_keys))
+                       tuple(written), changed, bool(params_keys))
+
+
+def _set_bus_keys(doc: dict[str, Any], keys: Mapping[str, Any], plant_arg: Any) -> None:
+    """``bus.<key>`` axes: the key set in every [[bus.fault]] of the scenario ``doc``."""
+    if not keys:
+        return
+    bus = doc.get("bus")
+    faults = bus.get("fault") if isinstance(bus, dict) else None
+    if not isinstance(faults, list) or not faults:
+        which = f"--plant {plant_arg}" if plant_arg is not None else "the nominal plant"
+        raise UserError(f"bus.{', bus.'.join(keys)}: {which} has no [[bus.fault]] to set it "
+                        "in; name a scenario with bus faults in [base] or an axis, e.g. "
+                        "plant = \"bus-drop\" (plant/scenarios/bus-*.toml)")
+    for fault in faults:
+        if isinstance(fault, dict):
+            fault.update(keys)
 
 
 def every_point(campaign: Campaign, cwd: Path | None = None) -> list[PointConfig]:
