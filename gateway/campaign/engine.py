@@ -138,9 +138,11 @@ class DaskEngine:
                             "(scripts/bootstrap installs it), or run it here with "
                             "--in-process") from exc
         self._distributed = distributed
-        if not logging.getLogger().isEnabledFor(logging.DEBUG):  # --debug shows Dask's too
-            # what matters of Dask's errors (a worker that died) becomes the table's rows
-            logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        # what matters of Dask's errors (a worker that died) becomes the table's rows; its
+        # workers' complaints while the cluster closes are noise (--debug shows them all)
+        quiet = logging.DEBUG if logging.getLogger().isEnabledFor(logging.DEBUG) else (
+            logging.CRITICAL)
+        logging.getLogger("distributed").setLevel(quiet)
         self.cluster: Any = None
         self.command = command
         if scheduler is not None:
@@ -161,7 +163,7 @@ class DaskEngine:
             with dask.config.set(config):
                 self.cluster = distributed.LocalCluster(
                     n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                    dashboard_address=dashboard, silence_logs=logging.ERROR,
+                    dashboard_address=dashboard, silence_logs=quiet,
                     preload=["gateway.campaign.workerinit"])
             self.client = distributed.Client(self.cluster)
             self.description = (f"local Dask cluster of {n} worker process"
