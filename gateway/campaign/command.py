@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -15,6 +16,7 @@ from gateway.campaign.points import PointConfig, plan
 from gateway.campaign.progress import CampaignProgress, clock
 from gateway.campaign.runpoint import Limits
 from gateway.errors import UserError
+from gateway.scope import live_scope
 from gateway.units import parse_duration
 
 PROG = "hil-gateway"
@@ -111,6 +113,10 @@ def add_parser(sub: Any) -> None:
                    help="run again the points recorded with an error, a timeout or a dead "
                         "worker (those that ran keep their rows)")
     p.add_argument("--csv", action="store_true", help="also write DIR/results.csv")
+    p.add_argument("--scope", metavar="[HOST:]PORT",
+                   help="serve the running table live at http://HOST:PORT/ (the live scope's "
+                        "page: each point's numeric results against its number, as points "
+                        "come back; HOST 127.0.0.1 by default, PORT 0: any free port)")
     _add_view_options(p)
     p.set_defaults(func=cmd_campaign)
 
@@ -243,9 +249,16 @@ def cmd_campaign(args: argparse.Namespace) -> int:
                   flush=True)
             progress = CampaignProgress(campaign.name, len(todo), before)
             try:
-                with runner.interrupts():
-                    runner.run(engine, todo, table, limits, lambda rows: progress.advance(
-                        len(rows), sum(r["status"] != "ok" for r in rows)))
+                with runner.interrupts(), live_scope(args.scope,
+                                                     f"campaign {campaign.name}") as feed:
+                    table_view = PointRows(feed)
+
+                    def on_rows(rows: list[dict[str, Any]]) -> None:
+                        progress.advance(len(rows), sum(r["status"] != "ok" for r in rows))
+                        table_view.add(rows)
+
+                    runner.run(engine, todo, table, limits, on_rows)
+                    table_view.finish()
             except KeyboardInterrupt:
                 interrupted = True
             finally:
@@ -265,6 +278,36 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         print(f"{len(rows)} points in {out / 'results.parquet'}")
         _report(rows, table.meta, out, out / "figures", args)
         return 0 if summary.all_passed(rows, table.meta) else 1
+
+
+class PointRows:
+    """The campaign's running table for the live scope (``--scope``): one row per point
+    as it comes back, its number as the x axis and its numeric results as signals."""
+
+    def __init__(self, feed: Any) -> None:
+        self.feed = feed
+        self.columns: tuple[str, ...] = ()
+        self._rows: list[tuple[float, ...]] = []
+
+    def add(self, rows: list[dict[str, Any]]) -> None:
+        if self.feed is None or not rows:
+            return
+        if not self.columns:  # the first batch names the columns; the feed starts then
+            self.columns = ("t", *(k for k, v in rows[0].items() if _numeric(v)))
+            self.feed.attach(self)
+        for r in rows:
+            values = [r.get(k) for k in self.columns[1:]]
+            self._rows.append((float(len(self._rows) + 1),
+                               *(float(v) if _numeric(v) else math.nan for v in values)))
+
+    def finish(self) -> None:
+        if self.feed is not None:
+            self.feed.finish({"run": {"stop": "CAMPAIGN_DONE",
+                                      "stop_reason": f"{len(self._rows)} points run"}})
+
+
+def _numeric(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 def cmd_show(args: argparse.Namespace) -> int:
