@@ -372,7 +372,7 @@ def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     from dbc.modes import DriveMode
-    from gateway.loop import Timing
+    from dbc.timing import Timing
 
     _add_control_options(p)
     p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
@@ -460,9 +460,8 @@ def _emulator_profile(args: argparse.Namespace) -> str:
 def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
     """The run's specification, checked against what the drive can do."""
     from dbc.modes import DriveMode
-    from dbc.timing import Sampling
+    from dbc.timing import Sampling, Timing
     from gateway.control.controller import FluxSource
-    from gateway.loop import Timing
     from gateway.process_data import process_data
     from gateway.spec import RunSpec
 
@@ -798,8 +797,11 @@ def _values_not_options(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of `hil-gateway` (all subcommands)."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of `hil-gateway`: all subcommands, or only ``command`` when it
+    is one of this module's (:data:`LOCAL_COMMANDS`): a `simulate` does not wait for the
+    imports of the others (`sim`, `run`, `log`, `scan`, `check` and `bridge` import
+    python-can and python-canopen)."""
     parser = _Parser(
         prog=PROG,
         description="CANopen hardware-in-the-loop gateway: the sensorless speed and flux "
@@ -809,21 +811,28 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true",
                         help="show tracebacks and debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    if command in LOCAL_COMMANDS:
+        LOCAL_COMMANDS[command](sub)
+    else:
+        _add_simulate(sub)
+        _add_sim(sub)
+        _add_run(sub)
+        from gateway import bridgecmd, buslog, check, scan
 
-    _add_simulate(sub)
-    _add_sim(sub)
-    _add_run(sub)
-    from gateway import bridgecmd, buslog, check, scan
-
-    buslog.add_parser(sub)
-    scan.add_parser(sub)
-    check.add_parser(sub)
-    bridgecmd.add_parser(sub)
-    _add_compare(sub)
-    _add_scope(sub)
-    _add_reference(sub)
+        buslog.add_parser(sub)
+        scan.add_parser(sub)
+        check.add_parser(sub)
+        bridgecmd.add_parser(sub)
+        _add_compare(sub)
+        _add_scope(sub)
+        _add_reference(sub)
     _debug_everywhere(parser)
     return parser
+
+
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word that is not an option), or None."""
+    return next((a for a in argv if not a.startswith("-")), None)
 
 
 def _add_simulate(sub: Any) -> None:
@@ -999,6 +1008,14 @@ def _add_reference(sub: Any) -> None:
     p.set_defaults(func=lambda a: _usage(p))
 
 
+#: The subcommands defined in this module, by name, and what registers each (the others live
+#: in their own modules: gateway.buslog, scan, check, bridgecmd).
+LOCAL_COMMANDS: dict[str, Callable[[Any], None]] = {
+    "simulate": _add_simulate, "sim": _add_sim, "run": _add_run, "compare": _add_compare,
+    "scope": _add_scope, "reference": _add_reference, "profile": _add_reference,
+}
+
+
 def _debug_everywhere(parser: argparse.ArgumentParser) -> None:
     """--debug also after the subcommand (``hil-gateway sim --debug``), as in hil-plant:
     every subparser gets it with default SUPPRESS, so the top-level value stands unless
@@ -1019,8 +1036,9 @@ def _usage(p: argparse.ArgumentParser) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `hil-gateway`; returns the exit status."""
-    parser = build_parser()
-    args = parser.parse_args(_values_not_options(sys.argv[1:] if argv is None else argv))
+    argv = _values_not_options(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_command_of(argv))
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)

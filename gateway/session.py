@@ -28,6 +28,7 @@ from dbc.motor import MotorParams
 from dbc.signals import SETPOINT_MESSAGE
 from gateway import report
 from gateway.errors import UserError
+from gateway.figures import Worker
 from gateway.guard import DivergenceWatch, profile_envelope
 from gateway.reference import Profile
 from gateway.results import merge_truth, write_results
@@ -128,36 +129,51 @@ def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | N
               watcher: Watcher | None = None) -> RunResult:
     """The simulation, its summary and (``out``) its files. The signal handlers stay
     installed until every file is written: a second Ctrl-C (or one that comes while the
-    figures are drawn) must not lose the run's files."""
-    from gateway import simulate
+    figures are drawn) must not lose the run's files. With files to write, a worker
+    process gets ready to draw the figures while the simulation runs
+    (:class:`gateway.drawing.FigureWorker`)."""
+    from gateway.drawing import FigureWorker
 
     stop = threading.Event()
     signals.on_stop = lambda reason: stop.set()
     watch = DivergenceWatch(profile_envelope(profile, motor, spec.gains.i_max))
     installed: AbstractContextManager[Any] = (signals.installed() if out is not None
                                               else nullcontext())
+    worker = FigureWorker.start() if out is not None else None
+    with installed, worker or nullcontext():
+        return _simulated(spec, profile, motor, out, windows, progress, signals, watcher,
+                          stop, watch, worker)
+
+
+def _simulated(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
+               windows: tuple, progress: Progress | None, signals: StopSignals,
+               watcher: Watcher | None, stop: threading.Event, watch: DivergenceWatch,
+               worker: Worker | None) -> RunResult:
+    """:func:`_simulate`'s run and results, with its handlers installed."""
+    from gateway import simulate
+
     t0 = time.perf_counter()
-    with installed:
-        try:
-            rec = simulate.run(profile, motor, spec, progress, stop, watch,
-                               None if watcher is None else watcher.attach)
-        except ValueError as exc:  # also a plant scenario's error (ScenarioError)
-            raise UserError(f"the simulation could not run: {exc}") from exc
-        _writing_politely(signals)
-        wall = time.perf_counter() - t0
-        if not len(rec):
-            raise UserError(f"the simulation stopped before its first period "
-                            f"({signals.reason})", exit_code=130)
-        sig = rec.arrays()
-        summary = _simulation_summary(spec, profile, sig, windows, watch,
-                                      signals.reason if stop.is_set() else "", wall)
-        if rec.identification is not None:
-            summary["identification"] = rec.identification
-        _watched(summary, watcher)
-        if out is None:
-            return RunResult(sig, summary)
-        files = write_results(out, sig, summary, figures=True,
-                              limits=_figure_limits(spec, True), delay_s=_delay_s(spec))
+    try:
+        rec = simulate.run(profile, motor, spec, progress, stop, watch,
+                           None if watcher is None else watcher.attach)
+    except ValueError as exc:  # also a plant scenario's error (ScenarioError)
+        raise UserError(f"the simulation could not run: {exc}") from exc
+    _writing_politely(signals)
+    wall = time.perf_counter() - t0
+    if not len(rec):
+        raise UserError(f"the simulation stopped before its first period "
+                        f"({signals.reason})", exit_code=130)
+    sig = rec.arrays()
+    summary = _simulation_summary(spec, profile, sig, windows, watch,
+                                  signals.reason if stop.is_set() else "", wall)
+    if rec.identification is not None:
+        summary["identification"] = rec.identification
+    _watched(summary, watcher)
+    if out is None:
+        return RunResult(sig, summary)
+    files = write_results(out, sig, summary, figures=True,
+                          limits=_figure_limits(spec, True), delay_s=_delay_s(spec),
+                          worker=worker)
     return RunResult(sig, summary, out, files)
 
 

@@ -26,19 +26,20 @@ class ReferenceWindow:
         self._size = size
         self._n0 = 0
         self._win: list[Refs] = []
+        self._slide = -1  # the n0 of the next step when the window is full: n0 + 2
 
     def starting(self, n0: int) -> list[Refs]:
         """The references at n·T/2, n = n0 … n0 + size − 1, index n − n0. The list is the
         window's own: read it before the next call."""
         win = self._win
-        shift = n0 - self._n0
-        if shift == 2 and len(win) == self._size:  # the next step: two new instants
-            self._n0 = n0
-            n = n0 + self._size - 2
+        if n0 == self._slide:  # the next step: two instants leave, two new ones come
+            n = n0 + self._size
+            self._n0, self._slide = n0, n0 + 2
             del win[:2]
-            win.append(self._refs_at(0.5 * n * self._T))
-            win.append(self._refs_at(0.5 * (n + 1) * self._T))
+            win.append(self._refs_at(0.5 * (n - 2) * self._T))
+            win.append(self._refs_at(0.5 * (n - 1) * self._T))
             return win
+        shift = n0 - self._n0
         if shift:
             if 0 < shift < len(win):
                 del win[:shift]
@@ -50,4 +51,5 @@ class ReferenceWindow:
         while len(win) < self._size:
             win.append(refs_at(0.5 * n * T))
             n += 1
+        self._slide = n0 + 2
         return win

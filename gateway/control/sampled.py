@@ -540,9 +540,11 @@ class SampledController:
 Mat2 = tuple[complex, complex, complex, complex]
 
 
-def expm2(a: Mat2, tau: float, det: complex | None = None) -> Mat2:
+def expm2(a: Mat2, tau: float, det: complex | None = None, first_row: bool = False
+          ) -> tuple[complex, ...]:
     """e^{A·τ} of a complex 2×2 matrix (row-major), by its two eigenvalues (Sylvester).
-    ``det``: A's determinant a11·a22 − a12·a21 where the caller has it."""
+    ``det``: A's determinant a11·a22 − a12·a21 where the caller has it; ``first_row``: only
+    (e11, e12)."""
     a11, a12, a21, a22 = a
     half_tr = 0.5 * (a11 + a22)
     if det is None:
@@ -552,10 +554,14 @@ def expm2(a: Mat2, tau: float, det: complex | None = None) -> Mat2:
     e1, e2 = cmath.exp(l1 * tau), cmath.exp(l2 * tau)
     gap = l1 - l2
     if abs(gap) * tau < 1e-9:  # (nearly) repeated eigenvalue: e^{λτ}(I + (A − λI)τ)
+        if first_row:
+            return e1 * (1 + (a11 - l1) * tau), e1 * a12 * tau
         return (e1 * (1 + (a11 - l1) * tau), e1 * a12 * tau, e1 * a21 * tau,
                 e1 * (1 + (a22 - l1) * tau))
     f = (e1 - e2) / gap  # coefficient of A
     g = (l1 * e2 - l2 * e1) / gap  # coefficient of I
+    if first_row:
+        return g + f * a11, f * a12
     return (g + f * a11, f * a12, f * a21, g + f * a22)
 
 
@@ -637,7 +643,9 @@ class FullOrderSampledController(SampledController):
         di, dp = i0 - i_ss, psi0 - p_ss
         di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
         di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
-        return (c, w0, r0, rh, r1, f0, i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1)
+        # for _fo_finish: the load over the interval (T_L/J) and the reference at the middle
+        return (c, w0, r0.T_L / self._J, 0.5 * (c.i_ref0 + c.i_ref1), rh, r1, f0,
+                i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1)
 
     def _fo_finish(self, model, end: tuple[complex, complex] | None = None
                    ) -> tuple[complex, complex, float, float]:
@@ -645,14 +653,13 @@ class FullOrderSampledController(SampledController):
         at the end, which also correct the mid-point by half the end's mismatch. ω̂:
         Simpson's rule on the trajectory; dω̂/dt: (27), (32) at the end, against the
         interval's end reference ``i_ref1``."""
-        c, w0, r0, rh, r1, f0, i_h, p_h, i_1, p_1 = model
+        c, w0, load, i_ref, rh, r1, f0, i_h, p_h, i_1, p_1 = model
         if end is not None:
             i_h += 0.5 * (end[0] - i_1)
             p_h += 0.5 * (end[1] - p_1)
             i_1, p_1 = end
         # the rates of (27), (32) at the middle and the end (_fo_rate, inline)
-        mu, beta, gamma_2, load = self._mu, self._beta, self._gamma_2, r0.T_L / self._J
-        i_ref = 0.5 * (c.i_ref0 + c.i_ref1)
+        mu, beta, gamma_2 = self._mu, self._beta, self._gamma_2
         e_d, e_q = i_h.real - i_ref.real, i_h.imag - i_ref.imag
         w = (rh.psi_ref * p_h.imag + beta * (p_h.imag * e_d - p_h.real * e_q)) / gamma_2
         f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - load + w
@@ -679,15 +686,17 @@ class FullOrderSampledController(SampledController):
         # the past interval by the model: the estimator's current integral, then ω̂
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, win[0], win[1], win[2])
-        i_h, i_1 = model[6], model[8]
+        i_h, i_1 = model[7], model[9]
         rot_s = cmath.exp(1j * prev.eps)
         turn_h = cmath.exp(0.5j * prev.w_0 * T)
         turn_1 = turn_h * turn_h
         int_i_ab = self._T_6 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
-        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
-                                           rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
-        psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
-        psi_ab = law_flux(self._true_flux, sample, psi_hat_ab)
+        psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
+                                       rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
+        if self.commissioning is not None:
+            psi_ab = self._commission(refs, sample, psi_ab)
+        if self._true_flux:
+            psi_ab = law_flux(True, sample, psi_ab)
         psi_k = psi_ab * rot_k
         _, _, w_k, f_end = self._fo_finish(model, (i_k, psi_k))
         self.w_hat = w_k
@@ -731,7 +740,7 @@ class FullOrderSampledController(SampledController):
              complex(-self._alpha, w_mid - w_0))  # _matrix(ω0, ω̂_mid), inline
         a11, a12, a21, a22 = a
         det = a11 * a22 - a12 * a21
-        e11, e12 = expm2(a, T, det)[:2]
+        e11, e12 = expm2(a, T, det, True)
         free = e11 * i + e12 * psi  # i(T) with u = 0
         # i(T) = free − (u/σ)·[(I − E)·A⁻¹·e1]_0, A⁻¹·e1 = (a22, −a21)/det
         gain = ((1.0 - e11) * a22 + e12 * a21) / det
