@@ -7,6 +7,7 @@ Every subcommand returns an exit status; bad input ends in one paragraph on stde
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
@@ -273,7 +274,15 @@ def _gains(args: argparse.Namespace):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """`hil-gateway simulate`: the closed loop without CAN."""
+    """`hil-gateway simulate`: the closed loop without CAN. A worker process gets ready to
+    draw the figures first (:class:`gateway.drawing.FigureWorker`), while the rest loads."""
+    from gateway.drawing import FigureWorker
+
+    with (FigureWorker.start() if args.figures else None) or contextlib.nullcontext() as worker:
+        return _simulate(args, worker)
+
+
+def _simulate(args: argparse.Namespace, worker: Any) -> int:
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
@@ -310,14 +319,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     try:
         with live_scope(args.scope, f"simulate {profile.name}") as scope:
             result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
-                                                             args.force),
+                                                             args.force, args.figures),
                          windows=report.profile_windows(profile, args.windows),
-                         progress=progress, watcher=scope)
+                         progress=progress, watcher=scope, figure_worker=worker)
     except BaseException:
         progress.done(complete=False)
         raise
     progress.done(complete=result.summary["run"]["stop"] == "END_OF_PROFILE")
-    _print_simulation(spec, profile, label, result)
+    _print_simulation(spec, profile, label, result, args.figures)
     _print_next(result)
     return result.exit_status  # 1 when a file could not be written (write_results)
 
@@ -338,7 +347,8 @@ def _duration_words(args: argparse.Namespace, profile: Any) -> str:
             else f"the profile's duration ({profile.duration:g} s)")
 
 
-def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
+def _print_simulation(spec: Any, profile: Any, label: str, result: Any,
+                      figures: bool = True) -> None:
     """What `simulate` did: configuration, the metrics, the files, why it stopped early."""
     from gateway import report
 
@@ -355,7 +365,8 @@ def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
     drawn = any(p.suffix == ".png" for p in result.files)
     print(f"{summary['run']['cycles']} samples, {summary['wall_time_s']:.2f} s wall time; "
           f"wrote {result.out}/" + ", ".join(p.name for p in result.files)
-          + ("" if drawn or result.write_errors else " (install matplotlib for the figures)"))
+          + ("" if drawn or result.write_errors or not figures
+             else " (install matplotlib for the figures)"))
     stop = summary["run"]["stop"]
     if stop == "DIVERGED":
         print(f"{PROG}: the loop diverged and the simulation stopped: "
@@ -430,6 +441,9 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
                    help="metric windows: auto (default: one per segment of the reference "
                         "profile), paper ([0,0.5), [0.5,1.5), [1.5,end)), none, or boundaries "
                         "in s such as 0.5,1.5 (docs/outputs.md)")
+    p.add_argument("--no-figures", dest="figures", action="store_false",
+                   help="write signals.csv and summary.json only, no figures (faster; "
+                        "`hil-gateway compare` and the scope read the run as well)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
     p.add_argument("--scope", metavar="[HOST:]PORT",
                    help="serve a live scope of the run at http://HOST:PORT/ (HOST 127.0.0.1 "
@@ -535,7 +549,17 @@ def _finish_run(summary: dict[str, Any]) -> int:
 
 def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
     """What `run` and `sim` share: inputs checked before the run directory is made, the
-    run (:func:`gateway.session.run`), the report, the exit status."""
+    run (:func:`gateway.session.run`), the report, the exit status. Where figures will be
+    drawn, a worker process gets ready for them first, at a lower priority than the loop
+    (:class:`gateway.drawing.FigureWorker`)."""
+    from gateway.drawing import FigureWorker
+
+    worker = (FigureWorker.start(nice=10) if args.figures and target.drive.truth else None)
+    with worker or contextlib.nullcontext():
+        return _on_the_bus(args, target, plant, worker)
+
+
+def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
     from gateway import report
     from gateway.loop import LoopRow
     from gateway.scope import live_scope
@@ -561,9 +585,9 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     try:
         with live_scope(args.scope, f"{kind} {profile.name}") as scope:
             result = run(spec, profile, motor, target=target,
-                         output=Output(args.out, kind, args.force),
+                         output=Output(args.out, kind, args.force, args.figures),
                          windows=report.profile_windows(profile, args.windows),
-                         progress=progress, watcher=scope)
+                         progress=progress, watcher=scope, figure_worker=worker)
     except BaseException:
         progress.done(complete=False)
         raise

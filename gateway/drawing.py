@@ -55,9 +55,9 @@ class FigureWorker:
         self._from = from_child
 
     @classmethod
-    def start(cls) -> FigureWorker | None:
-        """Fork the worker; None where this process cannot (not Linux, another thread
-        running, no matplotlib)."""
+    def start(cls, nice: int = 0) -> FigureWorker | None:
+        """Fork the worker, at ``nice`` (a bus run's: its loop comes first); None where this
+        process cannot (not Linux, another thread running, no matplotlib)."""
         if (sys.platform != "linux" or threading.active_count() > 1
                 or importlib.util.find_spec("matplotlib") is None):
             return None
@@ -72,7 +72,7 @@ class FigureWorker:
             try:
                 os.close(down_w)
                 os.close(up_r)
-                code = _serve(down_r, up_w)
+                code = _serve(down_r, up_w, nice)
             finally:
                 os._exit(code)
         os.close(down_r)
@@ -131,10 +131,12 @@ class FigureWorker:
 # --------------------------------------------------------------------------- the worker
 
 
-def _serve(down: int, up: int) -> int:
+def _serve(down: int, up: int, nice: int) -> int:
     """The worker's life: get ready, wait for the job's file, draw, answer."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if nice:
+        os.nice(nice)
     ready = figures.warm_up()
     where = _receive(down)
     if where is None:  # the parent is done without figures, or gone

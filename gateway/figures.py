@@ -294,8 +294,8 @@ def _save(fig: Any, path: Path) -> None:
     """The figure as PNG at ``path``, written under a temporary name and renamed when
     complete (a failed or interrupted write leaves no partial file)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        fig.savefig(tmp, dpi=DPI, format="png")
+    try:  # zlib level 1: 15 % larger files than the default 6, a tenth of the drawing
+        fig.savefig(tmp, dpi=DPI, format="png", pil_kwargs={"compress_level": 1})
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

@@ -41,11 +41,12 @@ Progress = Callable[[float], None]
 @dataclass(frozen=True)
 class Output:
     """Where a run writes: ``dir`` (``--out``; None: a new ``runs/<time>-<name>``),
-    ``force`` (reuse a non-empty ``dir``)."""
+    ``force`` (reuse a non-empty ``dir``), ``figures`` (draw them; ``--no-figures``: no)."""
 
     dir: str | None = None
     name: str = "run"
     force: bool = False
+    figures: bool = True
 
 
 @dataclass
@@ -82,7 +83,7 @@ class Watcher(Protocol):
 def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = None,
         output: Output | None = None, windows: tuple = report.DEFAULT_WINDOWS,
         progress: Progress | None = None, signals: StopSignals | None = None,
-        watcher: Watcher | None = None) -> RunResult:
+        watcher: Watcher | None = None, figure_worker: Worker | None = None) -> RunResult:
     """Run ``spec`` on ``profile`` with the controller's ``motor``: in this process
     (``target`` None) or against ``target`` (:class:`gateway.runner.BusTarget`) on its bus.
 
@@ -92,18 +93,21 @@ def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = No
     fraction done. ``signals``: the stop requests (SIGINT/SIGTERM, installed here when
     this is the main thread; a caller may request a stop through it too). ``watcher``: a
     live view of the run (:class:`Watcher`); its account goes into summary.json as
-    ``scope``."""
+    ``scope``. ``figure_worker``: the figures are drawn by this
+    :class:`gateway.drawing.FigureWorker` (the caller started it early and closes it); else
+    a simulation with files starts one, and a bus run draws them itself."""
     signals = signals or StopSignals()
     if target is None:
         if output is None:
             return _simulate(spec, profile, motor, None, windows, progress, signals, watcher)
         with run_dir(output.dir, output.name, output.force) as out:
-            return _simulate(spec, profile, motor, out, windows, progress, signals, watcher)
+            return _simulate(spec, profile, motor, out, windows, progress, signals, watcher,
+                             figure_worker, output.figures)
     if output is None:
         raise ValueError("a bus run writes its bus log: give it an Output")
     with run_dir(output.dir, output.name, output.force, (spec.bus_log,)) as out:
         return _on_bus(spec, profile, motor, target, out, windows, progress, signals,
-                       watcher)
+                       watcher, output.figures, figure_worker)
 
 
 def _writing_politely(signals: StopSignals) -> None:
@@ -126,7 +130,8 @@ def _watched(summary: dict[str, Any], watcher: Watcher | None) -> None:
 
 def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
               windows: tuple, progress: Progress | None, signals: StopSignals,
-              watcher: Watcher | None = None) -> RunResult:
+              watcher: Watcher | None = None, worker: Worker | None = None,
+              figures: bool = True) -> RunResult:
     """The simulation, its summary and (``out``) its files. The signal handlers stay
     installed until every file is written: a second Ctrl-C (or one that comes while the
     figures are drawn) must not lose the run's files. With files to write, a worker
@@ -139,16 +144,17 @@ def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | N
     watch = DivergenceWatch(profile_envelope(profile, motor, spec.gains.i_max))
     installed: AbstractContextManager[Any] = (signals.installed() if out is not None
                                               else nullcontext())
-    worker = FigureWorker.start() if out is not None else None
-    with installed, worker or nullcontext():
+    own = (FigureWorker.start() if out is not None and figures and worker is None
+           else None)
+    with installed, own or nullcontext():
         return _simulated(spec, profile, motor, out, windows, progress, signals, watcher,
-                          stop, watch, worker)
+                          stop, watch, worker or own, figures)
 
 
 def _simulated(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
                windows: tuple, progress: Progress | None, signals: StopSignals,
                watcher: Watcher | None, stop: threading.Event, watch: DivergenceWatch,
-               worker: Worker | None) -> RunResult:
+               worker: Worker | None, figures: bool) -> RunResult:
     """:func:`_simulate`'s run and results, with its handlers installed."""
     from gateway import simulate
 
@@ -171,7 +177,7 @@ def _simulated(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | 
     _watched(summary, watcher)
     if out is None:
         return RunResult(sig, summary)
-    files = write_results(out, sig, summary, figures=True,
+    files = write_results(out, sig, summary, figures=figures,
                           limits=_figure_limits(spec, True), delay_s=_delay_s(spec),
                           worker=worker)
     return RunResult(sig, summary, out, files)
@@ -213,9 +219,11 @@ def _delay_s(spec: RunSpec) -> float:
 
 def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, out: Path,
             windows: tuple, progress: Progress | None, signals: StopSignals,
-            watcher: Watcher | None = None) -> RunResult:
+            watcher: Watcher | None = None, figures: bool = True,
+            worker: Worker | None = None) -> RunResult:
     """The loop on the target's bus (opened and closed here), then its results, written
-    once with the emulator's truth merged first."""
+    once with the emulator's truth merged first (the figures: ``figures`` and the drive
+    sends the truth they need; drawn by ``worker`` where there is one)."""
     from gateway.runner import RUNNING_MARKER, run_gateway
 
     with signals.installed():
@@ -233,9 +241,10 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
             summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb, on_bus)
             summary.update(report.metrics(done.sig, windows))
         _watched(summary, watcher)
-        files = write_results(out, done.sig, summary, figures=bool(drive.truth),
+        files = write_results(out, done.sig, summary, figures=figures and bool(drive.truth),
                               limits=_figure_limits(spec, drive.emulator),
-                              delay_s=_delay_s(spec), errors=summary.pop("write_errors", []))
+                              delay_s=_delay_s(spec), errors=summary.pop("write_errors", []),
+                              worker=worker)
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)

@@ -66,7 +66,7 @@ from gateway.control.interface import (
     Sample,
     make_command,
 )
-from gateway.control.laws import Refs, sat_tanh
+from gateway.control.laws import Refs
 from gateway.control.refwindow import ReferenceWindow
 
 
@@ -462,10 +462,16 @@ class SampledController:
         b = w - r.w_ref + half_T * c0
         h = half_T * c1
         x = b / (1.0 + h) if h > -1.0 else b
-        for _ in range(4):  # Newton on x + h·sat(x) − b = 0 (monotone for h > −1)
-            th = math.tanh(x)
-            x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
-        i_sq = (-k_w * math.tanh(x) + ff) / (self._mu * psi_ref)
+        tanh = math.tanh  # four Newton steps on x + h·sat(x) − b = 0 (monotone for h > −1)
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        i_sq = (-k_w * tanh(x) + ff) / (self._mu * psi_ref)
         q2 = self._i_max2 - i_sd * i_sd
         q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
         limited = abs(i_sq) > q_max
@@ -479,7 +485,7 @@ class SampledController:
     def _currents(self, r: Refs, w_hat: float, T_L: float) -> tuple[float, float, bool]:
         """i_sd*, i_sq* of (15) with the current limit (as :mod:`gateway.control.laws`)."""
         psi_ref = r.psi_ref
-        s = sat_tanh(w_hat - r.w_ref)
+        s = math.tanh(w_hat - r.w_ref)  # sat = tanh (laws.sat_tanh, §E7)
         i_sd = psi_ref / self._M + r.dpsi_ref / self._aM
         i_sq = (-self._g.k_w * s + T_L / self._J + r.dw_ref) / (self._mu * psi_ref)
         q2 = self._i_max2 - i_sd * i_sd
