@@ -119,12 +119,15 @@ class SampledController:
     """The sampled-data current-fed controller (15), (16), (20) (see the module docstring);
     a :class:`gateway.control.interface.DriveController`.
 
-    Speed: what depends only on the period (the pre-warped gain, the integrals of a
-    constant current over an interval) is computed once, the motor's constants at each
-    change of motor (:meth:`_set_motor`), the references at each instant once
-    (:class:`~gateway.control.refwindow.ReferenceWindow`), and each interval's exponentials
-    once where several integrals use them; every number is the one the plain expressions
-    give, bit for bit.
+    Speed (about 2.5× the plain expressions, the same numbers bit for bit): what depends
+    only on the period (the pre-warped gain, the integrals of a constant current over an
+    interval) is computed once, the motor's constants at each change of motor
+    (:meth:`_set_motor`), the references at each instant once
+    (:class:`~gateway.control.refwindow.ReferenceWindow`), each interval's exponentials once
+    where several integrals use them; the model of the interval a step predicts is kept for
+    the next step, which corrects the same model with the measurement (:meth:`_advance`),
+    and the frame angle at t_k is the one the command for I_k carried. Every number is the
+    one the plain expressions give (tests/test_fast_paths.py, tools/same_signals.py).
     """
 
     signals = PAPER_SIGNALS
@@ -575,8 +578,9 @@ class FullOrderSampledController(SampledController):
     """The sampled-data full-order law (25)–(27), (32) for a voltage-fed drive.
 
     Over an interval the drive holds u_dq in the frame turning at ω0; with the rotor speed
-    at its estimate the stator-current and rotor-flux rows of (2) are linear time-invariant
-    in that frame, x = (i_s, ψ_r): dx/dτ = A·x + (u/σ, 0), solved with e^{Aτ}. The voltage
+    at its estimate ω the stator-current and rotor-flux rows of (2) are linear time-invariant
+    in that frame, x = (i_s, ψ_r): dx/dτ = A·x + (u/σ, 0), solved with e^{Aτ}, where
+    A(ω0, ω) = [[−c1 − jω0, β(α − jω)], [αM, −α + j(ω − ω0)]], c1 = R_s/σ + β·αM. The voltage
     of the interval is the one that brings the modelled current error (28) at the
     interval's end to what (34) would give, e(T) = e^{−ke·T}·e(0) − (1 − e^{−ke·T})/ke·αM·ψ̃_rd
     (the unknown e_ω term dropped). ω0 is (26) at the midpoint; the observer (27) with w of
@@ -605,11 +609,6 @@ class FullOrderSampledController(SampledController):
         self._a21 = complex(self._aM, 0.0)
 
     # ------------------------------------------------------------------ the model
-
-    def _matrix(self, w_0: float, w_m: float) -> Mat2:
-        """A of the current and flux rows of (2) in the frame turning at ω0, rotor speed w_m."""
-        return (complex(-self._c1, -w_0), self._beta * complex(self._alpha, -w_m),
-                self._a21, complex(-self._alpha, w_m - w_0))
 
     def _fo_rate(self, psi: complex, i: complex, i_ref: complex, r: Refs, T_L: float
                  ) -> float:
@@ -640,7 +639,7 @@ class FullOrderSampledController(SampledController):
             f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
         w_m = w0 + self._half_T * f0
         a = (complex(-self._c1, -c.w_0), self._beta * complex(self._alpha, -w_m), self._a21,
-             complex(-self._alpha, w_m - c.w_0))  # _matrix(ω0, w_m), inline
+             complex(-self._alpha, w_m - c.w_0))  # A(ω0, ω) at the midpoint's speed
         a11, a12, a21, a22 = a
         det = a11 * a22 - a12 * a21
         b = c.u_dq / self._sigma
@@ -743,7 +742,7 @@ class FullOrderSampledController(SampledController):
         w_mid = w + self._half_T * f0
         w_0 = w_mid + self._aM * 0.5 * (i.imag + target.imag) / rh.psi_ref  # (26)
         a = (complex(-self._c1, -w_0), self._beta * complex(self._alpha, -w_mid), self._a21,
-             complex(-self._alpha, w_mid - w_0))  # _matrix(ω0, ω̂_mid), inline
+             complex(-self._alpha, w_mid - w_0))  # A(ω0, ω̂_mid)
         a11, a12, a21, a22 = a
         det = a11 * a22 - a12 * a21
         e11, e12 = expm2(a, T, det, True)
