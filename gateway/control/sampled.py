@@ -130,6 +130,13 @@ class SampledController:
     one the plain expressions give (tests/test_fast_paths.py, tools/same_signals.py).
     """
 
+    # slots: a step reads some forty of them; an instance dict of that size loses CPython's
+    # fast attribute access (its shared keys hold 30). "__dict__": others may add their own.
+    __slots__ = ("_J", "_M", "_R_s", "_T", "__dict__", "_aM", "_ab", "_alpha", "_base", "_beta",
+                 "_cmd_refs", "_constant_current", "_d", "_di_prev", "_exp_0", "_g", "_gamma_1",
+                 "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_k", "_k_r", "_k_w_warped", "_kept",
+                 "_lag", "_mu", "_phi_0", "_psi_prev", "_refs", "_sigma", "_true_flux", "_w_prev",
+                 "commissioning", "config", "eps_0", "estimator", "motor", "refs_at", "w_hat")
     signals = PAPER_SIGNALS
     #: reference instants n·T/2 a step reads, beyond 2(k − 1) … 2(k + d) + 1
     _lookahead = 0
@@ -163,6 +170,9 @@ class SampledController:
         self._gamma_1 = g.gamma_1
         self._i_max2 = g.i_max * g.i_max
         self._refs = ReferenceWindow(refs_at, T, 2 * self._d + 4 + self._lookahead)
+        # where the commanded interval I_{k+d}'s references sit in the window: its start,
+        # midpoint (and end: the full-order law)
+        self._cmd_refs = slice(2 * self._d + 2, 2 * self._d + 4 + self._lookahead)
         if config.estimator is EstimatorKind.RS_ADAPTIVE:  # docs/robustness.md
             self.estimator: IntervalFluxEstimator = IntervalRsAdaptiveFluxEstimator(motor)
         else:
@@ -421,8 +431,8 @@ class SampledController:
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
         # the command for I_{k+d}: references and ω̂ at its midpoint
-        r = win[2 * d + 3]
-        T_L = win[2 * d + 2].T_L  # the load the drive will apply
+        r0, r = win[self._cmd_refs]
+        T_L = r0.T_L  # the load the drive will apply
         w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
         w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
         R_s, sigma, k_r = self._R_s, self._sigma, self._k_r
@@ -588,6 +598,7 @@ class FullOrderSampledController(SampledController):
     """
 
     _lookahead = 1  # the end of the commanded interval, 2(k + d) + 2
+    __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_gamma_2", "_i_prev")
 
     def __init__(self, motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
                  eps_0: float = 0.0, w_hat: float = 0.0) -> None:
@@ -723,7 +734,7 @@ class FullOrderSampledController(SampledController):
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
         # the command for I_{k+d} = (t0, t0 + T], t0 = (k + d)·T
-        r0, rh, r1 = win[2 * d + 2], win[2 * d + 3], win[2 * d + 4]
+        r0, rh, r1 = win[self._cmd_refs]
         T_L = r0.T_L
         if self._k > d + 1:
             i_ref0 = last.i_ref1
