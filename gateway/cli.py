@@ -286,7 +286,6 @@ def _simulate(args: argparse.Namespace, worker: Any) -> int:
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
-    from gateway.scope import live_scope
     from gateway.session import Output, run
     from gateway.simulate import emulator_rate
     from gateway.spec import RunSpec
@@ -317,7 +316,7 @@ def _simulate(args: argparse.Namespace, worker: Any) -> int:
                              f"simulating {total:g} s at {label}")
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
-        with live_scope(args.scope, f"simulate {profile.name}") as scope:
+        with _live_scope(args.scope, f"simulate {profile.name}") as scope:
             result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
                                                              args.force, args.figures),
                          windows=report.profile_windows(profile, args.windows),
@@ -329,6 +328,16 @@ def _simulate(args: argparse.Namespace, worker: Any) -> int:
     _print_simulation(spec, profile, label, result, args.figures)
     _print_next(result)
     return result.exit_status  # 1 when a file could not be written (write_results)
+
+
+def _live_scope(address: str | None, title: str) -> Any:
+    """``--scope``: the live scope of the run (:func:`gateway.scope.live_scope`), imported
+    only when asked for (it brings an HTTP server)."""
+    if address is None:
+        return contextlib.nullcontext(None)
+    from gateway.scope import live_scope
+
+    return live_scope(address, title)
 
 
 def _print_next(result: Any) -> None:
@@ -562,7 +571,6 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
 def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
     from gateway import report
     from gateway.loop import LoopRow
-    from gateway.scope import live_scope
     from gateway.session import Output, run
 
     kind, drive = target.command, target.drive
@@ -583,7 +591,7 @@ def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) 
     target = replace(target, node=node, gateway_node=args.gateway_node)
     progress = Progress(kind, True if args.progress else None)
     try:
-        with live_scope(args.scope, f"{kind} {profile.name}") as scope:
+        with _live_scope(args.scope, f"{kind} {profile.name}") as scope:
             result = run(spec, profile, motor, target=target,
                          output=Output(args.out, kind, args.force, args.figures),
                          windows=report.profile_windows(profile, args.windows),
@@ -1060,6 +1068,9 @@ def _usage(p: argparse.ArgumentParser) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `hil-gateway`; returns the exit status."""
+    # numpy's OpenBLAS starts a thread per core that spins on import (0.1 s of CPU taken
+    # from the figure worker); nothing here multiplies matrices large enough to need them
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     argv = _values_not_options(sys.argv[1:] if argv is None else argv)
     parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
