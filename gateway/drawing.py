@@ -92,7 +92,7 @@ class FigureWorker:
                 answer = _receive(self._from)
             finally:
                 Path(name).unlink(missing_ok=True)
-        except OSError as exc:
+        except Exception as exc:  # not handed over (a full temp dir, a worker gone): here
             log.debug("figure worker: %s", exc)
         finally:
             self.close()
