@@ -43,7 +43,7 @@ from _common import Figures, RunError, add_json_option, failed_text, require_com
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
-from gateway.cli import SIM_HEARTBEAT_TIMEOUT_MS
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.reference import paper_profile
 from gateway.runner import BusTarget

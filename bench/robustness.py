@@ -1,20 +1,25 @@
 """The robustness table of the sensorless loop against plants that differ from the
-controller's model (plant scenarios, ``plant/scenarios/``), with `hil-gateway simulate`'s
-Python API (sampled 1 ms, one period of SYNC delay, (d, q) setpoints, INT16 PDOs).
+controller's model (plant scenarios, ``plant/scenarios/``): the campaign
+``campaigns/robustness.toml`` (`hil-gateway campaign`, a local Dask cluster by default),
+printed as one table per block (sampled 1 ms, one period of SYNC delay, (d, q) setpoints,
+INT16 PDOs).
 
-    .venv/bin/python bench/robustness.py                  # the table on stdout, PNG in runs/
+    .venv/bin/python bench/robustness.py                  # the tables on stdout
     .venv/bin/python bench/robustness.py --markdown       # Markdown for README/BENCHMARKS.md
     .venv/bin/python bench/robustness.py --only paper     # one block: paper, zero-speed,
                                                           #   slow-reversal, exact,
                                                           #   full-order, load, identify
+    .venv/bin/python bench/robustness.py --png runs/robustness.png   # and the figure
 
 Columns are speed errors ω − ω* in rad/s: RMS over the run, max |·|, and the final value
-(last sample). "runaway" marks max |ω − ω*| > 50 rad/s. The PNG (``--png``, default
-``runs/robustness.png``) shows |ω − ω*| over time per case. Nothing here is fixed in
-advance: every figure is simulated when the script runs (a few minutes on one core).
+(last sample). "runaway" marks max |ω − ω*| > 50 rad/s, "(diverged)" a run the divergence
+guard stopped (the figures are up to there). ``--png FILE`` draws |ω − ω*| over
+time per case (it keeps every run's directory for its signals: slower). Nothing here is
+fixed in advance: every figure is simulated when the script runs (the campaign's table is
+in ``--out DIR``, default a new runs/bench-robustness-<time>; its summary goes to stderr).
 
-A run that ends in a numerical error (a runaway) is "diverged", a result. A run that fails
-otherwise (another exception from the simulation) is a failed measurement: ``FAILED:
+A run that ends in a numerical error or diverges is a result. A point that fails
+otherwise (an error, a time limit, a dead worker) is a failed measurement: ``FAILED:
 <reason>`` in its cell, the other cases go on, exit status 1 (bench/_common.py).
 ``--json [FILE]`` keys: ``"<block>: <row> / <controller>"`` for every case, each
 ``{"rms", "max", "final", "runaway"}`` (speed error, rad/s; non-finite as "inf"/"nan") or
@@ -24,10 +29,13 @@ null; ``runs``, ``seconds``, ``png`` (the figure written, or null); ``failed``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
+import tomllib
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -35,135 +43,134 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _common import Figures, RunError, add_json_option, failed_text, the_run  # noqa: E402
+from _common import Figures, add_json_option, failed_text  # noqa: E402
 
-from dbc.motor import MotorParams  # noqa: E402
-from gateway.reference import load_profile, paper_profile  # noqa: E402
-from gateway.session import run  # noqa: E402
+from gateway.campaign import tomltext  # noqa: E402
+from gateway.campaign.model import load_campaign  # noqa: E402
+from gateway.campaign.points import every_point  # noqa: E402
+from gateway.cli import main as hil_gateway  # noqa: E402
+from gateway.report import read_csv  # noqa: E402
 from gateway.spec import RunSpec  # noqa: E402
-from plant.scenario import resolve_scenario  # noqa: E402
 
+CAMPAIGN = ROOT / "campaigns" / "robustness.toml"
 RUNAWAY = 50.0  # rad/s
-
-#: (label, RunSpec keywords) of the controller columns
-CONTROLLERS = {
-    "true flux": {"flux": "true"},
-    "open-loop": {"estimator": "open-loop"},
-    "drift-free": {"estimator": "drift-free"},
-    "rs-adaptive": {"estimator": "rs-adaptive"},
-}
-
 
 @dataclass
 class Case:
     block: str
-    profile: str
-    scenario: str
+    row: str
     controller: str
-    kw: dict
     rms: float = math.nan
     max: float = math.nan
     final: float = math.nan
     t: np.ndarray | None = None
     e: np.ndarray | None = None
-    row: str = ""  # the table row, default the scenario
-    failed: str = ""  # why the run failed (not a divergence: an error), "" if it did not
+    failed: str = ""  # why the point failed (not a divergence: an error), "" if it did not
+    run_dir: str | None = None
+    stopped: str = ""  # why the run stopped before the profile's end ("diverged"), or ""
 
     @property
     def runaway(self) -> bool:
         return not self.failed and not self.max <= RUNAWAY
 
     @property
+    def scenario(self) -> str:
+        return self.row.rsplit(", ", 1)[-1]
+
+    @property
     def name(self) -> str:
         """The case's figure name: block, row, controller."""
-        return f"{self.block}: {self.row or self.scenario} / {self.controller}"
-
-
-def blocks() -> dict[str, list[Case]]:
-    """The cases, by block."""
-    out: dict[str, list[Case]] = {}
-    paper = ["nominal", "continuous-load", "offset10mA", "rs+5", "rs-5", "rs+10", "rs-10",
-             "offset10mA-rs+5", "offset10mA-rs+10", "offset10mA-rs-10", "rr+20", "rr-20"]
-    out["paper"] = [Case("paper", "paper", s, c, kw) for s in paper
-                    for c, kw in CONTROLLERS.items()]
-    for prof in ("zero-speed", "slow-reversal"):
-        out[prof] = [Case(prof, prof, s, c, kw) for s in ("nominal", "rs+10", "rs-10")
-                     for c, kw in CONTROLLERS.items()]
-    exact = {"discretisation": "exact"}
-    out["exact"] = [Case("exact", prof, s, c, {**exact, **kw}, row=f"{prof}, {s}")
-                    for prof, scns in (("paper", ("nominal", "rs+10", "rs-10",
-                                                  "offset10mA-rs+10", "offset10mA-rs-10",
-                                                  "rr+20", "rr-20")),
-                                       ("zero-speed", ("rs+10", "rs-10")),
-                                       ("slow-reversal", ("rs+10", "rs-10")))
-                    for s in scns
-                    for c, kw in CONTROLLERS.items() if c != "open-loop"]
-    fo = {"law": "full-order", "drive": "voltage"}
-    out["full-order"] = [Case("full-order", "paper", s, c, {**fo, **kw})
-                         for s in ("nominal", "rs+5", "rs-5")
-                         for c, kw in (("true flux", {"flux": "true"}),
-                                       ("open-loop", {}),
-                                       ("drift-free", {"estimator": "drift-free"}),
-                                       ("rs-adaptive", {"estimator": "rs-adaptive"}))]
-    out["load"] = [Case("load", "paper", "continuous-load", f"T_L {load}",
-                        {**kw, "load": load, "drive": drive},
-                        row=f"{c}, {drive} drive")
-                   for drive in ("ideal", "current-loop")
-                   for c, kw in (("drift-free", {"estimator": "drift-free"}),
-                                 ("rs-adaptive", {"estimator": "rs-adaptive"}))
-                   for load in ("known", "observed")]
-    # the observed load against plant errors (rs-adaptive estimator, ideal drive)
-    out["load"] += [Case("load", "paper", s, f"T_L {load}",
-                         {"estimator": "rs-adaptive", "load": load},
-                         row=f"rs-adaptive, ideal drive, {s}")
-                    for s in ("offset10mA", "noise5mA", "rs+10", "rr+20", "real-drive")
-                    for load in ("known", "observed")]
-    # the standstill identification of R_s and R_r (--identify, docs/robustness.md §5)
-    ident = [("paper", s) for s in ("nominal", "rs+10", "rs-10", "offset10mA-rs+10",
-                                     "offset10mA-rs-10", "rr+20", "rr-20", "real-drive")]
-    ident += [(p, s) for p in ("zero-speed", "slow-reversal")
-              for s in ("rs+10", "rs-10", "rr+20", "rr-20")]
-    out["identify"] = [Case("identify", prof, s, f"{est}{' + identify' if on else ''}",
-                            {"discretisation": "exact", "estimator": est, "load": "known",
-                             "identify": on}, row=f"{prof}, {s}")
-                       for prof, s in ident
-                       for est in ("drift-free", "rs-adaptive") for on in (False, True)]
-    return out
+        return f"{self.block}: {self.row} / {self.controller}"
 
 
 def sim_config(drive: str | None = None, **kw) -> RunSpec:
-    """RunSpec of a case: sampled 1 ms, delay 1, (d, q) setpoints, the Euler design unless
-    the case says otherwise (the load observer exists in it only; block "exact" has the
-    sampled-data design). Not imported from tests/: a third-party package (eds-utils)
-    installs a top-level ``tests`` package that shadows the project's."""
+    """RunSpec of a robustness case as bench/guard.py replays it: sampled 1 ms, delay 1,
+    (d, q) setpoints, the Euler design unless the case says otherwise (the campaign's
+    [base]). Not imported from tests/: a third-party package (eds-utils) installs a
+    top-level ``tests`` package that shadows the project's."""
     kw.setdefault("discretisation", "euler")
     return RunSpec.from_words(1e-3, 1, "dq", drive, **kw)
 
 
-def simulate(case: Case) -> Case:
-    prof = paper_profile() if case.profile == "paper" else load_profile(
-        ROOT / "gateway" / "profiles" / f"{case.profile}.toml")
-    cfg = sim_config(plant=resolve_scenario(case.scenario), **case.kw)
-    try:
-        with the_run():
-            try:
-                rec = run(cfg, prof, MotorParams()).sig
-            except (ValueError, OverflowError) as exc:  # a runaway may end in a numerical error
-                print(f"  {case.block}/{case.scenario}/{case.controller}: {exc}",
-                      file=sys.stderr)
-                return case
-    except RunError as exc:  # any other error: the run failed, not the controller
-        case.failed = str(exc)
-        print(f"  {case.block}/{case.scenario}/{case.controller}: {failed_text(case.failed)}",
-              file=sys.stderr)
-        return case
-    e = rec["w_m"] - rec["w_ref"]
-    finite = np.isfinite(e)
-    case.t, case.e = rec["t"], e
-    case.rms = float(np.sqrt(np.mean(e[finite] ** 2))) if finite.all() else math.inf
-    case.max = float(np.max(np.abs(e))) if finite.all() else math.inf
-    case.final = float(e[-1])
-    return case
+def labels(values: dict) -> tuple[str, str, str]:
+    """A case's block, table row and column, from its point's axis values: the block's
+    label ("exact/paper": block "exact", rows prefixed "paper"), the plant and the drive
+    in the row, the controller's settings in the column (the load block: the estimator in
+    the row, the load in the column)."""
+    block, _, prefix = str(values["block"]).partition("/")
+    row = [prefix] if prefix else []
+    col = []
+    for key, v in values.items():
+        if key == "block":
+            continue
+        if key == "plant":
+            row.append(str(v))
+        elif key == "drive-mode":
+            row.append(f"{v} drive")
+        elif key == "variant" and block == "load":
+            row.insert(0, str(v))
+        elif key == "load":
+            col.append(f"T_L {v}")
+        elif key == "identify":
+            col.append("+ identify" if v else "")
+        else:
+            col.append(str(v))
+    if block == "load" and "variant" not in values:
+        row.insert(0, "rs-adaptive, ideal drive")
+    return block, ", ".join(row), " ".join(c for c in col if c)
+
+
+def only(blocks: list[str], out: Path) -> Path:
+    """The campaign with only the grids of ``blocks``, written beside ``out``."""
+    data = tomllib.loads(CAMPAIGN.read_text(encoding="utf-8"))
+    data["grid"] = [g for g in data["grid"]
+                    if g["block"][0]["label"].partition("/")[0] in blocks]
+    path = out.with_name(f"{out.name}-campaign.toml")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(tomltext.dumps(data), encoding="utf-8")
+    return path
+
+
+def run_campaign(args: argparse.Namespace, out: Path) -> tuple[Path, int]:
+    """The campaign (its summary to stderr); the campaign file run and its exit status."""
+    path = only(args.only, out) if args.only else CAMPAIGN
+    words = ["campaign", str(path), "--out", str(out), "--worst", "0"]
+    if args.in_process:
+        words.append("--in-process")
+    elif args.scheduler:
+        words += ["--scheduler", args.scheduler]
+    elif args.workers:
+        words += ["--workers", str(args.workers)]
+    if args.png:
+        words.append("--keep-runs")
+    with contextlib.redirect_stdout(sys.stderr):
+        status = hil_gateway(words)
+    return path, status
+
+
+def cases_of(path: Path, out: Path, with_signals: bool) -> dict[str, list[Case]]:
+    """Every case of the campaign, by block, with its row of the table (a case two blocks
+    share is one point, in both)."""
+    import pyarrow.parquet as pq
+
+    rows = {r["hash"]: r for r in pq.read_table(out / "results.parquet").to_pylist()}
+    blocks: dict[str, list[Case]] = {}
+    for point in every_point(load_campaign(path), ROOT):
+        block, row, col = labels(dict(point.values))
+        case = Case(block, row, col)
+        r = rows.get(point.hash)
+        if r is None or r["status"] not in ("ok", "stopped") or r["speed_rms"] is None:
+            case.failed = "not run" if r is None else f"{r['status']}: {r['stop_reason']}"
+        else:
+            case.rms, case.max, case.final = r["speed_rms"], r["speed_max"], r["speed_final"]
+            case.run_dir = r["run_dir"]
+            if r["stop"] != "END_OF_PROFILE":
+                case.stopped = str(r["stop"]).lower().replace("_", " ")
+            if with_signals and case.run_dir:
+                sig = read_csv(Path(case.run_dir) / "signals.csv")
+                case.t, case.e = sig["t"], sig["w_m"] - sig["w_ref"]
+        blocks.setdefault(block, []).append(case)
+    return blocks
 
 
 def fmt(x: float) -> str:
@@ -175,8 +182,8 @@ def fmt(x: float) -> str:
 def table(cases: list[Case], markdown: bool) -> str:
     """One row per scenario, one column group per controller."""
     ctls = list(dict.fromkeys(c.controller for c in cases))
-    scns = list(dict.fromkeys(c.row or c.scenario for c in cases))
-    by = {(c.row or c.scenario, c.controller): c for c in cases}
+    scns = list(dict.fromkeys(c.row for c in cases))
+    by = {(c.row, c.controller): c for c in cases}
     head = ["plant"] + [f"{k}: RMS / max / final" for k in ctls]
     rows = []
     for s in scns:
@@ -190,7 +197,8 @@ def table(cases: list[Case], markdown: bool) -> str:
                 row.append(failed_text(c.failed))
                 continue
             cell = f"{fmt(c.rms)} / {fmt(c.max)} / {fmt(c.final)}"
-            row.append(cell + (" runaway" if c.runaway else ""))
+            row.append(cell + (" runaway" if c.runaway else "")
+                       + (f" ({c.stopped})" if c.stopped else ""))
         rows.append(row)
     if markdown:
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -240,7 +248,7 @@ def plot(all_cases: dict[str, list[Case]], path: Path) -> None:
                      "rs-adaptive" in c.controller or "observed" in c.controller)
             ax.semilogy(c.t, np.abs(c.e) + 1e-4, lw=0.8 if after else 0.6,
                         ls="-" if after else ":", color=f"C{k // 2 % 10}",
-                        label=f"{c.row or c.scenario}, {c.controller}")
+                        label=f"{c.row}, {c.controller}")
             k += 1
         ax.set_title(TITLES[b], fontsize="medium")
         ax.set_ylabel("|ω − ω*| [rad/s]")
@@ -258,16 +266,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markdown", action="store_true", help="Markdown tables")
     ap.add_argument("--only", action="append", choices=list(TITLES),
                     help="run only this block (repeatable)")
-    ap.add_argument("--png", default=str(ROOT / "runs" / "robustness.png"),
-                    help="figure of |ω − ω*| per case (default runs/robustness.png)")
+    ap.add_argument("--png", metavar="FILE",
+                    help="also draw |ω − ω*| per case into FILE (keeps the runs: slower)")
+    ap.add_argument("--out", metavar="DIR",
+                    help="the campaign's directory (default runs/bench-robustness-<time>)")
+    where = ap.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, help="local Dask workers (default: all cores)")
+    where.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a Dask scheduler")
+    where.add_argument("--in-process", action="store_true", help="no Dask: one after another")
     add_json_option(ap)
     args = ap.parse_args(argv)
-    all_cases = {b: cs for b, cs in blocks().items() if not args.only or b in args.only}
+    out = Path(args.out) if args.out else ROOT / "runs" / (
+        f"bench-robustness-{datetime.now():%Y%m%d-%H%M%S}")
     fig = Figures()
     t0 = time.perf_counter()
+    path, status = run_campaign(args, out)
+    if not (out / "results.parquet").exists():
+        print(f"the campaign did not run (exit status {status}); see above", file=sys.stderr)
+        return 1
+    all_cases = cases_of(path, out, bool(args.png))
     for b, cases in all_cases.items():
         for c in cases:
-            simulate(c)
             if c.failed:
                 fig.fail(c.name, c.failed)
             else:
@@ -280,17 +299,19 @@ def main(argv: list[str] | None = None) -> int:
     fig.put("runs", runs)
     fig.put("seconds", seconds)
     print(f"\n({runs} runs, {seconds:.0f} s; speed errors ω − ω* in rad/s; sampled 1 ms, "
-          f"delay 1, (d, q) setpoints; 'runaway': max > {RUNAWAY:g} rad/s"
+          f"delay 1, (d, q) setpoints; 'runaway': max > {RUNAWAY:g} rad/s; table: "
+          f"{out / 'results.parquet'}"
           f"{f'; {len(fig.failed)} FAILED' if fig.failed else ''})")
     fig.put("png", None)
-    try:
-        plot(all_cases, Path(args.png))
-        print(f"wrote {args.png}")
-        fig.put("png", args.png)
-    except ImportError:
-        print("(install matplotlib for the figure)")
-    except OSError as exc:
-        print(f"cannot write the figure to {args.png}: {exc.strerror or exc}")
+    if args.png:
+        try:
+            plot(all_cases, Path(args.png))
+            print(f"wrote {args.png}")
+            fig.put("png", args.png)
+        except ImportError:
+            print("(install matplotlib for the figure)")
+        except OSError as exc:
+            print(f"cannot write the figure to {args.png}: {exc.strerror or exc}")
     fig.report_failures()
     fig.emit(args.json)
     return fig.exit_status()

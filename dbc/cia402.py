@@ -115,20 +115,24 @@ ERROR_CODE = 0x603F
 class OperationMode(IntEnum):
     """Modes of operation (0x6060) the emulated drive offers. The negative ones are the
     emulator's manufacturer-specific vector modes (what the paper's laws need); the others
-    are CiA 402's standard cyclic synchronous modes, in which the drive runs its own field
-    orientation (and speed loop)."""
+    are CiA 402's standard modes, in which the drive runs its own field orientation (and
+    speed loop): the profile modes take a target whenever the master sends one and ramp to
+    it, the cyclic synchronous modes take one every SYNC."""
 
     VOLTAGE_VECTOR = -2
     CURRENT_VECTOR = -1
+    PROFILE_VELOCITY = 3  #: PV: target velocity 0x60FF, ramped by 0x6083/0x6084
+    PROFILE_TORQUE = 4  #: PT: target torque 0x6071, ramped by 0x6087
     CYCLIC_SYNC_POSITION = 8  #: CSP: target position 0x607A every SYNC
     CYCLIC_SYNC_VELOCITY = 9  #: CSV: target velocity 0x60FF every SYNC
     CYCLIC_SYNC_TORQUE = 10  #: CST: target torque 0x6071 every SYNC
 
     @property
     def supported_bit(self) -> int:
-        """Its bit in 0x6502 (CiA 402: bit 7 CSP, bit 8 CSV, bit 9 CST; bits 16..
-        manufacturer)."""
+        """Its bit in 0x6502 (CiA 402: bit 2 PV, bit 3 PT, bit 7 CSP, bit 8 CSV, bit 9 CST;
+        bits 16.. manufacturer)."""
         return {OperationMode.VOLTAGE_VECTOR: 1 << 17, OperationMode.CURRENT_VECTOR: 1 << 16,
+                OperationMode.PROFILE_VELOCITY: 1 << 2, OperationMode.PROFILE_TORQUE: 1 << 3,
                 OperationMode.CYCLIC_SYNC_POSITION: 1 << 7,
                 OperationMode.CYCLIC_SYNC_VELOCITY: 1 << 8,
                 OperationMode.CYCLIC_SYNC_TORQUE: 1 << 9}[self]
@@ -137,6 +141,21 @@ class OperationMode(IntEnum):
     def standard(self) -> bool:
         """A CiA 402 standard mode (the drive's own control), not a vector mode."""
         return self > 0
+
+    @property
+    def profiled(self) -> bool:
+        """A profile mode (PV, PT): the drive ramps to the target itself."""
+        return self in (OperationMode.PROFILE_VELOCITY, OperationMode.PROFILE_TORQUE)
+
+    @property
+    def torque(self) -> bool:
+        """Its target is a torque (PT, CST)."""
+        return self in (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE)
+
+    @classmethod
+    def offered(cls, supported: int) -> frozenset[OperationMode]:
+        """The modes whose bit a 0x6502 value ``supported`` sets."""
+        return frozenset(m for m in cls if supported & m.supported_bit)
 
 
 #: 0x6502 of the emulated drive: every :class:`OperationMode`.
@@ -151,6 +170,34 @@ VELOCITY_ACTUAL = 0x606C  #: INTEGER32, velocity units
 POSITION_ACTUAL = 0x6064  #: INTEGER32, position units
 TARGET_POSITION = 0x607A  #: INTEGER32, position units
 TARGET_VELOCITY = 0x60FF  #: INTEGER32, velocity units
+VELOCITY_DEMAND = 0x606B  #: INTEGER32, velocity units (PV: the ramp's output)
+VELOCITY_WINDOW = 0x606D  #: UNSIGNED16, velocity units (PV: target reached, bit 10)
+VELOCITY_WINDOW_TIME = 0x606E  #: UNSIGNED16, ms
+VELOCITY_THRESHOLD = 0x606F  #: UNSIGNED16, velocity units (PV: speed = 0, bit 12)
+VELOCITY_THRESHOLD_TIME = 0x6070  #: UNSIGNED16, ms
+TORQUE_DEMAND = 0x6074  #: INTEGER16, per mille of the rated torque (PT: the ramp's output)
+MOTOR_RATED_CURRENT = 0x6075  #: UNSIGNED32, mA
+CURRENT_ACTUAL = 0x6078  #: INTEGER16, per mille of the rated current
+DC_LINK_VOLTAGE = 0x6079  #: UNSIGNED32, mV
+PROFILE_ACCELERATION = 0x6083  #: UNSIGNED32, acceleration units
+PROFILE_DECELERATION = 0x6084  #: UNSIGNED32, acceleration units
+TORQUE_SLOPE = 0x6087  #: UNSIGNED32, per mille of the rated torque per second
+TORQUE_PROFILE_TYPE = 0x6088  #: INTEGER16, 0 linear ramp
+#: The factor group (CiA 402): encoder increments per motor revolutions (sub 1, sub 2),
+#: motor revolutions per shaft revolutions, feed per shaft revolutions.
+POSITION_ENCODER_RESOLUTION = 0x608F
+GEAR_RATIO = 0x6091
+FEED_CONSTANT = 0x6092
+#: SI unit of position and velocity (CiA 402 / CiA 303-2 coding): bits 31..24 the power of
+#: ten (signed), 23..16 the numerator's unit, 15..8 the denominator's.
+SI_UNIT_POSITION = 0x60A8
+SI_UNIT_VELOCITY = 0x60A9
+SUPPORTED_MODES = 0x6502  #: UNSIGNED32, bits of :attr:`OperationMode.supported_bit`
+#: Statusword bits of the profile modes (CiA 402): 10 target reached, 12 speed = 0 (PV).
+SW_TARGET_REACHED = 0x0400
+SW_SPEED_ZERO = 0x1000
+#: Controlword bit 8: halt.
+CW_HALT_BIT = 0x0100
 #: The emulated drive's velocity unit (0x606C, 0x60FF): 0.001 rev/min, in rad/s.
 VELOCITY_UNIT = 2.0 * 3.141592653589793 / 60000.0
 #: The emulated drive's position unit (0x6064, 0x607A): 1/65536 of a revolution, in rad.

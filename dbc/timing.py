@@ -70,6 +70,13 @@ class TimeBase(IntEnum):
 #: nothing, s. Only a process that stopped altogether is this silent; a stalled host is not.
 LOCKSTEP_BACKSTOP_S = 2.0
 
+#: `sim`: how long the emulated drive started in the gateway's process waits for the
+#: gateway's heartbeat (0x1016), ms. The two share one interpreter: a stall of the process
+#: (a loaded host, the GIL) stops the heartbeat and its watch together, and the 300 ms of
+#: the emulator's profile tripped on busy 2-core hosts before cycle 1 (EMCY 0x8130); a
+#: dead gateway thread is still caught, within a second.
+SIM_HEARTBEAT_TIMEOUT_MS = 1000
+
 
 #: Bounds of the cycle period T, s: 0x1006 allows 100 µs to 1 s; above 100 ms the frame
 #: turns by more than ω0·T = 20 rad a period at 200 rad/s and the sampled laws mean nothing.

@@ -10,10 +10,12 @@ import argparse
 import json
 import signal
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
 from dbc.bus import add_bus_options, bus_config, open_bus
+from dbc.busfaults import FaultKind
 from gateway.errors import UserError
 
 
@@ -42,6 +44,13 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     except BaseException:
         gateway_side.shutdown()
         raise
+    try:
+        if any(f.kind is FaultKind.ERROR_FRAMES for f in plant.bus_faults):
+            _check_error_frames(cfg)
+    except BaseException:
+        gateway_side.shutdown()
+        drive_side.shutdown()
+        raise
     stop = threading.Event()
     old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     if args.duration:
@@ -63,6 +72,31 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(account, indent=2) + "\n")
     return 0
+
+
+def _check_error_frames(cfg: Any) -> None:
+    """The interface delivers an error frame a process sends (SocketCAN's vcan does not:
+    the kernel takes it and hands it to no one); a :class:`UserError` saying so."""
+    import can
+
+    tx, rx = open_bus(cfg, receive_own_messages=False), open_bus(cfg, receive_own_messages=False)
+    try:
+        tx.send(can.Message(is_error_frame=True, arbitration_id=0, is_extended_id=False))
+        deadline = time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            msg = rx.recv(0.1)
+            if msg is not None and msg.is_error_frame:
+                return
+    except can.CanError:
+        pass
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+    raise UserError(f"{cfg.label()} does not deliver error frames that a process sends (a "
+                    "virtual CAN interface carries none; only a controller makes them), so "
+                    "the scenario's error-frames fault cannot act between two processes "
+                    "here: inject it in one process (hil-gateway sim --plant ...), or over "
+                    "a real CAN interface")
 
 
 def add_parser(sub: Any) -> None:

@@ -15,7 +15,7 @@ import re
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -33,6 +33,15 @@ examples:
   hil-gateway simulate --period 1ms --setpoint-frame ab --delay 1
   hil-gateway run -i socketcan -c can0 --node 1     against a real drive or `hil-plant run`
   hil-gateway compare runs/A runs/B                  did my change help? errors side by side
+  hil-gateway compare --baseline runs/A runs/B --tolerance examples/tolerance.toml --junit g.xml
+                                                    the regression gate: exit 1 past a limit
+  hil-gateway report runs/A                         runs/A/report.html: the run on one page
+  hil-gateway sim --scope 8765                      watch the run live at http://127.0.0.1:8765/
+  hil-gateway sim --plant bus-drop                  a bus fault injected (plant/scenarios/bus-*)
+  hil-gateway profile new-drive --eds drive.eds --node 5 -o mydrive.toml
+                                                    a drive profile from the drive's EDS
+  hil-gateway campaign campaigns/motor-population.toml
+                                                    1000 runs on a local Dask cluster
   hil-gateway reference check profiles/paper.toml
 """
 
@@ -122,9 +131,10 @@ def _choices(enum: Any) -> list[str]:
     return [m.value for m in enum]
 
 
-def _controller_choice(args: argparse.Namespace) -> Any:
+def _controller_choice(args: argparse.Namespace, given: dict[str, Any] | None = None) -> Any:
     """``--controller`` and ``--controller-params``, checked before anything runs: the
-    controller is found (a registered name or module:Class) and its parameters read."""
+    controller is found (a registered name or module:Class) and its parameters read
+    (``given``: the parameters themselves, in place of the file's)."""
     import tomllib
 
     from gateway.control.interface import ControllerChoice, controller_factory
@@ -132,7 +142,9 @@ def _controller_choice(args: argparse.Namespace) -> Any:
     name = _controller_name(args)
     controller_factory(name)  # found, or a UserError naming what is registered
     params: dict[str, Any] = {}
-    if args.controller_params:
+    if given is not None:
+        params = dict(given)
+    elif args.controller_params:
         path = Path(args.controller_params)
         try:
             params = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -225,35 +237,27 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
 
 
 def _design(args: argparse.Namespace, load: str) -> Any:
-    """--discretisation, else exact, or euler where only it has what is asked for (the load
-    observer; every estimator exists in both designs)."""
-    from gateway.control.controller import Discretisation
+    """--discretisation, else :func:`gateway.spec.default_discretisation`."""
+    from gateway.spec import default_discretisation
 
     if args.discretisation is not None:
         return args.discretisation
-    if load == "observed":
-        return Discretisation.EULER
-    return Discretisation.EXACT
+    return default_discretisation(load)
 
 
 def _load_mode(args: argparse.Namespace, plant: Any, drive: Any = None) -> str:
-    """--load; else the scenario's [load].known (told, else observed); else told where the
-    drive applies the profile's load — the emulator, or a drive profile that maps a T_L
-    signal (a dynamometer the gateway commands) — and untold where it cannot ("not
-    told against a real drive"; the laws then assume no load rather than feed forward one
-    the shaft may not carry). Not told does not mean observed: the load observer runs away
-    with a 10 mA offset or R_s +10 % even unloaded (docs/robustness.md §2), so it stays
-    opt-in."""
+    """--load; else :func:`gateway.spec.default_load` for the plant scenario and whether
+    the drive applies the profile's load (a drive profile that maps a T_L signal)."""
+    from gateway.spec import default_load
+
     if args.load:
         return args.load
-    if plant is not None and not plant.known(True):
-        return "observed"
+    applies = None
     if drive is not None:
         from gateway.process_data import process_data
 
-        if "T_L" not in process_data(drive).roles:
-            return "untold"
-    return "known"
+        applies = "T_L" in process_data(drive).roles
+    return default_load(plant, applies).value
 
 
 def _gains(args: argparse.Namespace):
@@ -273,30 +277,42 @@ def _gains(args: argparse.Namespace):
 # --------------------------------------------------------------------------- simulate
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
-    """`hil-gateway simulate`: the closed loop without CAN. A worker process gets ready to
-    draw the figures first (:class:`gateway.drawing.FigureWorker`), while the rest loads."""
-    from gateway.drawing import FigureWorker
+@dataclass(frozen=True)
+class RunInputs:
+    """What a command line asks of :func:`gateway.session.run`: the checked ``spec``, the
+    reference ``profile``, the controller's ``motor``, the metric ``windows``, the bus
+    ``target`` (None: in this process) and the period's words (``label``). Made by
+    :func:`simulate_inputs` and :func:`sim_inputs`, which `simulate`, `sim` and a
+    campaign's points (:mod:`gateway.campaign`) all go through."""
 
-    with (FigureWorker.start() if args.figures else None) or contextlib.nullcontext() as worker:
-        return _simulate(args, worker)
+    spec: Any
+    profile: Any
+    motor: Any
+    windows: tuple
+    target: Any = None
+    label: str = ""
 
 
-def _simulate(args: argparse.Namespace, worker: Any) -> int:
+def simulate_inputs(args: argparse.Namespace, plant: Any = None,
+                    controller_params: dict[str, Any] | None = None) -> RunInputs:
+    """`simulate`'s options → what its run needs, every input checked (UserError) before
+    anything runs. ``plant``: the plant scenario itself, in place of ``--plant``;
+    ``controller_params``: the controller's parameters, in place of the
+    ``--controller-params`` file's."""
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
-    from gateway.session import Output, run
     from gateway.simulate import emulator_rate
     from gateway.spec import RunSpec
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    plant = _load_scenario(args.plant)
+    plant = plant if plant is not None else _load_scenario(args.plant)
     if plant is not None and plant.bus_faults:
-        raise UserError(f"--plant {args.plant} injects bus faults ([[bus.fault]]), which act "
+        name = args.plant or plant.source
+        raise UserError(f"--plant {name} injects bus faults ([[bus.fault]]), which act "
                         "on a CAN bus: run it over the bus with `hil-gateway sim --plant "
-                        f"{args.plant}`")
+                        f"{name}`")
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
     duration = parse_duration(args.duration, "--duration") if args.duration else None
@@ -307,20 +323,39 @@ def _simulate(args: argparse.Namespace, worker: Any) -> int:
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
-        controller=_controller_choice(args),
+        controller=_controller_choice(args, controller_params),
     )
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
     n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
     report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
                              f"simulating {total:g} s at {label}")
+    return RunInputs(spec, profile, motor, report.profile_windows(profile, args.windows),
+                     label=label)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """`hil-gateway simulate`: the closed loop without CAN. A worker process gets ready to
+    draw the figures first (:class:`gateway.drawing.FigureWorker`), while the rest loads."""
+    from gateway.drawing import FigureWorker
+
+    with (FigureWorker.start() if args.figures else None) or contextlib.nullcontext() as worker:
+        return _simulate(args, worker)
+
+
+def _simulate(args: argparse.Namespace, worker: Any) -> int:
+    from gateway.session import Output, run
+
+    inputs = simulate_inputs(args)
+    spec, profile, label = inputs.spec, inputs.profile, inputs.label
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
         with _live_scope(args.scope, f"simulate {profile.name}") as scope:
-            result = run(spec, profile, motor, output=Output(args.out, f"simulate-{args.law}",
-                                                             args.force, args.figures),
-                         windows=report.profile_windows(profile, args.windows),
-                         progress=progress, watcher=scope, figure_worker=worker)
+            result = run(spec, profile, inputs.motor,
+                         output=Output(args.out, f"simulate-{args.law}", args.force,
+                                       args.figures),
+                         windows=inputs.windows, progress=progress, watcher=scope,
+                         figure_worker=worker)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -462,25 +497,23 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
 
 
 def _drive_mode(args: argparse.Namespace) -> Any:
-    """--drive-mode; else the first the controller names (its ``drive_modes``), else the
-    paper's law's (current-fed: ideal, full-order: voltage)."""
-    from gateway.control.interface import controller_factory
+    """--drive-mode; else the controller's (:func:`gateway.spec.default_drive_mode`)."""
+    from gateway.spec import default_drive_mode
 
     if args.drive_mode is not None:
         return args.drive_mode
-    modes = getattr(controller_factory(_controller_name(args)), "drive_modes", None)
-    return modes[0] if modes else args.law.drive_modes[0]
+    return default_drive_mode(_controller_name(args), args.law)
 
 
 def _emulator_profile(args: argparse.Namespace) -> str:
-    """The built-in emulator profile for the drive mode: its CiA 402 standard modes
-    (CST, CSV) or its vector modes."""
-    from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD
+    """The built-in emulator profile for the run's drive mode."""
+    from gateway.drive_profile import emulator_profile
 
-    return EMULATOR_STANDARD if _drive_mode(args).standard else EMULATOR
+    return emulator_profile(_drive_mode(args))
 
 
-def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
+def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
+              controller_params: dict[str, Any] | None = None):
     """The run's specification, checked against what the drive can do."""
     from dbc.modes import DriveMode
     from dbc.timing import Sampling, Timing
@@ -517,7 +550,7 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None):
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
         plant=plant, load=load, discretisation=_design(args, load), identify=args.identify,
-        controller=_controller_choice(args),
+        controller=_controller_choice(args, controller_params),
     )
 
 
@@ -556,27 +589,18 @@ def _finish_run(summary: dict[str, Any]) -> int:
     return run["exit_status"]
 
 
-def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
-    """What `run` and `sim` share: inputs checked before the run directory is made, the
-    run (:func:`gateway.session.run`), the report, the exit status. Where figures will be
-    drawn, a worker process gets ready for them first, at a lower priority than the loop
-    (:class:`gateway.drawing.FigureWorker`)."""
-    from gateway.drawing import FigureWorker
-
-    worker = (FigureWorker.start(nice=10) if args.figures and target.drive.truth else None)
-    with worker or contextlib.nullcontext():
-        return _on_the_bus(args, target, plant, worker)
-
-
-def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
+def bus_inputs(args: argparse.Namespace, target: Any, plant: Any = None,
+               controller_params: dict[str, Any] | None = None) -> RunInputs:
+    """What `run` and `sim` share before the run: the options → the spec against
+    ``target``'s drive, its node ids, the duration and record size, all checked (UserError)
+    before the run directory is made; ``controller_params`` as in :func:`simulate_inputs`."""
     from gateway import report
     from gateway.loop import LoopRow
-    from gateway.session import Output, run
 
-    kind, drive = target.command, target.drive
+    drive = target.drive
     profile = _load_profile(args.profile, drive)
     motor = _load_motor(args.motor)
-    spec = _run_spec(args, drive, plant)
+    spec = _run_spec(args, drive, plant, controller_params)
     node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -588,14 +612,40 @@ def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) 
     n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
     report.check_record_size(n_rows, len(LoopRow._fields), args.allow_long,
                              f"running {total:g} s at {format_duration(spec.period)}")
-    target = replace(target, node=node, gateway_node=args.gateway_node)
+    return RunInputs(spec, profile, motor, report.profile_windows(profile, args.windows),
+                     replace(target, node=node, gateway_node=args.gateway_node),
+                     format_duration(spec.period))
+
+
+def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
+    """What `run` and `sim` share: inputs checked before the run directory is made
+    (:func:`bus_inputs`), the run (:func:`gateway.session.run`), the report, the exit
+    status. Where figures will be drawn (the drive maps its speed), a worker process gets
+    ready for them first, at a lower priority than the loop
+    (:class:`gateway.drawing.FigureWorker`)."""
+    from gateway.drawing import FigureWorker
+    from gateway.session import maps_speed
+
+    worker = (FigureWorker.start(nice=10) if args.figures and maps_speed(target.drive)
+              else None)
+    with worker or contextlib.nullcontext():
+        return _on_the_bus(args, target, plant, worker)
+
+
+def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
+    from gateway.session import Output, run
+
+    kind = target.command
+    inputs = bus_inputs(args, target, plant)
+    spec, profile, target = inputs.spec, inputs.profile, inputs.target
+    drive, node = target.drive, target.node
     progress = Progress(kind, True if args.progress else None)
     try:
         with _live_scope(args.scope, f"{kind} {profile.name}") as scope:
-            result = run(spec, profile, motor, target=target,
+            result = run(spec, profile, inputs.motor, target=target,
                          output=Output(args.out, kind, args.force, args.figures),
-                         windows=report.profile_windows(profile, args.windows),
-                         progress=progress, watcher=scope, figure_worker=worker)
+                         windows=inputs.windows, progress=progress, watcher=scope,
+                         figure_worker=worker)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -627,52 +677,27 @@ def cmd_run(args: argparse.Namespace) -> int:
     return _gateway_session(args, BusTarget(drive, open_buses, command="run"))
 
 
-#: `sim`: how long the emulated drive waits for the gateway's heartbeat (0x1016), ms.
-SIM_HEARTBEAT_TIMEOUT_MS = 1000
+def _sim_target(args: argparse.Namespace, plant: Any) -> Any:
+    """`sim`'s target (:func:`gateway.sim.sim_target`) for these options and ``plant``."""
+    from gateway.sim import sim_target
+
+    return sim_target(_drive_mode(args), plant, _load_profile(args.profile).load,
+                      args.transport, args.gateway_node,
+                      f"--plant {args.plant or getattr(plant, 'source', '')}")
 
 
-def _fault_wrapper(plant: Any, spec: Any, drive: Any, node: int, args: argparse.Namespace
-                   ) -> Callable[[Any, Any], Any] | None:
-    """The scenario's bus faults between the gateway and the drive (None: none)."""
-    faults = getattr(plant, "bus_faults", ())
-    if not faults:
-        return None
-    from gateway.faultbus import check_faults, inject
-    from gateway.process_data import process_data
-
-    pd = process_data(drive, node)
-    check_faults(faults, pd, f"--plant {args.plant}")
-    gateway_node = args.gateway_node or drive.gateway_node
-
-    def wrap(bus: Any, other: Any) -> Any:
-        return inject(bus, faults, spec.period, pd, node, gateway_node, other)
-    return wrap
+def sim_inputs(args: argparse.Namespace, plant: Any = None,
+               controller_params: dict[str, Any] | None = None) -> RunInputs:
+    """`sim`'s options → what its run needs (:func:`bus_inputs` against the emulator's
+    target); ``plant`` and ``controller_params`` as in :func:`simulate_inputs`."""
+    plant = plant if plant is not None else _load_scenario(args.plant)
+    return bus_inputs(args, _sim_target(args, plant), plant, controller_params)
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
     """`hil-gateway sim`: the same loop against the emulator started in this process."""
-    from gateway.drive_profile import load_drive_profile
-    from gateway.runner import BusTarget
-    from gateway.sim import TruthRecorder, open_emulator
-
-    truth = TruthRecorder()
     plant = _load_scenario(args.plant)
-    profile_load = _load_profile(args.profile).load
-
-    def open_buses(spec: Any, motor: Any, node: int) -> tuple[Any, str, Callable[[], None]]:
-        return open_emulator(args.transport, node, motor, spec.drive_mode, plant,
-                             profile_load, on_sample=truth,
-                             wrap=_fault_wrapper(plant, spec, drive, node, args))
-
-    # The emulator runs in this interpreter: a stall of the process (a loaded host, the
-    # GIL) stops the gateway's heartbeat and the emulator's watch of it together, and the
-    # 300 ms watch of the emulator profile then tripped on busy 2-core hosts before cycle
-    # 1 (EMCY 0x8130). A dead gateway thread is still caught, within a second.
-    drive = load_drive_profile(None, _emulator_profile(args))
-    drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
-                                                    SIM_HEARTBEAT_TIMEOUT_MS))
-    return _gateway_session(args, BusTarget(drive, open_buses, command="sim", truth=truth),
-                            plant)
+    return _gateway_session(args, _sim_target(args, plant), plant)
 
 
 # ---------------------------------------------------------------------------- profile
@@ -782,22 +807,106 @@ def cmd_profile_plot(args: argparse.Namespace) -> int:
 
 def cmd_compare(args: argparse.Namespace) -> int:
     """`hil-gateway compare RUN_DIR…`: errors side by side, configuration differences, and
-    a figure of the speed and flux errors of every run overlaid."""
+    a figure of the speed and flux errors of every run overlaid; with ``--baseline`` the
+    regression gate instead (:func:`cmd_gate`)."""
     from gateway import report
 
+    if args.baseline is not None:
+        return cmd_gate(args)
+    for given, name in ((args.tolerance, "--tolerance"), (args.junit, "--junit")):
+        if given:
+            raise UserError(f"{name} belongs to the regression gate: give --baseline RUN_DIR "
+                            "too (the run the others are measured against)")
+    out = _figure_path(args)
     runs = [report.load_run(Path(d)) for d in args.runs]
     print(report.compare_table(runs))
-    # a run directory stays as its run left it: the figure goes to the current directory
+    _write_figure(out, runs)
+    return 0
+
+
+def _figure_path(args: argparse.Namespace) -> Path:
+    """`compare`'s figure: -o FILE (.png, .svg, .pdf), else compare.png in the current
+    directory (a run directory stays as its run left it)."""
     out = Path(args.output) if args.output else Path("compare.png")
     if out.suffix.lower() not in PLOT_SUFFIXES:
         raise UserError(f"-o {args.output!r}: the figure is written as "
                         f"{', '.join(PLOT_SUFFIXES)} (by the suffix)")
+    return out
+
+
+def _write_figure(out: Path, runs: list[Any]) -> None:
+    """The runs' speed and flux errors overlaid, into ``out``."""
+    from gateway import report
+
     try:
         written = report.plot_compare(runs, out)
     except OSError as exc:
         raise UserError(f"cannot write {str(out)!r}: {exc.strerror or exc}; choose another "
                         "file with -o") from exc
     print(f"wrote {written}" if written else "(install matplotlib for the figure)")
+
+
+def cmd_gate(args: argparse.Namespace) -> int:
+    """`hil-gateway compare --baseline RUN_DIR RUN_DIR… --tolerance FILE.toml [--junit
+    FILE.xml]`: each run's metrics against the baseline's within the tolerance file's
+    limits; the table of checks, the JUnit XML; exit 0 passed, 1 a metric beyond its
+    limit, 2 a metric that cannot be compared or bad input."""
+    from gateway import gate, report
+    from gateway.atomicfile import write_text_atomic
+    from gateway.junit import junit_xml
+    from gateway.rundir import run_labels
+    from gateway.tolerance import load_tolerances
+
+    if not args.tolerance:
+        raise UserError("--baseline needs --tolerance FILE.toml: the limits of each metric, "
+                        "by the dotted key of summary.json (e.g. examples/tolerance.toml)")
+    figure = _figure_path(args) if args.output else None
+    limits = load_tolerances(Path(args.tolerance))
+    baseline = report.load_summary(Path(args.baseline))
+    paths = [Path(d) for d in args.runs]
+    runs = list(zip(run_labels(paths), [report.load_summary(p) for p in paths], strict=True))
+    checks = gate.evaluate(baseline, runs, limits)
+    print(f"regression gate: baseline {args.baseline}, limits {args.tolerance}")
+    print(gate.table(checks))
+    if args.junit:
+        xml = junit_xml(checks, [("baseline", str(args.baseline)),
+                                 ("tolerance", str(args.tolerance))])
+        try:
+            write_text_atomic(Path(args.junit), xml)
+        except OSError as exc:
+            raise UserError(f"--junit {args.junit!r}: cannot write it "
+                            f"({exc.strerror or exc}); choose a writable place") from exc
+        print(f"wrote {args.junit}")
+    if figure is not None:  # only when asked for: the gate's output is the table
+        _write_figure(figure, [report.load_run(Path(args.baseline)),
+                               *(report.load_run(p) for p in paths)])
+    problems = gate.errors(checks)
+    if problems:
+        raise UserError(f"{len(problems)} metric(s) cannot be compared: "
+                        + "; ".join(problems))
+    return gate.exit_status(checks)
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """`hil-gateway report RUN_DIR…`: one self-contained HTML page of a run (report.html in
+    its directory), or of several runs side by side (-o FILE, default ./compare.html)."""
+    from gateway import htmlreport
+    from gateway.rundir import REPORT_FILE
+
+    if args.output:  # checked before anything is read or drawn
+        htmlreport.check_output(Path(args.output))
+    runs = [htmlreport.load(Path(d)) for d in args.runs]
+    if args.output:
+        out = Path(args.output)
+    elif len(runs) == 1:
+        out = runs[0].path / REPORT_FILE
+    else:
+        out = Path(htmlreport.COMPARISON_NAME)
+    written = htmlreport.write_report(runs, out)
+    print(f"wrote {written}")
     return 0
 
 
@@ -856,8 +965,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         check.add_parser(sub)
         bridgecmd.add_parser(sub)
         _add_compare(sub)
+        _add_report(sub)
         _add_scope(sub)
         _add_reference(sub)
+        from gateway.campaign import command as campaign
+
+        campaign.add_parser(sub)
     _debug_everywhere(parser)
     return parser
 
@@ -994,16 +1107,57 @@ def _add_scope(sub: Any) -> None:
 def _add_compare(sub: Any) -> None:
     """`compare`: runs side by side."""
     p = sub.add_parser(
-        "compare", help="compare runs: errors side by side, configuration differences, figure",
+        "compare", help="compare runs: errors side by side, configuration differences, "
+                        "figure; or gate them against a baseline (--baseline)",
         description="Compare run directories (of simulate, sim or run): print the errors of "
                     "each side by side with the configuration keys that differ, and write a "
                     "figure with every run's speed and flux errors overlaid (compare.png in "
                     "the current directory, or -o FILE; the run directories are left as "
-                    "their runs wrote them). See docs/outputs.md.")
+                    "their runs wrote them). With --baseline, the regression gate instead: "
+                    "each RUN_DIR's metrics against the baseline run's, within the limits "
+                    "of --tolerance FILE.toml (by the dotted key of summary.json, e.g. "
+                    "\"speed_error.rms\" = { rel = 0.2, abs = 1e-4 }: a run fails when the "
+                    "metric grew by more than abs + rel·|baseline|; direction = \"down\" or "
+                    "\"both\" for a decrease or either way); prints a table of every check "
+                    "and writes JUnit XML with --junit; exit status 0 all within, 1 a "
+                    "metric beyond its limit, 2 a metric that cannot be compared (missing, "
+                    "not a number) or a bad tolerance file. See docs/outputs.md.")
     p.add_argument("runs", nargs="+", metavar="RUN_DIR")
     p.add_argument("-o", "--output", metavar="FILE",
-                   help="figure file, .png, .svg or .pdf (default ./compare.png)")
+                   help="figure file, .png, .svg or .pdf (default ./compare.png; with "
+                        "--baseline only when given)")
+    p.add_argument("--baseline", metavar="RUN_DIR",
+                   help="the run the others are measured against: the regression gate")
+    p.add_argument("--tolerance", metavar="FILE.toml",
+                   help="the limits of the regression gate, per metric (template: "
+                        "examples/tolerance.toml)")
+    p.add_argument("--junit", metavar="FILE.xml",
+                   help="write the gate's checks as JUnit XML (a test suite per run, a test "
+                        "case per metric), complete or not at all")
     p.set_defaults(func=cmd_compare)
+
+
+def _add_report(sub: Any) -> None:
+    """`report`: a run as one HTML page."""
+    p = sub.add_parser(
+        "report", help="one self-contained HTML page of a run, or of several side by side",
+        description="Write one HTML file that opens offline (figures embedded, no other "
+                    "file): the run's configuration, outcome (stop, reason, exit status, "
+                    "shutdown), identification, metrics overall and per window, figures, "
+                    "bus timing and counters, faults, and every other section of its "
+                    "summary.json. One RUN_DIR: RUN_DIR/report.html (replaced when written "
+                    "again). Several: one comparison page (outcomes and metrics side by "
+                    "side, configuration differences, errors overlaid, each run below), "
+                    "./compare.html or -o FILE. A run that did not finish (only running.json) "
+                    "is reported as such. Exit status 0 when the page is written (whatever "
+                    "the runs' own), 2 for a directory that is not a run or a file that "
+                    "cannot be written. See docs/outputs.md.")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR",
+                   help="run directories written by simulate, sim or run")
+    p.add_argument("-o", "--output", metavar="FILE.html",
+                   help="the page to write (default: RUN_DIR/report.html for one run, "
+                        "./compare.html for several); written completely or not at all")
+    p.set_defaults(func=cmd_report)
 
 
 def _add_reference(sub: Any) -> None:
@@ -1045,6 +1199,7 @@ def _add_reference(sub: Any) -> None:
 LOCAL_COMMANDS: dict[str, Callable[[Any], None]] = {
     "simulate": _add_simulate, "sim": _add_sim, "run": _add_run, "compare": _add_compare,
     "scope": _add_scope, "reference": _add_reference, "profile": _add_reference,
+    "report": _add_report,
 }
 
 
@@ -1071,7 +1226,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     # numpy's OpenBLAS starts a thread per core that spins on import (0.1 s of CPU taken
     # from the figure worker); nothing here multiplies matrices large enough to need them
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    argv = _values_not_options(sys.argv[1:] if argv is None else argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if _command_of(argv) == "campaign":  # `campaign show` is one word for argparse
+        from gateway.campaign.command import rewrite
+
+        argv = rewrite(argv)
+    argv = _values_not_options(argv)
     parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,

@@ -83,11 +83,14 @@ NO_TRUTH = Truth(math.nan, complex(math.nan, math.nan), math.nan)
 
 
 def truth_from(measured: Mapping[str, float]) -> Truth:
-    """The truth the emulator sends (TPDO3, INT16 resolution), or :data:`NO_TRUTH`."""
+    """The truth the emulator sends (TPDO3, INT16 resolution), or a standard drive's
+    measured speed (and torque) without a flux (NaN), or :data:`NO_TRUTH`."""
     if "w_m" not in measured:
         return NO_TRUTH
-    return Truth(measured["w_m"], complex(measured["psi_ra"], measured["psi_rb"]),
-                 measured["T_e"])
+    nan = math.nan
+    return Truth(measured["w_m"],
+                 complex(measured.get("psi_ra", nan), measured.get("psi_rb", nan)),
+                 measured.get("T_e", nan))
 
 
 def sample_from(measured: Mapping[str, float]) -> Sample:

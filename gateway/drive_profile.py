@@ -189,6 +189,12 @@ EMULATOR = "emulator"
 EMULATOR_STANDARD = "emulator-standard"
 
 
+def emulator_profile(mode: DriveMode) -> str:
+    """The built-in emulator profile for a drive mode: its CiA 402 standard modes (CST,
+    CSV, CSP, …) or its vector modes."""
+    return EMULATOR_STANDARD if mode.standard else EMULATOR
+
+
 def load_drive_profile(path: str | Path | None = None, builtin: str = EMULATOR
                        ) -> DriveProfile:
     """Read a drive profile; None gives a built-in emulator profile (``builtin``:
@@ -400,11 +406,11 @@ def _check_signal(source: str, role: str, value: object) -> None:
 
 def _check_eds(prof: DriveProfile) -> None:
     """The EDS loads and has the objects the gateway needs (:data:`REQUIRED_OBJECTS`)."""
-    from dbc.edsfile import EdsError, load_od
+    from dbc.edsfile import read_eds
 
     try:
-        od = load_od(prof.eds)
-    except EdsError as exc:
+        od = read_eds(prof.eds).od
+    except UserError as exc:
         raise UserError(f"{prof.source}: {exc}; give the drive's CiA 306 EDS") from None
     missing = [f"0x{i:04X} {what}" for i, what in REQUIRED_OBJECTS.items() if i not in od]
     if missing:

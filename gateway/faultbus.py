@@ -45,6 +45,13 @@ class FrameIds:
     gateway_node: int
     rpdos: frozenset[int]
 
+    @classmethod
+    def of(cls, pd: object, node: int, gateway_node: int) -> FrameIds:
+        """The COB-IDs of a drive's process data (:class:`gateway.process_data.ProcessData`)."""
+        pdos = getattr(pd, "pdos", ())
+        return cls({p.name: p.cob_id for p in pdos}, node, gateway_node,
+                   frozenset(p.cob_id for p in pdos if not p.tx))
+
     def from_gateway(self, can_id: int) -> bool:
         """A frame the gateway sends (SYNC, RPDOs, NMT, SDO requests, its heartbeat)."""
         return (can_id in (SYNC_ID, NMT_ID, _SDO_RX + self.node,
@@ -140,6 +147,14 @@ class FaultyBus(can.BusABC):
             if f.arbitration_id == msg.arbitration_id and bytes(f.data) == bytes(msg.data):
                 key = (f.arbitration_id, bytes(f.data))
                 self._swallow[key] = self._swallow.get(key, 0) + 1
+        if not self.bridge:
+            for f in frames:
+                if f.arbitration_id == msg.arbitration_id and bytes(f.data) != bytes(msg.data):
+                    # changed on the wire (corrupt, dlc): the drive gets it so, while the
+                    # gateway's controller reports the frame it sent
+                    key = (f.arbitration_id, bytes(f.data))
+                    self._swallow[key] = self._swallow.get(key, 0) + 1
+                    self._rx_ready.append(_copy(msg))
         return out + [(f, 0.0) for f in frames]
 
     def _sync(self, msg: can.Message, k: int) -> list[tuple[can.Message, float]]:
@@ -316,10 +331,8 @@ def inject(bus: can.BusABC, faults: tuple[BusFault, ...], period: float, pd: obj
         if other is not None:
             other.shutdown()
         return bus
-    pdos = getattr(pd, "pdos", ())
-    ids = FrameIds({p.name: p.cob_id for p in pdos}, node, gateway_node,
-                   frozenset(p.cob_id for p in pdos if not p.tx))
-    return FaultyBus(bus, FaultSchedule(faults, period), ids, other)
+    return FaultyBus(bus, FaultSchedule(faults, period), FrameIds.of(pd, node, gateway_node),
+                     other)
 
 
 class _BothSides:
@@ -342,10 +355,8 @@ def run_bridge(gateway_side: can.BusABC, drive_side: can.BusABC,
     """Forward every frame between two buses (the gateway's and the drive's), injecting
     ``faults`` on the way, until ``stop`` is set; returns the bus that holds the account.
     Neither side is modified: each sees the other through the bridge."""
-    pdos = getattr(pd, "pdos", ())
-    ids = FrameIds({p.name: p.cob_id for p in pdos}, node, gateway_node,
-                   frozenset(p.cob_id for p in pdos if not p.tx))
-    faulty = FaultyBus(drive_side, FaultSchedule(faults, period), ids,
+    faulty = FaultyBus(drive_side, FaultSchedule(faults, period),
+                       FrameIds.of(pd, node, gateway_node),
                        _BothSides(gateway_side, drive_side), bridge=True)  # type: ignore[arg-type]
 
     def to_drive() -> None:

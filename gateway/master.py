@@ -70,7 +70,7 @@ from dbc.cia402 import (
     mode_bit,
     modes_in,
 )
-from dbc.edsfile import EdsError, load_od
+from dbc.edsfile import read_eds
 from dbc.timing import LOCKSTEP_BACKSTOP_S
 from gateway.drive_profile import DriveProfile
 from gateway.eds import find_object, object_for
@@ -173,8 +173,8 @@ class DriveMaster:
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1
         try:
-            self.node = canopen.RemoteNode(self.node_id, load_od(profile.eds, self.node_id))
-        except EdsError as exc:
+            self.node = canopen.RemoteNode(self.node_id, read_eds(profile.eds, self.node_id).od)
+        except UserError as exc:
             raise UserError(f"drive profile {profile.source}: {exc}") from None
         self.node.sdo.RESPONSE_TIMEOUT = profile.sdo_timeout_s
         self.network.add_node(self.node)
@@ -846,9 +846,10 @@ class DriveMaster:
                 self.nmt_command(NmtCommand.ENTER_PRE_OPERATIONAL)
                 report.steps.append("NMT pre-operational")
                 # confirmed off: the drive need no longer watch the gateway's heartbeat
-                self._entry(0x1016, 1).raw = 0
-                report.supervision_off = True
-                report.steps.append("0x1016:1 = 0")
+                if self.has(0x1016):
+                    self._entry(0x1016, 1).raw = 0
+                    report.supervision_off = True
+                    report.steps.append("0x1016:1 = 0")
             except Exception as exc:
                 report.steps.append(f"NMT pre-operational / 0x1016 off failed: "
                                     f"{type(exc).__name__}: {exc}")

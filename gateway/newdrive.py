@@ -200,22 +200,15 @@ class DriveEds:
 
 
 def read_eds(path: str | Path, node: int = 1) -> DriveEds:
-    """Load an EDS or DCF with python-canopen; :class:`UserError` when it cannot be read."""
+    """Load an EDS or DCF (:func:`dbc.edsfile.read_eds`: python-canopen, after naming what
+    it would choke on); :class:`UserError` when it cannot be read."""
     from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
-    from dbc.edsfile import EdsError, load_od
+    from dbc.edsfile import HINT, configured
+    from dbc.edsfile import read_eds as load
 
     p = Path(path)
-    hint = ("give the drive's CiA 306 EDS or DCF (from the vendor's website or "
-            "configuration tool)")
-    if not p.is_file():
-        raise UserError(f"the EDS {str(p)!r} does not exist or is not a file; {hint}")
-    if p.suffix.lower() not in (".eds", ".dcf"):
-        raise UserError(f"the EDS {str(p)!r} does not end in .eds or .dcf; {hint}")
-    try:
-        od = load_od(p, node)
-    except EdsError as exc:
-        raise UserError(f"{exc}; {hint}") from None
+    od = load(p, node).od
     objects: dict[tuple[int, int], EdsObject] = {}
     for obj in od.values():
         if isinstance(obj, ODVariable):
@@ -227,10 +220,10 @@ def read_eds(path: str | Path, node: int = 1) -> DriveEds:
         for v, name in items:
             objects[(v.index, v.subindex)] = EdsObject(  # a DCF's ParameterValue first
                 v.index, v.subindex, name, int(v.data_type or 0), str(v.access_type or ""),
-                bool(v.pdo_mappable), v.value if v.value is not None else v.default)
+                bool(v.pdo_mappable), configured(v))
     if not objects:
         raise UserError(f"the EDS {str(p)!r} has no object sections ([1000], [6040], ...); "
-                        f"{hint}")
+                        f"{HINT}")
     mapped: dict[str, set[tuple[int, int]]] = {RX: set(), TX: set()}
     for (index, sub), o in objects.items():
         direction = RX if 0x1600 <= index < 0x1800 else TX if 0x1A00 <= index < 0x1C00 else None

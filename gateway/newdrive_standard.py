@@ -56,12 +56,17 @@ _SIGNALS: dict[str, tuple[int, str, str, str | None]] = {
     "target_velocity": (TARGET_VELOCITY, "RPDO1", "velocity", None),
     "target_position": (TARGET_POSITION, "RPDO2", "position", None),
     "statusword": (STATUSWORD, "TPDO1", "", None),
-    "torque_actual": (TORQUE_ACTUAL, "TPDO1", "torque", "T_e"),
     "velocity_actual": (VELOCITY_ACTUAL, "TPDO1", "velocity", "w_m"),
+    "torque_actual": (TORQUE_ACTUAL, "TPDO1", "torque", "T_e"),
 }
 _UNIT_NAMES = {"torque": "N.m", "velocity": "rad/s", "position": "rad", "": ""}
 #: COB-ID bases of CiA 301's default PDOs (plus the node id).
-_COB_BASE = {"RPDO1": 0x200, "RPDO2": 0x300, "TPDO1": 0x180}
+_COB_BASE = {"RPDO1": 0x200, "RPDO2": 0x300, "RPDO3": 0x400, "TPDO1": 0x180,
+             "TPDO2": 0x280}
+#: The drive profile's [pdo] keys a standard drive's messages go in, by direction (rx: the
+#: drive receives); ``truth`` stays unused (it names the emulator's true flux).
+MESSAGE_SLOTS: dict[bool, tuple[str, ...]] = {True: ("control", "setpoints", "load"),
+                                               False: ("currents", "voltages")}
 #: CiA 301 integer data types: bits, signed.
 _INT = {0x2: (8, True), 0x3: (16, True), 0x4: (32, True), 0x5: (8, False),
         0x6: (16, False), 0x7: (32, False)}
@@ -122,15 +127,58 @@ def plan(eds: DriveEds, vendor_dbc: Any = None) -> StandardPlan | None:
     wanted = {TARGET_TORQUE: DriveMode.TORQUE in modes,
               TARGET_VELOCITY: DriveMode.VELOCITY in modes,
               TARGET_POSITION: DriveMode.POSITION in modes}
+    default_target = next(t for _, m, t in MODE_ORDER if m is default)
+    order = sorted((n for n, (i, _, _, _) in _SIGNALS.items()
+                    if i in usable and wanted.get(i, True)),
+                   key=lambda n: (_SIGNALS[n][0] != default_target, list(_SIGNALS).index(n)))
     signals = []
-    for name, (index, message, quantity, _) in _SIGNALS.items():
-        if index not in usable or not wanted.get(index, True):
-            continue
+    for name, message in _layout(eds, order, usable, skipped).items():
+        index, _, quantity, _ = _SIGNALS[name]
         bits, signed = usable[index]
         factor, unit, source, todo = _scaling(name, quantity, eds, units, vendor_dbc)
         signals.append(Signal(name, index, message, bits, signed, factor, unit, source, todo))
+    signals.sort(key=lambda s: (s.message, list(_SIGNALS).index(s.name)))
     return StandardPlan(modes, default, offered, from_6502, tuple(signals), units,
                         tuple(skipped))
+
+
+def _capacity(eds: DriveEds, rx: bool) -> list[int]:
+    """Entries each of the drive's RPDOs (``rx``) or TPDOs can map, in order: its mapping
+    record's sub-indices (CiA 301's defaults, 4 PDOs of 8 entries, where the file
+    describes none). At most the :data:`MESSAGE_SLOTS` the profile names."""
+    base = 0x1600 if rx else 0x1A00
+    out = []
+    for n in range(len(MESSAGE_SLOTS[rx])):
+        entries = sum(1 for (i, s) in eds.objects if i == base + n and s > 0)
+        if not eds.has(base + n):
+            break
+        out.append(entries)
+    return out or [8] * len(MESSAGE_SLOTS[rx])
+
+
+def _layout(eds: DriveEds, order: list[str], usable: dict[int, tuple[int, bool]],
+            skipped: list[str]) -> dict[str, str]:
+    """Signal → message: in ``order`` (the controlword or statusword, the default mode's
+    target first), each into the first PDO of its direction with a free entry and room
+    in its 64 bits; what fits nowhere is named in ``skipped``."""
+    out: dict[str, str] = {}
+    for rx in (True, False):
+        caps = _capacity(eds, rx)
+        used = [[0, 0] for _ in caps]  # entries, bits
+        for name in order:
+            if _SIGNALS[name][1].startswith("RPDO") != rx:
+                continue
+            bits = usable[_SIGNALS[name][0]][0]
+            for n, cap in enumerate(caps):
+                if used[n][0] < cap and used[n][1] + bits <= 64:
+                    used[n][0] += 1
+                    used[n][1] += bits
+                    out[name] = f"{'R' if rx else 'T'}PDO{n + 1}"
+                    break
+            else:
+                skipped.append(f"{name} (0x{_SIGNALS[name][0]:04X}): no room in the drive's "
+                               f"{'R' if rx else 'T'}PDOs ({caps} entries)")
+    return out
 
 
 def _int_or_none(value: Any) -> int | None:
@@ -207,12 +255,13 @@ def render_toml(eds: DriveEds, p: StandardPlan, *, node: int, eds_ref: str, dbc_
     lines.append(f'default = "{p.default.value}"'.ljust(34)
                  + "# the drive mode of a run without --drive-mode")
     msgs = p.messages()
-    lines += ["", "[pdo]                             # CiA 301 default PDOs of the node",
-              'control = "RPDO1"                 # controlword, targets']
-    if "RPDO2" in msgs:
-        lines.append('setpoints = "RPDO2"               # target position')
-    lines += ['currents = "TPDO1"                # statusword, actual values',
-              "remap = true                      # write the PDO mappings by SDO"]
+    lines += ["", "[pdo]                             # CiA 301 default PDOs of the node"]
+    for rx in (True, False):
+        names = sorted(m for m in msgs if m.startswith("RPDO" if rx else "TPDO"))
+        for key, message in zip(MESSAGE_SLOTS[rx], names, strict=False):
+            what = ", ".join(s.name for s in msgs[message])
+            lines.append(f'{key} = "{message}"'.ljust(34) + f"# {what}")
+    lines.append("remap = true                      # write the PDO mappings by SDO")
     timing, limits = common
     lines += [*timing, *limits, "", "[signals]                         # role = "
               "\"MESSAGE.signal\""]
@@ -273,7 +322,8 @@ def render_dbc(eds: DriveEds, p: StandardPlan, node: int) -> str:
                        f'"{s.unit}" {receiver}')
             o = eds.objects[(s.index, 0)]
             note = (f"0x{s.index:04X} {o.name} ({o.type_name}); {s.source}"
-                    + ("; TODO: confirm the unit" if s.todo else "")).replace('"', "'")
+                    + ("; TODO: confirm the unit" if s.todo else "")).replace(
+                '"', "'").replace("·", ".")  # DBC files are ASCII
             comments.append(f'CM_ SG_ {fid} {s.name} "{note}";')
             bit += s.bits
         out.append("")

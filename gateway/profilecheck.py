@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Any
 
 import canopen
+from canopen.objectdictionary import ODVariable
 
 from dbc.cia402 import SUPPORTED_DRIVE_MODES_OBJECT, describe_mode, mode_bit
-from dbc.edsfile import EdsError, load_od
+from dbc.edsfile import configured, read_eds
 from dbc.modes import DriveMode
 from dbc.timing import Sampling
 from gateway.control.interface import ControllerChoice
@@ -85,8 +86,8 @@ def check_drive_profile(path: str | Path) -> ProfileReport:
     loading) and check its signals and modes (see the module docstring)."""
     prof = load_drive_profile(path)
     try:
-        od = load_od(prof.eds, prof.node)
-    except EdsError as exc:  # checked by the loader already; a node id can still fail
+        od = read_eds(prof.eds, prof.node).od
+    except UserError as exc:  # checked by the loader already; a node id can still fail
         raise UserError(f"{prof.source}: {exc} (node {prof.node})") from None
     pd = process_data(prof)
     report = ProfileReport(prof, _signals(od, pd, prof.objects))
@@ -106,9 +107,7 @@ def check_drive_profile(path: str | Path) -> ProfileReport:
 def _default(od: canopen.ObjectDictionary, index: int) -> Any:
     """An object's value in the file (a DCF's ParameterValue first), or None."""
     obj = od.get(index)
-    if obj is None or not hasattr(obj, "default"):
-        return None
-    return obj.value if getattr(obj, "value", None) is not None else obj.default
+    return configured(obj) if isinstance(obj, ODVariable) else None
 
 
 def _signals(od: canopen.ObjectDictionary, pd: ProcessData, objects: dict[str, tuple[int, int]]

@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,8 @@ from typing import Any
 import numpy as np
 
 from dbc.modes import DriveMode
+from gateway.atomicfile import write_text_atomic
+from gateway.dotted import flatten
 from gateway.figures import DRAWN_ELSEWHERE as DRAWN_ELSEWHERE
 from gateway.figures import FIG4_MAX as FIG4_MAX
 from gateway.figures import controller_signals
@@ -162,18 +163,17 @@ def metrics(
     """The summary metrics (SI units).
 
     speed_error = ω − ω*, flux_error = |ψ_r| − ψ*, estimation_error = ω̂ − ω, each with
-    max |·|, RMS, final value and per-window max/RMS (estimation_error only for a controller
-    that logs a speed estimate ``w_hat``); peak_current = max |i_s|,
-    peak_voltage = max |u_s| (average over a period). ``windows``: (from, to) or
-    (from, to, label) in s, e.g. :func:`profile_windows`; those the run did not reach are
-    left out.
+    max |·|, RMS, final value and per-window max/RMS (flux_error only where the run has a
+    flux, estimation_error only for a controller that logs a speed estimate ``w_hat``);
+    peak_current = max |i_s|, peak_voltage = max |u_s| (average over a period).
+    ``windows``: (from, to) or (from, to, label) in s, e.g. :func:`profile_windows`;
+    those the run did not reach are left out.
     """
     windows = tuple(windows)
     t = sig["t"]
-    out = {
-        "speed_error": _error_stats(t, sig["w_m"] - sig["w_ref"], windows),
-        "flux_error": _error_stats(t, sig["psi_r_mod"] - sig["psi_ref"], windows),
-    }
+    out = {"speed_error": _error_stats(t, sig["w_m"] - sig["w_ref"], windows)}
+    if not np.all(np.isnan(sig["psi_r_mod"])):  # a standard drive reports no flux
+        out["flux_error"] = _error_stats(t, sig["psi_r_mod"] - sig["psi_ref"], windows)
     if "w_hat" in sig:  # a controller with a speed estimate (the paper's)
         out["estimation_error"] = _error_stats(t, sig["w_hat"] - sig["w_m"], windows)
     out["peak_current"] = float(np.max(np.hypot(sig["i_sa"], sig["i_sb"])))
@@ -230,6 +230,10 @@ def _fmt(x: float, unit: str) -> str:
         if ax >= scale or scale == 1e-6:
             return f"{x / scale:.3g} {prefix}{unit}"
     return f"{x:.3g} {unit}"  # pragma: no cover
+
+
+#: The public name of the SI formatter: a number with a prefix keeping three digits.
+format_si = _fmt
 
 
 def summary_table(summary: Mapping[str, Any]) -> str:
@@ -359,13 +363,7 @@ def write_summary(path: Path, summary: Mapping[str, Any]) -> None:
         return x
 
     text = json.dumps(clean(summary), indent=2, sort_keys=False) + "\n"
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)  # readers see the old summary or the new one, never half
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, text)  # readers see the old summary or the new one, never half
 
 
 def title_for(config: Mapping[str, Any]) -> str:
@@ -416,35 +414,40 @@ class Run:
         return self.path.name or str(self.path)
 
 
-def load_run(path: Path) -> Run:
-    """Read a run directory; :class:`UserError` naming what is missing."""
+def load_summary(path: Path) -> dict[str, Any]:
+    """A run directory's ``summary.json``; :class:`UserError` naming what is missing or
+    damaged."""
     from gateway.errors import UserError
 
     if not (path / "summary.json").is_file():
         raise UserError(f"{str(path)!r} is not a run directory (no summary.json): give "
                         "directories written by simulate, sim or run")
     try:
-        summary = json.loads((path / "summary.json").read_text())
+        summary = json.loads((path / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{str(path)!r}: cannot read the run's files ({exc})") from exc
+    if not isinstance(summary, dict):
+        raise UserError(f"{str(path / 'summary.json')!r} is not a run's summary (a JSON "
+                        "table is expected)")
+    return summary
+
+
+def load_run(path: Path) -> Run:
+    """Read a run directory; :class:`UserError` naming what is missing."""
+    from gateway.errors import UserError
+
+    summary = load_summary(path)
+    try:
         sig = read_csv(path / "signals.csv") if (path / "signals.csv").is_file() else {}
     except (OSError, ValueError, StopIteration) as exc:
         raise UserError(f"{str(path)!r}: cannot read the run's files ({exc})") from exc
     return Run(path, summary, sig)
 
 
-def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, Mapping):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def config_differences(runs: list[Run]) -> dict[str, list[Any]]:
     """The configuration keys (flattened, e.g. ``gains.k_w``) that every run has and whose
     values differ."""
-    flats = [_flat(r.summary.get("configuration", {})) for r in runs]
+    flats = [flatten(r.summary.get("configuration", {})) for r in runs]
     keys = sorted(set.intersection(*(set(f) for f in flats)))
     return {k: [f.get(k) for f in flats] for k in keys
             if len({json.dumps(f.get(k), sort_keys=True) for f in flats}) > 1}
@@ -456,24 +459,27 @@ def config_only_in_some(runs: list[Run]) -> list[str]:
     return sorted(set.union(*keys) - set.intersection(*keys))
 
 
+#: The metrics runs are compared by, side by side: label, unit, summary key, sub-keys.
+COMPARED_METRICS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
+    ("speed error max", "rad/s", "speed_error", ("max",)),
+    ("speed error rms", "rad/s", "speed_error", ("rms",)),
+    ("speed error final", "rad/s", "speed_error", ("final",)),
+    ("flux error max", "Wb", "flux_error", ("max",)),
+    ("flux error rms", "Wb", "flux_error", ("rms",)),
+    ("estimation error max", "rad/s", "estimation_error", ("max",)),
+    ("estimation error rms", "rad/s", "estimation_error", ("rms",)),
+    ("peak current", "A", "peak_current", ()),
+    ("peak voltage", "V", "peak_voltage", ()),
+)
+
+
 def compare_table(runs: list[Run]) -> str:
     """Errors side by side (one column per run), each controller's own logged signals (last
     value and RMS; "—" for a run whose controller does not log it), and the configuration
     keys that differ."""
-    rows: list[tuple[str, str, str, tuple[str, ...]]] = [
-        ("speed error max", "rad/s", "speed_error", ("max",)),
-        ("speed error rms", "rad/s", "speed_error", ("rms",)),
-        ("speed error final", "rad/s", "speed_error", ("final",)),
-        ("flux error max", "Wb", "flux_error", ("max",)),
-        ("flux error rms", "Wb", "flux_error", ("rms",)),
-        ("estimation error max", "rad/s", "estimation_error", ("max",)),
-        ("estimation error rms", "rad/s", "estimation_error", ("rms",)),
-        ("peak current", "A", "peak_current", ()),
-        ("peak voltage", "V", "peak_voltage", ()),
-    ]
     heads = ["", *(r.name for r in runs)]
     lines = [heads]
-    for label, unit, key, sub in rows:
+    for label, unit, key, sub in COMPARED_METRICS:
         cells = [label]
         for r in runs:
             v: Any = r.summary.get(key)

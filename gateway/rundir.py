@@ -11,10 +11,24 @@ from pathlib import Path
 
 from gateway.errors import UserError
 
-#: The files a run writes into its directory (besides the bus log named by --log):
-#: what --force removes before it reuses a directory.
-RUN_FILES = ("summary.json", "running.json", "signals.csv", "fig1_references.png",
-             "fig2_errors.png", "fig3_currents_voltages.png", "fig4_controller.png")
+#: The marker a bus run writes into its directory before the loop starts (the run's
+#: configuration, ``run.status = "running"``); removed once summary.json is written, so a
+#: crash leaves it behind.
+RUNNING_MARKER = "running.json"
+#: A run's own report in its directory (`hil-gateway report RUN_DIR`).
+REPORT_FILE = "report.html"
+#: The files a run writes into its directory (besides the bus log named by --log), and its
+#: report (`hil-gateway report`): what --force removes before it reuses a directory.
+RUN_FILES = ("summary.json", RUNNING_MARKER, "signals.csv", "fig1_references.png",
+             "fig2_errors.png", "fig3_currents_voltages.png", "fig4_controller.png",
+             REPORT_FILE)
+
+
+def run_labels(paths: Sequence[Path]) -> list[str]:
+    """How to name each of several run directories: its own name, or the path as given
+    where two share a name (``a/run`` and ``b/run``)."""
+    names = [p.name or str(p) for p in paths]
+    return [str(p) if names.count(n) > 1 else n for p, n in zip(paths, names, strict=True)]
 
 
 def out_dir(arg: str | None, kind: str, force: bool = False,

@@ -39,6 +39,7 @@ from gateway.process_data import ProcessData, process_data
 from gateway.reference import Profile
 from gateway.reference.demand import sample_times
 from gateway.results import TruthColumns
+from gateway.rundir import RUNNING_MARKER
 from gateway.spec import RunSpec
 from gateway.stop import StopReason, StopSignals
 
@@ -143,12 +144,6 @@ class BusRun:
 
     sig: dict[str, np.ndarray] | None
     summary: dict[str, Any]
-
-
-#: The marker a bus run writes into its directory before the loop starts (the run's
-#: configuration, ``run.status = "running"``); removed once summary.json is written, so a
-#: crash leaves it behind.
-RUNNING_MARKER = "running.json"
 
 
 @dataclass(frozen=True)

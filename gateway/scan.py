@@ -28,7 +28,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dbc.bus import add_bus_options, bus_config, open_bus
 from dbc.cia301 import HEARTBEAT_BASE, NmtState
-from dbc.edsfile import EdsError, load_od
+from dbc.edsfile import read_eds
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.errors import UserError
 
@@ -101,8 +101,8 @@ class _Watcher(can.Listener):
 def _eds_identity(eds: Path) -> tuple[int | None, int | None]:
     """(vendor id, product code) defaults of 0x1018 in an EDS; None where absent or zero."""
     try:
-        od = load_od(eds)
-    except EdsError as exc:
+        od = read_eds(eds).od
+    except UserError as exc:
         raise UserError(f"{exc}; fix the file or the drive profile's [drive].eds") from None
     out: list[int | None] = []
     for sub in (1, 2):

@@ -177,10 +177,29 @@ def _simulated(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | 
     _watched(summary, watcher)
     if out is None:
         return RunResult(sig, summary)
-    files = write_results(out, sig, summary, figures=figures,
-                          limits=_figure_limits(spec, True), delay_s=_delay_s(spec),
-                          worker=worker)
+    files = _write_simulation(out, spec, sig, summary, figures, worker)
     return RunResult(sig, summary, out, files)
+
+
+def _write_simulation(out: Path, spec: RunSpec, sig: dict[str, np.ndarray],
+                      summary: dict[str, Any], figures: bool = True,
+                      worker: Worker | None = None) -> list[Path]:
+    """A simulation's files, as `simulate` writes them (the figures by ``worker`` when
+    given, else in this process)."""
+    return write_results(out, sig, summary, figures=figures,
+                         limits=_figure_limits(spec, True), delay_s=_delay_s(spec),
+                         worker=worker)
+
+
+def save(result: RunResult, spec: RunSpec, output: Output) -> RunResult:
+    """A simulation run without a directory (``output`` None in :func:`run`) written
+    afterwards into one, as `simulate` would have written it: a campaign keeps the
+    directories of its points that failed, and only those."""
+    if result.sig is None:
+        raise ValueError("a run without a record has nothing to write")
+    with run_dir(output.dir, output.name, output.force) as out:
+        files = _write_simulation(out, spec, result.sig, result.summary)
+    return RunResult(result.sig, result.summary, out, files)
 
 
 def _simulation_summary(spec: RunSpec, profile: Profile, sig: dict[str, np.ndarray],
@@ -234,20 +253,34 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         drive = target.drive
         summary["quantisation"] = report.quantisation(True, drive.setpoints, dbc=drive.dbc,
                                                       messages=drive.messages)
-        if done.sig is not None and drive.truth:  # tracking errors need the truth
+        speed = maps_speed(drive)
+        if done.sig is not None and speed:  # tracking errors need the drive's speed
             where, lsb = _speed_signal(drive)
-            on_bus = (report.TRUTH_TPDO3 if where == f"{drive.truth}.w_m"
-                      else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
-            summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb, on_bus)
+            if drive.truth:
+                on_bus = (report.TRUTH_TPDO3 if where == f"{drive.truth}.w_m"
+                          else f"{where}, ω to {lsb:.3g} rad/s; ψr: {drive.truth}")
+                summary["truth"] = merge_truth(done.sig, target.truth, spec.period, lsb,
+                                               on_bus)
+            else:  # a standard drive: its velocity actual value, no flux
+                summary["truth"] = (f"{where}, the drive's measured speed, ω to {lsb:.3g} "
+                                    "rad/s; no rotor flux")
             summary.update(report.metrics(done.sig, windows))
         _watched(summary, watcher)
-        files = write_results(out, done.sig, summary, figures=figures and bool(drive.truth),
+        files = write_results(out, done.sig, summary, figures=figures and speed,
                               limits=_figure_limits(spec, drive.emulator),
                               delay_s=_delay_s(spec), errors=summary.pop("write_errors", []),
                               worker=worker)
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)
+
+
+def maps_speed(drive: Any) -> bool:
+    """The drive's process data carry its speed (role ``w_m``: the emulator's truth, or a
+    standard drive's velocity actual value)."""
+    from gateway.process_data import process_data
+
+    return "w_m" in process_data(drive).roles
 
 
 def _speed_signal(drive: Any) -> tuple[str, float]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -17,12 +18,21 @@ import numpy as np
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
 from plant.drive import Measurement
 from plant.params import DriveParams
-from plant.scenario import PlantScenario, ScenarioError, resolve_scenario
+from plant.scenario import (
+    PlantScenario,
+    ScenarioError,
+    parse_scenario,
+    resolve_scenario,
+    scenario_source,
+)
 
 if TYPE_CHECKING:
     import can
+
+    from gateway.runner import BusTarget
 
 
 class TruthRecorder:
@@ -57,6 +67,22 @@ def load_scenario(arg: str | None) -> PlantScenario:
         return PlantScenario()
     try:
         return resolve_scenario(arg)
+    except ScenarioError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def scenario_text(arg: str) -> tuple[str, str]:
+    """``--plant ARG``'s TOML text and source name (a file, or a shipped scenario's name)."""
+    try:
+        return scenario_source(arg)
+    except ScenarioError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def scenario_from_text(text: str, source: str) -> PlantScenario:
+    """A plant scenario from its TOML text (``source`` names it in messages)."""
+    try:
+        return parse_scenario(text, source)
     except ScenarioError as exc:
         raise UserError(str(exc)) from exc
 
@@ -116,6 +142,53 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
         close()
         raise
     return bus_gw, f"{transport}:{channel}", close
+
+
+def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_load: Any = None,
+               transport: str = "inprocess", gateway_node: int | None = None,
+               plant_label: str = "the plant scenario") -> BusTarget:
+    """`sim`'s target: the emulated drive in ``mode`` started in this process on a new bus
+    (``transport``: "inprocess" or python-can's "virtual") for each run, with its built-in
+    drive profile (the standard one for a standard ``mode``), whose watch of the gateway's
+    heartbeat is :data:`dbc.timing.SIM_HEARTBEAT_TIMEOUT_MS`; ``plant`` and
+    ``reference_load`` as for :func:`open_emulator`, the scenario's bus faults injected
+    between the gateway (``gateway_node``; None: the profile's) and the drive, a fault on
+    a message the drive has not named with ``plant_label`` before the bus opens. The
+    emulator's full-resolution truth is recorded for the summary."""
+    from gateway.drive_profile import emulator_profile, load_drive_profile
+    from gateway.runner import BusTarget
+
+    truth = TruthRecorder()
+    drive = load_drive_profile(None, emulator_profile(mode))
+    drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
+                                                    SIM_HEARTBEAT_TIMEOUT_MS))
+
+    def open_buses(spec: Any, motor: MotorParams, node: int
+                   ) -> tuple[can.BusABC, str, Callable[[], None]]:
+        wrap = _fault_wrapper(plant, spec.period, drive, node,
+                              gateway_node or drive.gateway_node, plant_label)
+        return open_emulator(transport, node, motor, spec.drive_mode, plant, reference_load,
+                             on_sample=truth, wrap=wrap)
+
+    return BusTarget(drive, open_buses, command="sim", truth=truth)
+
+
+def _fault_wrapper(plant: PlantScenario | None, period: float, drive: Any, node: int,
+                   gateway_node: int, label: str
+                   ) -> Callable[[can.BusABC, can.BusABC], can.BusABC] | None:
+    """The scenario's bus faults between the gateway and the drive (None: none)."""
+    faults = getattr(plant, "bus_faults", ())
+    if not faults:
+        return None
+    from gateway.faultbus import check_faults, inject
+    from gateway.process_data import process_data
+
+    pd = process_data(drive, node)
+    check_faults(faults, pd, label)
+
+    def wrap(bus: can.BusABC, other: can.BusABC) -> can.BusABC:
+        return inject(bus, faults, period, pd, node, gateway_node, other)
+    return wrap
 
 
 def emulator_rate() -> float:

@@ -45,6 +45,39 @@ class PlantModel(Protocol):
 
     def describe(self) -> dict[str, Any]: ...
 
+    def known(self, default: bool) -> bool: ...
+
+
+def default_drive_mode(controller: str, law: Law = Law.CURRENT_FED) -> DriveMode:
+    """The drive mode a run takes when none is given: the first the controller names (its
+    ``drive_modes``), else the paper's law's (current-fed: ideal, full-order: voltage)."""
+    from gateway.control.interface import controller_factory
+
+    modes = getattr(controller_factory(controller), "drive_modes", None)
+    return modes[0] if modes else as_enum(Law, law, "law").drive_modes[0]
+
+
+def default_load(plant: PlantModel | None, drive_applies_load: bool | None = None
+                 ) -> LoadSource:
+    """The load torque the laws are told when the run does not say: the plant scenario's
+    ``[load].known`` (told, else observed); else told where the drive applies the profile's
+    load (``drive_applies_load`` True: a drive profile that maps a T_L signal, a
+    dynamometer the gateway commands; None: the emulator) and untold where it cannot ("not
+    told against a real drive": the laws then assume no load rather than feed forward one
+    the shaft may not carry). Not told does not mean observed: the load observer runs away
+    with a 10 mA offset or R_s +10 % even unloaded (docs/robustness.md §2), so it stays
+    opt-in."""
+    if plant is not None and not plant.known(True):
+        return LoadSource.OBSERVED
+    return LoadSource.UNTOLD if drive_applies_load is False else LoadSource.KNOWN
+
+
+def default_discretisation(load: LoadSource | str) -> Discretisation:
+    """The controller's design when the run does not say: exact, or Euler where only it has
+    what is asked for (the load observer; every estimator exists in both designs)."""
+    observed = as_enum(LoadSource, load, "load mode") is LoadSource.OBSERVED
+    return Discretisation.EULER if observed else Discretisation.EXACT
+
 
 _ENUMS = (("law", Law, "law"), ("flux", FluxSource, "flux source"),
           ("estimator", EstimatorKind, "estimator"), ("drive_mode", DriveMode, "drive mode"),

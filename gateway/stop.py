@@ -66,6 +66,16 @@ class StopSignals:
         elif not self.shutting_down:
             raise KeyboardInterrupt  # start-up: abort into the shutdown path
 
+    def request(self, reason: str) -> None:
+        """Ask the run to stop as a signal would, from any thread (a campaign's time limit
+        of a point); ``reason`` says why. A second request changes nothing."""
+        if self.requested.is_set():
+            return
+        self.reason = reason
+        self.requested.set()
+        if self.on_stop is not None:
+            self.on_stop(reason)
+
     @contextmanager
     def installed(self) -> Iterator[StopSignals]:
         if threading.current_thread() is not threading.main_thread():

@@ -8,14 +8,19 @@ like a python-canopen node of parts, each in its module:
   to defaults, boot-up), heartbeat producer 0x1017 and consumer 0x1016. PDOs only in
   OPERATIONAL, SDO not in STOPPED.
 * ``sdo`` (:mod:`plant.sdo`): python-canopen's ``LocalNode``/``SdoServer`` with the
-  dictionary of ``dbc/drive.eds`` and the access rules of :mod:`plant.od`.
+  dictionary and the access rules of :mod:`plant.od`.
 * ``pdo`` (:mod:`plant.pdo`): the RPDOs and TPDOs built on entering OPERATIONAL.
 * ``emcy`` (:mod:`plant.emcy`): error register 0x1001, 0x1003, 0x603F, the EMCY frame.
 * the CiA 402 power state machine (:mod:`plant.cia402`): controlword 0x6040 by SDO (at
   once) or by RPDO (applied with the other RPDO data), statusword 0x6041. The power stage
   (``Drive.enable``) is on only in "Operation enabled".
+* in a standard mode the drive's own control (:mod:`plant.servo`; a profile mode's ramp
+  and statusword bits, :mod:`plant.profile`), with the targets and actual values in the
+  units of the dictionary (:mod:`plant.units`).
 
-This module composes them and runs the cycle.
+The dictionary is ``dbc/drive.eds``, or a twin's (``dictionary``, :mod:`plant.twin`):
+another drive's EDS/DCF, whose standard objects the model backs and whose other objects
+are plain storage. This module composes the parts and runs the cycle.
 
 * Sampled timing (docs/ARCHITECTURE.md): on each SYNC in OPERATIONAL the drive (1) with
   RPDO apply = on receipt (0x2203 = 1) makes the data received since the last SYNC active,
@@ -58,18 +63,31 @@ from dataclasses import replace
 from typing import Any
 
 import can
+from canopen.objectdictionary import datatypes
 
-from dbc import scaling, signal_specs
+from dbc import scaling
 from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState
 from dbc.cia402 import (
+    CURRENT_ACTUAL,
+    CW_HALT_BIT,
+    DC_LINK_VOLTAGE,
     MAX_TORQUE,
     POSITION_ACTUAL,
-    POSITION_UNIT,
+    PROFILE_ACCELERATION,
+    PROFILE_DECELERATION,
+    SUPPORTED_MODES,
     TORQUE_ACTUAL,
+    TORQUE_DEMAND,
+    TORQUE_SLOPE,
     VELOCITY_ACTUAL,
-    VELOCITY_UNIT,
+    VELOCITY_DEMAND,
+    VELOCITY_THRESHOLD,
+    VELOCITY_THRESHOLD_TIME,
+    VELOCITY_WINDOW,
+    VELOCITY_WINDOW_TIME,
     OperationMode,
 )
+from dbc.edsfile import configured
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from plant import od as odm
@@ -79,10 +97,12 @@ from plant.emcy import EmcyProducer
 from plant.nmt import NmtSlave
 from plant.params import DriveParams
 from plant.pdo import SETPOINT_SIGNALS, PdoRuntime, Rpdo
+from plant.profile import DEFAULTS, ProfileRamp, ProfileSettings
 from plant.rpdo import setpoints_from_rpdos
 from plant.sdo import SdoHooks, SdoServer, Sender
-from plant.servo import TARGETS, TORQUE_UNIT, Servo, servo_for
+from plant.servo import Servo, servo_for
 from plant.timing import sync_cycle
+from plant.units import EMULATOR, TARGETS, DriveUnits, Quantity, units_from
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +115,8 @@ class DriveDevice:
     ``DriveDevice(bus, node_id=1, motor=None, drive_params=None)``: ``motor`` and
     ``drive_params`` (default: the paper's motor, the default current-loop inverter) are the
     device's defaults, to which reset node returns; ``drive_params.mode`` sets the defaults
-    of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1).
+    of 0x6060 (−2 for "voltage", else −1) and 0x2202 (0 for "ideal", else 1); ``mode``, if
+    given, is the default of 0x6060 instead (a standard mode, e.g. profile velocity).
     ``drive_options``: keyword arguments of every :class:`plant.drive.Drive` the device
     builds (the dynamometer ``load`` and ``motor_drift`` of a plant scenario).
     ``on_sample(cycle, measurement)``, optional: called in the receive thread after each
@@ -109,7 +130,9 @@ class DriveDevice:
     def __init__(self, bus: can.BusABC, node_id: int = 1, motor: MotorParams | None = None,
                  drive_params: DriveParams | None = None,
                  drive_options: dict[str, Any] | None = None,
-                 on_sample: Callable[[int, Measurement], None] | None = None) -> None:
+                 on_sample: Callable[[int, Measurement], None] | None = None,
+                 mode: OperationMode | None = None,
+                 dictionary: odm.Dictionary | None = None) -> None:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
@@ -117,8 +140,14 @@ class DriveDevice:
         self.on_sample = on_sample
         self._motor0 = motor if motor is not None else MotorParams()
         self._params0 = drive_params if drive_params is not None else DriveParams()
+        self._mode0 = (OperationMode(mode) if mode is not None
+                       else OperationMode(self._params0.mode.mode_of_operation))
+        self._units = EMULATOR
         self._drive_options = dict(drive_options or {})
-        self._store = odm.ObjectStore(node_id, self._overrides())
+        if dictionary is None:
+            dictionary = odm.Dictionary.emulator(node_id)
+        self._store = odm.ObjectStore(node_id, self._overrides(dictionary), dictionary,
+                                      f_pwm=self._params0.f_pwm)
         self._values = self._store.values
         self._send = Sender(bus)
         self._lock = threading.RLock()
@@ -129,20 +158,23 @@ class DriveDevice:
                             start=self._enter_operational, pdos_off=self._pdos_off,
                             reset_node=self._reset_node,
                             reset_communication=self._reset_communication_state,
-                            heartbeat_lost=lambda: self._fault(Emcy.HEARTBEAT))
-        self.emcy = EmcyProducer(self._values, self._send.send_message, lambda: self.nmt.state)
+                            heartbeat_lost=lambda: self._fault(Emcy.HEARTBEAT),
+                            own=dictionary.own)
+        history = max((sub for i, sub in self._store.vars if i == 0x1003), default=0)
+        self.emcy = EmcyProducer(self._values, self._send.send_message, lambda: self.nmt.state,
+                                 history)
         self.pdo = PdoRuntime(self._store, bus)
         self.sdo = SdoServer(self._store, self._send, SdoHooks(
             nmt_state=lambda: self.nmt.state,
-            statusword=lambda: self._sm.statusword(self._limit),
+            statusword=lambda: self._statusword(self._limit),
             counters=lambda: (self._cycles_total, self._sync_gaps, self._fault_count),
             parameters=self._parameters_written, controlword=self._controlword,
             heartbeats=self.nmt.configure_heartbeats, sync_cob_id=self.pdo.set_sync_id,
             clear_error_history=self.emcy.clear_history, clear_account=self._clear_account,
             signal=self._signal_written))
         self._sm = PowerStateMachine()
-        self._factor = {n: scaling(n)[0] for n in self._store.by_name if n in signal_specs()}
-        self._k = {n: self._store.by_name[n] for n in self._store.by_name}
+        self._k = self._store.signals  # the emulator's own signal objects (none in a twin)
+        self._factor = {n: scaling(n)[0] for n in self._k}
         self._setpoint_keys = tuple(k for n, k in self._k.items() if n in SETPOINT_SIGNALS)
         self._logged: set[tuple[str, type]] = set()  # internal errors logged with traceback
         # account (cumulative since construction)
@@ -219,8 +251,21 @@ class DriveDevice:
         return self._drive
 
     # ---- defaults and resets ----------------------------------------------------------------
-    def _overrides(self) -> dict[odm.Key, Any]:
-        m, p = self._motor0, self._params0
+    def _overrides(self, dictionary: odm.Dictionary) -> dict[odm.Key, Any]:
+        """The defaults the device sets: the emulator's parameters (its own dictionary), or
+        a twin's truths: 0x6502 the modes it offers, 0x6061 its default mode, 0x6079 the
+        DC link voltage."""
+        p = self._params0
+        if not dictionary.own:
+            od, out = dictionary.od, {}
+            if SUPPORTED_MODES in od:
+                out[(SUPPORTED_MODES, 0)] = sum(m.supported_bit for m in dictionary.modes)
+            if 0x6060 in od and 0x6061 in od:
+                out[(0x6061, 0)] = configured(od[0x6060]) or 0
+            if DC_LINK_VOLTAGE in od:
+                out[(DC_LINK_VOLTAGE, 0)] = min(round(p.u_dc * 1000), 0xFFFFFFFF)
+            return out
+        m = self._motor0
         o: dict[odm.Key, Any] = {(odm.MOTOR, k): float(getattr(m, n))
                                  for k, n in enumerate(odm.MOTOR_SUBS, 1)}
         o.update({
@@ -231,8 +276,8 @@ class DriveDevice:
             (odm.DRIVE, 6): float(p.i_gain_error), (odm.DRIVE, 7): float(p.i_noise_rms),
             (odm.DRIVE, 8): round(p.f_pwm), (odm.DRIVE, 9): float(p.w_max),
             (odm.SEED, 0): p.seed & 0xFFFFFFFF,
-            (0x6060, 0): p.mode.mode_of_operation,
-            (0x6061, 0): p.mode.mode_of_operation,
+            (0x6060, 0): int(self._mode0),
+            (0x6061, 0): int(self._mode0),
             (odm.MODEL, 0): p.mode.emulator_model,
             (0x6079, 0): min(round(p.u_dc * 1000), 0xFFFFFFFF),
         })
@@ -240,6 +285,11 @@ class DriveDevice:
 
     def _drive_params(self) -> tuple[MotorParams, DriveParams]:
         v = self._values
+        if not self._store.own:  # a twin: the device's motor and inverter, at its period
+            model = self._params0.mode
+            return self._motor0, replace(
+                self._params0, mode=model if model in (DriveMode.IDEAL, DriveMode.CURRENT_LOOP)
+                else DriveMode.CURRENT_LOOP, f_pwm=self._store.internal_rate)
         motor = MotorParams.from_mapping(
             {n: v[(odm.MOTOR, k)] for k, n in enumerate(odm.MOTOR_SUBS, 1)}, "0x2200")
         mode = DriveMode.VOLTAGE if v[(0x6060, 0)] == DriveMode.VOLTAGE.mode_of_operation else (
@@ -256,20 +306,38 @@ class DriveDevice:
             seed=v[(odm.SEED, 0)])
         return motor, params
 
-    def _make_servo(self, motor: MotorParams, params: DriveParams) -> Servo | None:
-        """The drive's own control in a standard cyclic mode (0x6060 9 or 10), else None."""
+    def _operation_mode(self) -> OperationMode | None:
+        """The mode 0x6060 selects, None for a value that is no mode the device offers."""
+        value = self._values.get((0x6060, 0))
+        return OperationMode(value) if value in self._store.modes else None
+
+    def _units_now(self) -> DriveUnits:
+        """The units of the standard objects: the emulator's, or a twin's from its present
+        values (:mod:`plant.units`)."""
+        return EMULATOR if self._store.own else units_from(self._store.lookup)[0]
+
+    def _make_servo(self, motor: MotorParams, params: DriveParams) -> None:
+        """The drive's own control in a standard mode (0x6060 3, 4, 8, 9 or 10), with the
+        ramp of a profile mode; none in a vector mode."""
         v = self._values
-        if not OperationMode(v[(0x6060, 0)]).standard:
-            return None
-        return servo_for(motor, params.i_trip, v[(0x1006, 0)] / 1e6, v[(MAX_TORQUE, 0)],
-                         self._drive.state.w_m)
+        mode = self._operation_mode()
+        self._servo: Servo | None = None
+        self._profile: ProfileRamp | None = None
+        if mode is None or not mode.standard:
+            return
+        T = self._store.period
+        self._servo = servo_for(motor, params.i_trip, T, v.get((MAX_TORQUE, 0)),
+                                self._drive.state.w_m, self._units.torque)
+        if mode.profiled:
+            self._profile = ProfileRamp(mode, T, self._servo.params.T_max)
 
     def _reset_application(self) -> None:
         """Power-on / reset node: defaults, motor at rest, no setpoints, no faults."""
         self._store.reset()
+        self._units = self._units_now()
         motor, params = self._drive_params()
         self._drive = Drive(motor, params, **self._drive_options)
-        self._servo = self._make_servo(motor, params)
+        self._make_servo(motor, params)
         self._params_dirty = False
         self._T_L = 0.0
         self._sp_fresh = self._cw_fresh = self._tl_fresh = False
@@ -311,7 +379,8 @@ class DriveDevice:
         new.set_setpoints(old.setpoints)
         new.enable(self._sm.power)
         self._drive = new
-        self._servo = self._make_servo(motor, params)
+        self._units = self._units_now()
+        self._make_servo(motor, params)
         self._params_dirty = False
 
     # ---- SDO write effects ------------------------------------------------------------------
@@ -442,17 +511,84 @@ class DriveDevice:
             self._servo_step()
 
     def _servo_step(self) -> None:
-        """CSP, CSV or CST: the target of 0x607A, 0x60FF or 0x6071 → (d, q) setpoints for
-        this period (:mod:`plant.servo`); with the power stage off the drive's control
-        starts over."""
-        servo, v = self._servo, self._values
+        """A standard mode: the target of 0x607A, 0x60FF or 0x6071 (in a profile mode
+        through its ramp, :mod:`plant.profile`) → (d, q) setpoints for this period
+        (:mod:`plant.servo`); with the power stage off the drive's control starts over."""
+        servo, profile = self._servo, self._profile
         assert servo is not None
         if not self._sm.power:
             servo.reset()
+            if profile is not None:
+                profile.stop()
+                self._put(TORQUE_DEMAND if profile.mode.torque else VELOCITY_DEMAND, 0.0)
             return
-        mode = OperationMode(v[(0x6060, 0)])
-        index, unit = TARGETS[mode]
-        self._drive.set_setpoints(servo.follow(mode, v[(index, 0)] * unit))
+        mode = self._operation_mode()
+        if mode is None:
+            return
+        target = self._target(mode)
+        if profile is not None:
+            target = profile.step(target, self._settings(), self._halt, servo.w_enc)
+            index, quantity = ((TORQUE_DEMAND, Quantity.TORQUE) if mode.torque
+                               else (VELOCITY_DEMAND, Quantity.VELOCITY))
+            self._put(index, target / self._units.of(quantity))
+        self._drive.set_setpoints(servo.follow(mode, target))
+
+    def _target(self, mode: OperationMode) -> float:
+        """The target of a standard mode in SI (N·m, rad, rad/s)."""
+        index, quantity = TARGETS[mode]
+        return self._values.get((index, 0), 0) * self._units.of(quantity)
+
+    @property
+    def _halt(self) -> bool:
+        """Controlword bit 8 (halt) of the last controlword applied."""
+        return bool(self._sm.controlword & CW_HALT_BIT)
+
+    def _settings(self) -> ProfileSettings:
+        """The profile parameters now, in SI (an object the dictionary lacks: the
+        emulator's default)."""
+        u, d = self._units, DEFAULTS
+
+        def si(index: int, unit: float, default: float) -> float:
+            raw = self._values.get((index, 0))
+            return default if raw is None else raw * unit
+
+        return ProfileSettings(
+            acceleration=si(PROFILE_ACCELERATION, u.acceleration, d.acceleration),
+            deceleration=si(PROFILE_DECELERATION, u.acceleration, d.deceleration),
+            torque_slope=si(TORQUE_SLOPE, u.torque, d.torque_slope),
+            window=si(VELOCITY_WINDOW, u.velocity, d.window),
+            window_time=si(VELOCITY_WINDOW_TIME, 1e-3, d.window_time),
+            threshold=si(VELOCITY_THRESHOLD, u.velocity, d.threshold),
+            threshold_time=si(VELOCITY_THRESHOLD_TIME, 1e-3, d.threshold_time))
+
+    def _statusword(self, limit: bool) -> int:
+        """0x6041: the power state's bits and, in a profile mode, its own (bits 10, 12)."""
+        bits = self._profile.bits if self._profile is not None else 0
+        return self._sm.statusword(limit) | bits
+
+    def _put(self, index: int, value: float, wrap: bool = False) -> None:
+        """A standard object's value (sub 0), rounded, saturated at (``wrap``: modulo) the
+        range of its integer type (a twin's REAL type: as it is); nothing if the dictionary
+        lacks it."""
+        key = (index, 0)
+        var = self._store.vars.get(key)
+        if var is None:
+            return
+        if var.data_type in datatypes.FLOAT_TYPES:
+            self._values[key] = float(value)
+            return
+        if var.data_type not in datatypes.INTEGER_TYPES:
+            return
+        bits, signed = len(var), var.data_type in datatypes.SIGNED_TYPES
+        x = round(value)
+        if wrap:
+            x %= 1 << bits
+            x -= (1 << bits) if signed and x >> (bits - 1) else 0
+        else:
+            lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0,
+                                                                             (1 << bits) - 1)
+            x = max(lo, min(hi, x))
+        self._values[key] = x
 
     def _on_sync(self, data: bytes) -> None:
         n = len(data)
@@ -505,13 +641,18 @@ class DriveDevice:
         if self.on_sample is not None:  # what the TPDOs carry: the at-rest sample after a
             self.on_sample(m, meas)     # non-finite model, not its NaNs
         self._limit = meas.limit_active
-        self.pdo.sample(meas, self._sm.statusword(meas.limit_active), counter)
-        v = self._values  # the standard actual values, in the units of the EDS
-        v[(VELOCITY_ACTUAL, 0)] = _saturate(round(meas.w_m / VELOCITY_UNIT), 32)
-        v[(TORQUE_ACTUAL, 0)] = _saturate(round(meas.T_e / TORQUE_UNIT), 16)
+        u = self._units  # the standard actual values, in the units of the dictionary
+        self._put(VELOCITY_ACTUAL, meas.w_m / u.velocity)
+        self._put(TORQUE_ACTUAL, meas.T_e / u.torque)
+        self._put(CURRENT_ACTUAL, abs(meas.i_s_ab) / u.current)
         if self._servo is not None:  # the encoder counts in the standard modes
             self._servo.sample(meas.w_m)
-            v[(POSITION_ACTUAL, 0)] = _wrap32(round(self._servo.theta / POSITION_UNIT))
+            self._put(POSITION_ACTUAL, self._servo.theta / u.position, wrap=True)
+            profile = self._profile
+            if profile is not None:
+                profile.supervise(meas.w_m, self._target(profile.mode), self._settings(),
+                                  self._halt)
+        self.pdo.sample(meas, self._statusword(meas.limit_active), counter)
         self.pdo.transmit(m)
         return meas
 
@@ -578,17 +719,6 @@ class DriveDevice:
     def _timers(self, now: float) -> float:
         """Heartbeat producer and consumer; returns the time to the next deadline, s."""
         return self.nmt.timers(now)
-
-
-def _wrap32(x: int) -> int:
-    """``x`` modulo 2³² as a signed 32-bit integer (a position counter wraps)."""
-    return (x + (1 << 31)) % (1 << 32) - (1 << 31)
-
-
-def _saturate(x: int, bits: int) -> int:
-    """``x`` within a signed integer of ``bits`` bits."""
-    hi = (1 << (bits - 1)) - 1
-    return max(-hi - 1, min(hi, x))
 
 
 def _finite(meas: Measurement) -> bool:

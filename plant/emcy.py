@@ -25,14 +25,16 @@ class EmcyProducer:
     """Error register, 0x1003, 0x603F and the EMCY frame (see the module docstring).
 
     ``values`` is the object store's values, ``send(can_id, data)`` puts a frame on the bus,
-    ``nmt_state()`` names the present NMT state.
+    ``nmt_state()`` names the present NMT state, ``history`` is the number of entries of
+    0x1003 (8; a twin's file may declare fewer, or none).
     """
 
     def __init__(self, values: dict[odm.Key, Any], send: Callable[[int, bytes], None],
-                 nmt_state: Callable[[], NmtState]) -> None:
+                 nmt_state: Callable[[], NmtState], history: int = 8) -> None:
         self._values = values
         self._send = send
         self._nmt_state = nmt_state
+        self._history = history
         self.error_register = 0
 
     def reset(self) -> None:
@@ -49,10 +51,12 @@ class EmcyProducer:
         v = self._values
         v[(0x1001, 0)] = self.error_register
         v[(0x603F, 0)] = code
-        for k in range(8, 1, -1):
-            v[(0x1003, k)] = v[(0x1003, k - 1)]
-        v[(0x1003, 1)] = code
-        v[(0x1003, 0)] = min(v[(0x1003, 0)] + 1, 8)
+        n = self._history
+        if n:
+            for k in range(n, 1, -1):
+                v[(0x1003, k)] = v[(0x1003, k - 1)]
+            v[(0x1003, 1)] = code
+            v[(0x1003, 0)] = min(v[(0x1003, 0)] + 1, n)
         self.send(code)
 
     def clear(self) -> None:
@@ -64,7 +68,7 @@ class EmcyProducer:
 
     def clear_history(self) -> None:
         """0x1003 sub 0 written (with 0): the pre-defined error field is emptied."""
-        for k in range(1, 9):
+        for k in range(1, self._history + 1):
             self._values[(0x1003, k)] = 0
 
     def send(self, code: Emcy) -> None:

@@ -51,8 +51,9 @@ class NmtSlave:
                  send: Callable[[int, bytes], None], wake: threading.Event, *,
                  start: Callable[[], None], pdos_off: Callable[[], None],
                  reset_node: Callable[[], None], reset_communication: Callable[[], None],
-                 heartbeat_lost: Callable[[], None]) -> None:
+                 heartbeat_lost: Callable[[], None], own: bool = True) -> None:
         self.node_id = node_id
+        self._own = own
         self._values = values
         self._send = send
         self._wake = wake
@@ -71,7 +72,10 @@ class NmtSlave:
 
     @property
     def time_base(self) -> TimeBase:
-        """0x2205: the consumer's time (wall clock unless the master set SYNC)."""
+        """0x2205: the consumer's time (wall clock unless the master set SYNC); a twin's
+        dictionary is another drive's, whose clock is the wall clock."""
+        if not self._own:
+            return TimeBase.WALL
         return TimeBase(self._values.get((odm.TIME_BASE, 0), 0))
 
     def _wall_limit(self, timeout: float) -> float:

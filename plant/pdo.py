@@ -7,12 +7,14 @@ on every n-th SYNC; an RPDO's event timer (sub 5, ms) is the deadline for its ne
 reception. The SYNC consumer listens on 0x1005.
 
 This emulator: on entering OPERATIONAL the runtime is built once from the present
-dictionary (valid RPDOs, valid non-empty TPDOs, their codecs from ``dbc/drive.dbc``'s
-signal names, the cycle period 0x1006 and RPDO apply 0x2203) and dropped on leaving it. A
-received RPDO of the wrong length is rejected (the device then faults); otherwise its raw
-values go into the dictionary and the cycle count of its reception is kept for the
-deadline, which counts SYNC periods of simulated time. Sampling writes every TPDO signal
-object; a TPDO carries the present values of the objects it maps.
+dictionary (valid RPDOs, valid non-empty TPDOs of every PDO record it has, their codecs:
+the emulator's own signal objects by ``dbc/drive.dbc``, every other object as the raw
+integer of its data type; the cycle period 0x1006 and RPDO apply 0x2203) and dropped on
+leaving it. A received RPDO of the wrong length is rejected (the device then faults);
+otherwise its raw values go into the dictionary and the cycle count of its reception is
+kept for the deadline, which counts SYNC periods of simulated time. Sampling writes the
+statusword and every TPDO signal object the dictionary has; a TPDO carries the present
+values of the objects it maps.
 """
 
 from __future__ import annotations
@@ -75,8 +77,14 @@ class PdoRuntime:
         self._store = store
         self._values: dict[odm.Key, Any] = store.values
         self._bus = bus
-        self._tx_codec = message_codec("TX", 0, TX)
-        self._tx_keys = tuple(store.by_name[n] for n in TX)
+        signals = store.signals
+        tx = tuple(n for n in TX if n in signals)
+        self._tx_codec = message_codec("TX", 0, tx)
+        self._tx_keys = tuple(signals[n] for n in tx)
+        self._statusword = "statusword" not in signals and (0x6041, 0) in store.vars
+        self._setpoint_keys = frozenset(signals[n] for n in SETPOINT_SIGNALS if n in signals)
+        self._frame_keys = frozenset(signals[n] for n in FRAME if n in signals)
+        self._load_keys = frozenset(signals[n] for n in LOAD if n in signals)
         self.period = 0.0
         self.apply = RpdoApply.AT_NEXT_SYNC
         self.frame_names = SETPOINTS[SetpointFrame.DQ]
@@ -96,34 +104,34 @@ class PdoRuntime:
     def build(self) -> None:
         """Entering OPERATIONAL: the runtime from the present dictionary."""
         self.clear()
-        v = self._values
-        self.period = v[(0x1006, 0)] / 1e6
-        self.apply = RpdoApply(v[(odm.RPDO_APPLY, 0)])
+        v, store = self._values, self._store
+        self.period = store.period
+        self.apply = RpdoApply(v[(odm.RPDO_APPLY, 0)] if store.own else 0)
         mapped: set[str] = set()
-        for comm in odm.RPDO_COMM:
-            cfg = self._store.pdo(comm)
+        for comm in store.rpdos:
+            cfg = store.pdo(comm)
             if not cfg.valid:
                 continue
-            names = set(cfg.names)
-            mapped |= names
+            keys = set(cfg.entries)
+            mapped |= {n for n, k in store.signals.items() if k in keys}
             self.rpdos[cfg.cob_id] = Rpdo(
                 cfg, self._codec(f"RPDO{cfg.number}", cfg),
-                timeout=cfg.event_timer_ms / 1000.0, controlword="controlword" in names,
-                setpoints=bool(names & SETPOINT_SIGNALS),
-                frame=bool(names & {"eps_0", "w_0"}), load=bool(names & set(LOAD)))
+                timeout=cfg.event_timer_ms / 1000.0, controlword=(0x6040, 0) in keys,
+                setpoints=bool(keys & self._setpoint_keys),
+                frame=bool(keys & self._frame_keys), load=bool(keys & self._load_keys))
         self.frame_names = SETPOINTS[setpoint_frame_of(mapped)]
-        for comm in odm.TPDO_COMM:
+        for comm in store.tpdos:
             cfg = self._store.pdo(comm)
             if cfg.valid and cfg.entries:
                 self.tpdos.append(Tpdo(cfg, self._codec(f"TPDO{cfg.number}", cfg)))
 
     def _codec(self, name: str, cfg: odm.PdoConfig) -> MessageCodec:
-        """The layout of a mapping: each object's DBC signal where ``dbc/drive.dbc`` has
-        one (the emulator's own signals, scaled), else its raw integer of the size and
-        sign of its data type (the standard objects, in the units of the drive's EDS)."""
-        specs = signal_specs()
+        """The layout of a mapping: the emulator's own signal objects as their DBC signal
+        (scaled), every other object as the raw integer of the size and sign of its data
+        type (the standard objects, in the units of the drive's EDS)."""
+        specs, signals = signal_specs(), self._store.signals
         return MessageCodec(name, cfg.cob_id, [
-            specs.get(n) or raw_spec(n, self._store.vars[key])
+            specs[n] if signals.get(n) == key else raw_spec(n, self._store.vars[key])
             for n, key in zip(cfg.names, cfg.entries, strict=True)])
 
     def receive(self, r: Rpdo, data: bytes, cycles: int) -> bool:
@@ -146,11 +154,13 @@ class PdoRuntime:
                 yield r
 
     def sample(self, meas: Measurement, statusword: int, counter: int) -> None:
-        """Write every TPDO signal object for one sample."""
+        """Write the statusword and every TPDO signal object for one sample."""
         raws = self._tx_codec.raw(tpdo_signals(meas, statusword, counter))
         v = self._values
         for key, raw in zip(self._tx_keys, raws, strict=True):
             v[key] = raw
+        if self._statusword:
+            v[(0x6041, 0)] = statusword
 
     def transmit(self, m: int) -> None:
         """The TPDOs due on the ``m``-th SYNC, in order."""
@@ -162,3 +172,4 @@ class PdoRuntime:
                 data = t.codec.pack(*[v[e] for e in t.config.entries])
                 send(can.Message(arbitration_id=t.config.cob_id, data=data,
                                  is_extended_id=False))
+

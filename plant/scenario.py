@@ -505,8 +505,28 @@ def shipped_names() -> list[str]:
 
 def resolve_scenario(arg: str) -> PlantScenario:
     """``--plant ARG``: a file path, or the name of a shipped scenario (e.g. ``rs+10``)."""
+    shipped = _shipped_source(arg)
+    return load_scenario(arg) if shipped is None else parse_scenario(*shipped)
+
+
+def scenario_source(arg: str) -> tuple[str, str]:
+    """The TOML text of ``--plant ARG`` (a file path, or a shipped scenario's name) and
+    the name it goes by in messages, as :func:`resolve_scenario` reads it; ScenarioError
+    when there is no such file."""
+    shipped = _shipped_source(arg)
+    if shipped is not None:
+        return shipped
+    try:
+        return Path(arg).read_bytes().decode("utf-8"), arg
+    except (OSError, UnicodeDecodeError):
+        load_scenario(arg)  # raises the one message for a file that cannot be read
+        raise
+
+
+def _shipped_source(arg: str) -> tuple[str, str] | None:
+    """A shipped scenario's text and source name, when ``arg`` names one and no file."""
     p = Path(arg)
     if not p.exists() and p.suffix != ".toml" and arg in shipped_names():
         res = resources.files("plant").joinpath("scenarios", f"{arg}.toml")
-        return parse_scenario(res.read_text("utf-8"), f"scenarios/{arg}.toml")
-    return load_scenario(arg)
+        return res.read_text("utf-8"), f"scenarios/{arg}.toml"
+    return None

@@ -6,7 +6,7 @@ python-canopen's ``LocalNode``/``SdoServer`` for the protocol and :class:`plant.
 for the values and the access rules. Reads of 0x6041 and of the account 0x2300 see the
 present state; a successful write stores the value, keeps the mirrored objects in step
 (0x6061 = 0x6060, 0x6079 = u_dc in mV) and tells the rest of the device through
-:class:`SdoHooks`.
+:class:`SdoHooks` (the emulator's own objects 0x2xxx only in its own dictionary).
 
 Before a request reaches python-canopen's server, this module enforces what that server
 does not: block transfers (initiate upload ccs 5, download ccs 6) are aborted
@@ -191,7 +191,7 @@ class SdoServer:
         v = self._values
         if index == 0x6041:
             v[(0x6041, 0)] = self._hooks.statusword()
-        elif index == odm.ACCOUNT:
+        elif index == odm.ACCOUNT and self._store.own:
             cycles, gaps, faults = self._hooks.counters()
             v[(odm.ACCOUNT, 1)] = cycles & 0xFFFFFFFF
             v[(odm.ACCOUNT, 2)] = gaps & 0xFFFFFFFF
@@ -199,14 +199,14 @@ class SdoServer:
         return self._store.read(index, subindex)
 
     def write(self, index: int, subindex: int, data: bytes) -> None:
-        h = self._hooks
+        h, own = self._hooks, self._store.own
         value = self._store.check_write(index, subindex, data, h.nmt_state())
         self._values[(index, subindex)] = value
-        if index in odm.PARAMETER_OBJECTS:
+        if index in self._store.parameters:
             h.parameters()
             if index == 0x6060:
                 self._values[(0x6061, 0)] = value
-            elif index == odm.DRIVE and subindex == 1:
+            elif own and index == odm.DRIVE and subindex == 1:
                 self._values[(0x6079, 0)] = round(value * 1000)
         if index == 0x6040:
             h.controlword(value)
@@ -216,7 +216,7 @@ class SdoServer:
             h.sync_cob_id(value)
         elif index == 0x1003:
             h.clear_error_history()
-        elif index == odm.ACCOUNT_CLEAR:
+        elif own and index == odm.ACCOUNT_CLEAR:
             h.clear_account()
-        elif 0x2000 <= index < 0x2100:
+        elif own and 0x2000 <= index < 0x2100:
             h.signal(index)

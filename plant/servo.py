@@ -1,10 +1,11 @@
-"""The emulated drive's own control in the standard CiA 402 cyclic modes (pure).
+"""The emulated drive's own control in the standard CiA 402 modes (pure).
 
 A standard inverter offers no vector current or voltage process data: it takes a target
 torque (cyclic synchronous torque, CST, mode 10) or a target velocity (cyclic synchronous
 velocity, CSV, mode 9) every SYNC and runs its own field-oriented control. This module is
 that control (and cyclic synchronous position, CSP, mode 8: a position loop over the
-speed loop), on top of the drive's current source (:class:`plant.drive.Drive` in ``ideal``
+speed loop; the profile modes, PV 3 and PT 4, give it the output of their ramp,
+:mod:`plant.profile`), on top of the drive's current source (:class:`plant.drive.Drive` in ``ideal``
 or ``current-loop`` mode), evaluated once per SYNC period:
 
 * **Indirect field orientation** with the drive's own motor parameters (those in 0x2200):
@@ -39,14 +40,7 @@ import cmath
 import math
 from dataclasses import dataclass
 
-from dbc.cia402 import (
-    POSITION_UNIT,
-    TARGET_POSITION,
-    TARGET_TORQUE,
-    TARGET_VELOCITY,
-    VELOCITY_UNIT,
-    OperationMode,
-)
+from dbc.cia402 import OperationMode
 from dbc.modes import SetpointFrame
 from dbc.motor import MotorParams
 from plant.drive import Setpoints
@@ -56,6 +50,10 @@ from plant.drive import Setpoints
 T_RATED = 10.0
 #: One unit of 0x6071/0x6077, N·m (1/1000 of the rated torque).
 TORQUE_UNIT = T_RATED / 1000
+#: The emulated motor's rated current, A (amplitude): about the current vector at the rated
+#: torque and flux (3.4 A magnetising, 9.5 A torque-producing); the unit of 0x6078 of a twin
+#: whose file has no 0x6075 is 1/1000 of it.
+I_RATED = 10.0
 
 
 @dataclass(frozen=True)
@@ -76,22 +74,14 @@ class ServoParams:
                 raise ValueError(f"ServoParams.{name} = {value!r} must be a finite number > 0")
 
 
-#: Each standard mode's target object (CiA 402) and its unit in SI (N·m, rad, rad/s).
-TARGETS: dict[OperationMode, tuple[int, float]] = {
-    OperationMode.CYCLIC_SYNC_TORQUE: (TARGET_TORQUE, TORQUE_UNIT),
-    OperationMode.CYCLIC_SYNC_POSITION: (TARGET_POSITION, POSITION_UNIT),
-    OperationMode.CYCLIC_SYNC_VELOCITY: (TARGET_VELOCITY, VELOCITY_UNIT),
-}
-
-
 def servo_for(motor: MotorParams, i_trip: float, T: float, max_torque: int | None = None,
-              w_m: float = 0.0) -> Servo:
+              w_m: float = 0.0, torque_unit: float = TORQUE_UNIT) -> Servo:
     """The emulated drive's own control: current limit 0.8 × its over-current trip
     ``i_trip`` (20 A where there is none), torque limit ``max_torque`` in 1/1000 of the rated
-    torque (0x6072; None: the default, 20 N·m), period ``T``, the motor's speed now
-    ``w_m`` (rad/s: its encoder's first sample)."""
+    torque (0x6072, ``torque_unit`` N·m each; None: the default, 20 N·m), period ``T``, the
+    motor's speed now ``w_m`` (rad/s: its encoder's first sample)."""
     i_max = 0.8 * i_trip if math.isfinite(i_trip) else 20.0
-    T_max = ServoParams().T_max if max_torque is None else max_torque * TORQUE_UNIT
+    T_max = ServoParams().T_max if max_torque is None else max_torque * torque_unit
     servo = Servo(motor, ServoParams(i_max=i_max, T_max=T_max), T)
     servo.w_enc = w_m
     return servo
@@ -132,9 +122,9 @@ class Servo:
 
     def follow(self, mode: OperationMode, target: float) -> Setpoints:
         """One SYNC in a standard ``mode``: its ``target`` (SI: N·m, rad or rad/s, see
-        :data:`TARGETS`) → the (d, q) setpoints for the period, on the encoder's last
-        sample."""
-        if mode is OperationMode.CYCLIC_SYNC_TORQUE:
+        :data:`plant.units.TARGETS`; in a profile mode the ramp's output) → the (d, q)
+        setpoints for the period, on the encoder's last sample."""
+        if mode.torque:
             return self.torque(target, self.w_enc)
         if mode is OperationMode.CYCLIC_SYNC_POSITION:
             return self.position(target, self.w_enc)

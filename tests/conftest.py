@@ -1,62 +1,29 @@
 """Shared pytest helpers.
 
+The project's own pytest plugin (gateway/pytest_plugin.py: the ``drive_run`` fixture, the
+``needs_vcan`` marker) is registered here, so that the tests use it whether or not the
+package's entry point is installed.
+
 ``require_vcan()`` / the ``vcan_channel`` fixture: tests marked ``vcan`` need a SocketCAN
 ``vcan0`` (run them as ``scripts/vcan-run -- .venv/bin/pytest -m vcan``). Where there is
 none they skip with the reason — except under ``CI=true``, where they fail: CI must
-never skip them silently.
+never skip them silently (the plugin's rule, :func:`gateway.pytest_plugin.require_vcan`).
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import socket
-
 import pytest
+
+pytest_plugins = ["gateway.pytest_plugin"]
 
 VCAN_HINT = "run the vcan tests through scripts/vcan-run -- .venv/bin/pytest -m vcan"
 
 
-def _in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("true", "1")
-
-
-def vcan_problem(channel: str = "vcan0", need_candump: bool = False) -> str | None:
-    """Why ``channel`` cannot be used for SocketCAN tests here, or None when it can."""
-    af_can = getattr(socket, "AF_CAN", None)
-    if af_can is None:
-        return "this Python has no socket.AF_CAN (not Linux?)"
-    try:
-        s = socket.socket(af_can, socket.SOCK_RAW, socket.CAN_RAW)
-    except OSError as e:
-        return f"this kernel has no SocketCAN (CAN_RAW socket: {e.strerror})"
-    try:
-        s.bind((channel,))
-    except OSError as e:
-        return f"SocketCAN interface {channel} is not usable ({e.strerror})"
-    finally:
-        s.close()
-    try:
-        with open(f"/sys/class/net/{channel}/operstate") as f:
-            state = f.read().strip()
-    except OSError:
-        state = "unknown"
-    if state not in ("up", "unknown"):
-        return f"{channel} is {state}, not up"
-    if need_candump and shutil.which("candump") is None:
-        return "candump not found (apt-get install can-utils)"
-    return None
-
-
 def require_vcan(channel: str = "vcan0", need_candump: bool = False) -> str:
     """Return ``channel`` if usable; else skip (or fail when CI=true) with the reason."""
-    problem = vcan_problem(channel, need_candump)
-    if problem is not None:
-        msg = f"{problem}; {VCAN_HINT}"
-        if _in_ci():
-            pytest.fail(f"CI=true and no usable {channel}: {msg}", pytrace=False)
-        pytest.skip(msg)
-    return channel
+    from gateway.pytest_plugin import require_vcan as plugin_require_vcan
+
+    return plugin_require_vcan(channel, need_candump, VCAN_HINT)
 
 
 @pytest.fixture

@@ -18,7 +18,8 @@ import can
 import gateway
 from dbc.cia402 import State
 from dbc.motor import MotorParams
-from gateway.cli import SIM_HEARTBEAT_TIMEOUT_MS, main
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
+from gateway.cli import main
 from gateway.drive_profile import load_drive_profile
 from gateway.reference import paper_profile
 from gateway.runner import BusTarget
@@ -64,7 +65,7 @@ def emulator_factory():
 @functools.cache
 def _patient_drive_profile(name: str = "emulator") -> Path:
     """The emulator's drive profile with the drive watching the gateway's heartbeat for
-    :data:`gateway.cli.SIM_HEARTBEAT_TIMEOUT_MS` (1 s) instead of 300 ms, as `hil-gateway sim`
+    :data:`dbc.timing.SIM_HEARTBEAT_TIMEOUT_MS` (1 s) instead of 300 ms, as `hil-gateway sim`
     does (written once per test process; the file is what ``--drive`` takes, and
     :func:`run_in_thread` loads the same one). Why: gateway, emulator and test share one
     interpreter in these tests, and on a loaded 2-core CI host the heartbeat thread once went

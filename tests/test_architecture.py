@@ -20,7 +20,8 @@ PACKAGES = ("dbc", "gateway", "plant")
 ASSEMBLERS = {"gateway/sim.py", "gateway/simulate.py"}
 PURE = ("dbc/cia301.py", "dbc/cia402.py", "dbc/modes.py", "dbc/signals.py", "dbc/timing.py",
         "dbc/motor.py", "plant/params.py", "plant/motor.py", "plant/drive.py",
-        "plant/timing.py", "plant/cia402.py", "gateway/cycle.py", "gateway/control",
+        "plant/timing.py", "plant/cia402.py", "plant/profile.py", "plant/units.py",
+        "plant/servo.py", "gateway/cycle.py", "gateway/control",
         "gateway/reference/signals.py", "gateway/reference/demand.py")
 
 
@@ -72,11 +73,33 @@ def test_pure_modules_do_no_bus_io(path):
     assert not _tops(path) & {"can", "canopen", "cantools", "socket", "threading"}, _rel(path)
 
 
+#: The optional extra 'campaign' (Dask, Parquet): imported by these campaign modules only,
+#: so that everything else runs without it.
+CAMPAIGN_EXTRA = {"dask", "distributed", "pyarrow"}
+CAMPAIGN_EXTRA_USERS = {"gateway/campaign/engine.py", "gateway/campaign/table.py"}
+
+
+@pytest.mark.parametrize("path", _modules(), ids=_rel)
+def test_the_campaign_extra_stays_in_the_campaign_engine_and_table(path):
+    if _rel(path) not in CAMPAIGN_EXTRA_USERS:
+        assert not _tops(path) & CAMPAIGN_EXTRA, _rel(path)
+
+
+@pytest.mark.parametrize("path", _modules(), ids=_rel)
+def test_only_the_command_line_imports_the_campaigns(path):
+    """Campaigns stand above the runs: they use the command line's inputs and the session,
+    and nothing below imports them (gateway/cli.py only adds their command)."""
+    rel = _rel(path)
+    if not rel.startswith("gateway/campaign/") and rel != "gateway/cli.py":
+        assert not any(n == "gateway.campaign" or n.startswith("gateway.campaign.")
+                       for n in imports(path)), rel
+
+
 def test_a_can_run_does_not_load_the_simulation():
     assert not {"gateway.simulate", "gateway.sim"} & imports(ROOT / "gateway/runner.py")
 
 
-@pytest.mark.parametrize("path", sorted((ROOT / "examples").rglob("*.py")), ids=_rel)
+@pytest.mark.parametrize("path", sorted((ROOT / "examples").glob("*/src/**/*.py")), ids=_rel)
 def test_example_controllers_use_the_interface_alone(path):
     """A user's controller package needs nothing of ours but the controller interface
     (docs/controllers.md): the example shows that."""

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway import cli, rundir
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
+from gateway import rundir
 from gateway.cli import Progress, main
 from gateway.errors import UserError
 from gateway.reference import demand, load_profile, paper_profile, sample_times
@@ -132,7 +133,7 @@ def test_sim_gives_the_emulated_drive_a_one_second_watch_of_the_gateway(tmp_path
                 writes.append(int.from_bytes(d[4:8], "little"))
     assert writes, "no SDO download to 0x1016 sub 1 in the bus log"
     # configured as node 0x7F (the gateway) within 1000 ms; the shutdown switches it off (0)
-    assert cli.SIM_HEARTBEAT_TIMEOUT_MS == 1000
+    assert SIM_HEARTBEAT_TIMEOUT_MS == 1000
     assert writes[0] == (0x7F << 16) | 1000 and set(writes[1:]) <= {0}, writes
 
 

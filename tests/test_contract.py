@@ -99,7 +99,8 @@ def test_every_signal_has_an_object_and_vice_versa(db, od):
     signals = {s.name for m in db.messages if not is_service(m.frame_id) for s in m.signals}
     mappable = {o.name for o in od.values()
                 if isinstance(o, canopen.objectdictionary.ODVariable) and o.pdo_mappable}
-    standard = {od[i].name for i in (0x6064, 0x606C, 0x6071, 0x6077, 0x607A, 0x60FF)}
+    standard = {od[i].name for i in (0x6064, 0x606B, 0x606C, 0x6071, 0x6074, 0x6077, 0x607A,
+                                      0x6083, 0x6084, 0x6087, 0x60FF)}
     assert signals == mappable - standard
     assert set(gen_eds.SIGNAL_INDEX) == signals
 

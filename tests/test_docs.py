@@ -76,7 +76,9 @@ def test_example_motor_file_is_the_paper_motor():
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["simulate", "--help"], ["sim", "--help"],
-                                  ["run", "--help"], ["compare", "--help"]])
+                                  ["run", "--help"], ["compare", "--help"],
+                                  ["report", "--help"], ["campaign", "--help"],
+                                  ["campaign", "show", "--help"]])
 def test_help_cites_only_shipped_files(argv, capsys):
     from gateway.cli import main
 
@@ -96,9 +98,11 @@ def test_user_facing_text_cites_no_issue_numbers(capsys):
     texts = {p: p.read_text(encoding="utf-8") for p in
              [ROOT / "README.md", ROOT / "BENCHMARKS.md", *(ROOT / "docs").glob("*.md"),
               *(ROOT / "gateway" / "profiles").glob("*.toml"),
-              *(ROOT / "plant" / "scenarios").glob("*.toml")]}
+              *(ROOT / "plant" / "scenarios").glob("*.toml"),
+              *(ROOT / "campaigns").glob("*.toml")]}
     for argv in (["--help"], ["simulate", "--help"], ["sim", "--help"], ["run", "--help"],
-                 ["compare", "--help"], ["log", "--help"], ["check", "--help"]):
+                 ["compare", "--help"], ["report", "--help"], ["log", "--help"],
+                 ["check", "--help"], ["campaign", "--help"], ["campaign", "show", "--help"]):
         with pytest.raises(SystemExit):
             main(argv)
         texts[" ".join(argv)] = capsys.readouterr().out

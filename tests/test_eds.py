@@ -221,11 +221,13 @@ def _same(a, b, dtype: int) -> bool:
 
 def test_canopen_loads_every_object():
     vars_ = _canopen_vars()
-    assert len(vars_) == 171  # 0x2201 has 9 subs (w_max); 0x2205 time base; 8 CSP/CSV/CST objects
+    # 0x2201 has 9 subs (w_max); 0x2205 time base; 8 CSP/CSV/CST objects; 11 PV/PT objects
+    assert len(vars_) == 182
     assert vars_[(0x2201, 1)].default == 560.0 and vars_[(0x6079, 0)].default == 560000
     assert vars_[(0x1014, 0)].default == 0x81  # $NODEID+0x80 for node 1
     assert (vars_[(0x6060, 0)].min, vars_[(0x6060, 0)].max) == (-2, 10)  # -2, -1, 9, 10
-    assert vars_[(0x6502, 0)].default == 0x00030380  # CSP, CSV, CST, both vector modes
+    # PV, PT, CSP, CSV, CST, both vector modes
+    assert vars_[(0x6502, 0)].default == 0x0003038C
     assert (vars_[(0x2201, 1)].min, vars_[(0x2201, 1)].max) == (10, 1300)
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
@@ -362,10 +363,16 @@ def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
 
 
 def _real_drive_profile(tmp_path: Path) -> Path:
-    """The emulator's profile, described as a real drive would be (no truth, no dynamometer)."""
+    """The emulator's profile, described as a real drive would be (no truth, no dynamometer).
+
+    A real drive watches the gateway's heartbeat by the wall clock (only the emulator's own
+    profile sets its SYNC time base), and gateway, drive and test share one interpreter
+    here: on a loaded host a 300 ms watch tripped before cycle 1. These tests are not about
+    that watch (tests/test_faults.py is), so it is given 5 s."""
 
     def as_real(text: str) -> str:
         text = text.replace("emulator = true", "emulator = false")
+        text = re.sub(r"(?m)^heartbeat_timeout_ms = \d+", "heartbeat_timeout_ms = 5000", text)
         return "\n".join(line for line in text.splitlines()
                          if not line.startswith(("truth =", "load =")))
 

@@ -278,3 +278,32 @@ def test_a_finished_run_opens_in_the_same_page(browser, tmp_path):
         page.wait_for_function("(window.scope.traces.w_m || 0) >= 200", timeout=30_000)
     finally:
         server.close()
+
+
+def test_a_campaigns_running_table_feeds_the_scope(tmp_path, capsys):
+    """`campaign --scope`: each point's numeric results against its number, as the points
+    come back; the scope's address is printed and the campaign ends as usual."""
+    from gateway.campaign.command import PointRows
+    from gateway.cli import main
+
+    feed = ScopeFeed("campaign")
+    view = PointRows(feed)
+    client = feed.subscribe()
+    view.add([{"hash": "a", "status": "ok", "speed_rms": 0.5, "passed": True},
+              {"hash": "b", "status": "ok", "speed_rms": 0.7, "passed": False}])
+    view.finish()
+    feed.stats()
+    events = _events(client)
+    metas = [d for e, d in events if e == "meta"]
+    assert metas[-1]["columns"] == ["t", "speed_rms"]  # numbers only, not flags or text
+    rows = [d for e, d in events if e == "rows"]
+    assert [x for d in rows for x in d["columns"]["speed_rms"]] == [0.5, 0.7]
+    assert events[-1] == ("state", {"running": False, "cycles": 2, "stop": "CAMPAIGN_DONE",
+                                    "stop_reason": "2 points run", "speed_error_rms": None})
+    campaign = tmp_path / "c.toml"
+    campaign.write_text('[campaign]\nname = "tiny"\ncommand = "simulate"\n[base]\n'
+                        'profile = "profiles/quick.toml"\nduration = "10ms"\n'
+                        '[grid]\n"plant.motor.Rs" = [0.9, 1.1]\n')
+    assert main(["campaign", str(campaign), "--in-process", "--scope", "127.0.0.1:0",
+                 "--out", str(tmp_path / "out")]) == 0
+    assert re.search(r"scope: http://127\.0\.0\.1:\d+/", capsys.readouterr().err)

@@ -7,14 +7,11 @@ machine, then streams the target every SYNC and reads the actual values back ove
 from __future__ import annotations
 
 import math
-import time
-import uuid
 
-import can
 import canopen
 import numpy as np
 import pytest
-from canopen.profiles.p402 import BaseNode402
+from node402_support import Master402
 
 from dbc import EDS_PATH
 from dbc.cia402 import POSITION_UNIT, VELOCITY_UNIT
@@ -26,93 +23,26 @@ NODE = 5
 T = 1e-3
 
 
-class Master:
-    """The emulator at node 5 on a virtual bus; a BaseNode402 master on another Bus object."""
+class Master(Master402):
+    """The emulator at node 5; RPDO1: controlword + target; TPDO1: statusword + velocity
+    actual + torque actual, TPDO2: position actual, on every SYNC."""
 
     def __init__(self) -> None:
-        channel = f"test-std-{uuid.uuid4().hex}"
-        self.dev_bus = can.Bus(interface="virtual", channel=channel)
-        self.dev = DriveDevice(self.dev_bus, NODE)
-        self.net = canopen.Network()
-        self.net.NOTIFIER_CYCLE = 0.05
-        self.net.connect(interface="virtual", channel=channel)
-        self.node = BaseNode402(NODE, str(EDS_PATH))
-        self.net.add_node(self.node)
-        self.node.sdo.RESPONSE_TIMEOUT = 0.5
-        # a loaded host may hold either side for a while: the state walk waits, not fails
-        self.node.TIMEOUT_SWITCH_STATE_FINAL = 20.0
-        self.node.TIMEOUT_SWITCH_STATE_SINGLE = 5.0
-        self.node.TIMEOUT_SWITCH_OP_MODE = 5.0
-        self.node.TIMEOUT_CHECK_TPDO = 5.0
-        booted: list[int] = []
-        self.node.nmt.add_heartbeat_callback(booted.append)  # before the device boots
-        self.dev.start()
-        deadline = time.monotonic() + 5.0
-        while 0 not in booted:
-            assert time.monotonic() < deadline, "no boot-up from the emulator"
-            time.sleep(0.005)
-
-    def close(self) -> None:
-        self.net.sync.stop()
-        self.dev.stop()
-        self.net.disconnect()
-        self.dev_bus.shutdown()
+        super().__init__(lambda bus: DriveDevice(bus, NODE), NODE, EDS_PATH)
 
     def configure(self, mode: str, target: int) -> None:
-        """Mode, PDOs (RPDO1: controlword + target; TPDO1: statusword + velocity actual +
-        torque actual, TPDO2: position actual, on every SYNC), operational, Operation
-        enabled."""
-        node = self.node
-        node.nmt.state = "PRE-OPERATIONAL"
-        node.sdo[0x1006].raw = round(T * 1e6)
-        node.op_mode = mode
-        assert node.sdo[0x6061].raw == node.sdo[0x6060].raw
-        node.tpdo.read()
-        node.rpdo.read()
-        for pdo in (*node.rpdo.values(), *node.tpdo.values()):
-            pdo.clear()
-            pdo.enabled = False
-        node.rpdo[1].add_variable(0x6040)
-        node.rpdo[1].add_variable(target)
-        node.tpdo[1].add_variable(0x6041)
-        node.tpdo[1].add_variable(0x606C)
-        node.tpdo[1].add_variable(0x6077)
-        node.tpdo[2].add_variable(0x6064)
-        for pdo in (node.rpdo[1], node.tpdo[1], node.tpdo[2]):
-            pdo.trans_type = 1
-            pdo.enabled = True
-        node.rpdo.save()
-        node.tpdo.save()
-        node.setup_402_state_machine(read_pdos=False)
-        node.nmt.state = "OPERATIONAL"
-        # the state machine is walked while SYNCs and the synchronous RPDO1 run
-        node.rpdo[1][target].raw = 0
-        node.rpdo[1].start(0.005)
-        self.net.sync.start(0.005)
-        node.state = "OPERATION ENABLED"
-        self.net.sync.stop()
-        node.rpdo[1].stop()
-        self.target = target
+        super().configure(mode, target, rpdo1=(0x6040, target),
+                          tpdos=((0x6041, 0x606C, 0x6077), (0x6064,)),
+                          period_us=round(T * 1e6))
 
-    def cycle(self, value: int) -> tuple[int, float, float]:
-        """One lockstep cycle: the target in RPDO1, SYNC, wait for the TPDOs → (statusword,
-        velocity in rad/s, torque in N·m)."""
-        node = self.node
-        node.rpdo[1][self.target].raw = value
-        node.rpdo[1].transmit()
-        last = node.tpdo[2]  # sent after TPDO1: both are in when it is
-        with last.receive_condition:  # armed before the SYNC: a fast answer is not missed
-            last.is_received = False
-            self.net.sync.transmit()
-            assert last.receive_condition.wait_for(lambda: last.is_received, 10.0), \
-                "no TPDO2 within 10 s of the SYNC"
-        t = node.tpdo[1]
-        return (t[0x6041].raw, t[0x606C].raw * VELOCITY_UNIT,
-                t[0x6077].raw * T_RATED / 1000)
+    def cycle(self, value: int) -> tuple[int, float, float]:  # type: ignore[override]
+        """One lockstep cycle → (statusword, velocity in rad/s, torque in N·m)."""
+        sw = super().cycle(value)
+        return sw, self.value(0x606C) * VELOCITY_UNIT, self.value(0x6077) * T_RATED / 1000
 
     def position(self) -> float:
         """The position actual value of the last cycle's TPDO2, rad."""
-        return self.node.tpdo[2][0x6064].raw * POSITION_UNIT
+        return self.value(0x6064) * POSITION_UNIT
 
 
 @pytest.fixture
@@ -243,17 +173,19 @@ def test_sim_runs_the_speed_pi_over_cst_and_equals_simulate(tmp_path):
 
 @pytest.mark.parametrize("mode, target", [("velocity", 1.5), ("torque", 1.5),
                                           ("position", 3.0)])
-def test_stream_sends_the_profile_as_the_target(tmp_path, mode, target):
+def test_stream_sends_the_profile_as_the_target(drive_run, mode, target):
     """`stream`: CSV streams ω* (the drive's speed loop tracks it), CSP ∫ω* dt (its
-    position loop), CST the torque that makes ω* against the profile's load (open loop)."""
-    from gateway.cli import main
+    position loop), CST the torque that makes ω* against the profile's load (open loop);
+    over CANopen (the pytest plugin's drive_run)."""
+    from gateway.drivecheck import assert_no_fault
 
-    out = tmp_path / mode
-    assert main(["sim", "--controller", "stream", "--drive-mode", mode, "--duration", "1.2s",
-                 "--out", str(out)]) == 0
-    s = _summary(out)
+    run = drive_run("paper", where="sim", controller="stream", drive_mode=mode,
+                    duration="1.2s")
+    assert_no_fault(run)
+    s = run.summary
     assert s["speed_error"]["rms"] < target, s["speed_error"]
     assert s["configuration"]["drive_mode"] == mode
+    assert s["configuration"]["drive_profile"] == "<emulator-standard>"
 
 
 def test_csp_streams_the_integral_of_the_speed_profile_and_equals_simulate(tmp_path):
@@ -315,4 +247,33 @@ def test_run_drives_a_device_in_cst_over_the_bus(emulator, tmp_path):
     assert s["truth"].startswith("TPDO1.velocity_actual, ω to 0.000105 rad/s")
     assert s["quantisation"]["source"] == "standard.dbc"
     assert "w_m" not in s["quantisation"]["signals"]
+    assert_disabled(emu)
+
+
+@pytest.mark.parametrize("key, value, controller", [("velocity", 3, "stream"),
+                                                     ("torque", 4, "speed-pi")])
+def test_profile_modes_from_the_drive_profile(emulator, tmp_path, key, value, controller):
+    """A drive without cyclic modes: the profile's [modes] names profile velocity (3) or
+    profile torque (4); the gateway checks it against 0x6502, writes 0x6060 and streams
+    the same targets over PDO; the drive ramps them itself (0x6083/0x6084, 0x6087), at
+    rates its [[sdo]] start-up writes raise for the paper's speed step (at the defaults,
+    104.7 rad/s² and 100 N·m/s, the step outruns the ramp and the guard stops the run)."""
+    from gw_support import _patient_drive_profile, assert_disabled, gateway_run
+
+    emu = emulator("current-loop")
+    text = _patient_drive_profile("emulator-standard").read_text()
+    text = text.replace(f"{key} = {9 if key == 'velocity' else 10} ", f"{key} = {value} ")
+    text += "".join(f"\n[[sdo]]\nindex = 0x{i:04X}\nsub = 0\nvalue = {v}\n" for i, v in (
+        (0x6083, 20_000_000), (0x6084, 20_000_000), (0x6087, 1_000_000)))  # 2094 rad/s²
+    profile = tmp_path / "pv.toml"
+    profile.write_text(text)
+    mode = "velocity" if key == "velocity" else "torque"
+    out = tmp_path / "run"
+    assert gateway_run(emu, out, "--drive", str(profile), "--controller", controller,
+                       "--drive-mode", mode, "--duration", "0.6s") == 0
+    assert emu.device._values[(0x6060, 0)] == value
+    s = _summary(out)
+    assert s["run"]["stop"] == "END_OF_PROFILE" and s["run"]["cycles"] == 600
+    # the drive's own ramp (104.7 rad/s² by default in PV) lags the paper's speed step
+    assert s["speed_error"]["rms"] < 15.0 and s["shutdown"]["safe"]
     assert_disabled(emu)

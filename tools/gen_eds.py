@@ -91,7 +91,9 @@ def _objects() -> list[Obj]:
     from dbc.cia402 import SUPPORTED_DRIVE_MODES
     from dbc.motor import MotorParams
     from plant.params import DriveParams
+    from plant.profile import DEFAULTS
     from plant.servo import T_RATED, ServoParams
+    from plant.units import EMULATOR
 
     messages, specs = _parse_dbc()
     m, d, sv = MotorParams(), DriveParams(), ServoParams()
@@ -231,18 +233,32 @@ def _objects() -> list[Obj]:
     var(0x6040, "controlword", UNSIGNED16, "rw", "0", pdo=True, desc="CiA 402 controlword")
     var(0x6041, "statusword", UNSIGNED16, "ro", "0", pdo=True, desc="CiA 402 statusword")
     var(0x6060, "Modes of operation", INTEGER8, "rw", "-1", low="-2", high="10",
-        desc="-1 current vector, -2 voltage vector (manufacturer-specific), 8 cyclic "
-             "synchronous position, 9 cyclic synchronous velocity, 10 cyclic synchronous "
-             "torque")
+        desc="-1 current vector, -2 voltage vector (manufacturer-specific), 3 profile "
+             "velocity, 4 profile torque, 8 cyclic synchronous position, 9 cyclic synchronous "
+             "velocity, 10 cyclic synchronous torque")
     var(0x6061, "Modes of operation display", INTEGER8, "ro", "-1")
     var(0x6064, "Position actual value", INTEGER32, "ro", "0", pdo=True,
         desc="1/65536 revolution (the encoder, counted in the standard modes)")
+    var(0x606B, "Velocity demand value", INTEGER32, "ro", "0", pdo=True,
+        desc="0.001 rev/min (profile velocity: the ramp's output)")
     var(0x606C, "Velocity actual value", INTEGER32, "ro", "0", pdo=True,
         desc="0.001 rev/min (the encoder)")
+    var(0x606D, "Velocity window", UNSIGNED16, "rw", str(round(DEFAULTS.window
+                                                                / EMULATOR.velocity)),
+        desc="0.001 rev/min; profile velocity: target reached (statusword bit 10)")
+    var(0x606E, "Velocity window time", UNSIGNED16, "rw",
+        str(round(DEFAULTS.window_time * 1000)), desc="ms")
+    var(0x606F, "Velocity threshold", UNSIGNED16, "rw", str(round(DEFAULTS.threshold
+                                                                   / EMULATOR.velocity)),
+        desc="0.001 rev/min; profile velocity: speed zero (statusword bit 12)")
+    var(0x6070, "Velocity threshold time", UNSIGNED16, "rw",
+        str(round(DEFAULTS.threshold_time * 1000)), desc="ms")
     var(0x6071, "Target torque", INTEGER16, "rw", "0", pdo=True,
-        desc="per mille of the motor rated torque 0x6076 (CST)")
+        desc="per mille of the motor rated torque 0x6076 (CST, profile torque)")
     var(0x6072, "Max torque", UNSIGNED16, "rw", str(round(1000 * sv.T_max / T_RATED)),
         low="1", high="32767", desc="per mille of the motor rated torque 0x6076")
+    var(0x6074, "Torque demand", INTEGER16, "ro", "0", pdo=True,
+        desc="per mille of the motor rated torque 0x6076 (profile torque: the ramp's output)")
     var(0x6076, "Motor rated torque", UNSIGNED32, "ro", str(round(1000 * T_RATED)),
         desc="mN.m")
     var(0x6077, "Torque actual value", INTEGER16, "ro", "0", pdo=True,
@@ -251,11 +267,22 @@ def _objects() -> list[Obj]:
         desc="mV")
     var(0x607A, "Target position", INTEGER32, "rw", "0", pdo=True,
         desc="1/65536 revolution (CSP)")
+    for index, name in ((0x6083, "Profile acceleration"), (0x6084, "Profile deceleration")):
+        si = DEFAULTS.acceleration if index == 0x6083 else DEFAULTS.deceleration
+        var(index, name, UNSIGNED32, "rw", str(round(si / EMULATOR.acceleration)), low="1",
+            pdo=True, desc="0.001 rev/min per second (profile velocity)")
+    var(0x6087, "Torque slope", UNSIGNED32, "rw",
+        str(round(DEFAULTS.torque_slope / EMULATOR.torque)), low="1", pdo=True,
+        desc="per mille of the motor rated torque 0x6076 per second (profile torque)")
+    var(0x6088, "Torque profile type", INTEGER16, "rw", "0", low="0", high="0",
+        desc="0: linear ramp (the only one)")
+    var(0x60A9, "SI unit velocity", UNSIGNED32, "ro", "0xFDB44700",
+        desc="0.001 rev/min (CiA 402 coding: power of ten -3, revolution 0xB4, minute 0x47)")
     var(0x60FF, "Target velocity", INTEGER32, "rw", "0", pdo=True,
-        desc="0.001 rev/min (CSV)")
+        desc="0.001 rev/min (CSV, profile velocity)")
     var(0x6502, "Supported drive modes", UNSIGNED32, "ro", f"0x{SUPPORTED_DRIVE_MODES:08X}",
-        desc="bit 7: 8 CSP, bit 8: 9 CSV, bit 9: 10 CST, bit 16: -1 current vector, "
-             "bit 17: -2 voltage vector")
+        desc="bit 2: 3 profile velocity, bit 3: 4 profile torque, bit 7: 8 CSP, bit 8: 9 CSV, "
+             "bit 9: 10 CST, bit 16: -1 current vector, bit 17: -2 voltage vector")
     _real32_limits(objs)
     return sorted(objs, key=lambda o: o.index)
 
@@ -298,9 +325,9 @@ def _comments(objs: list[Obj]) -> list[str]:
 
 #: [FileInfo] dates (CiA 306: hh:mm(AM|PM), mm-dd-yyyy). Bump FileRevision and the
 #: modification date when the generated dictionary changes.
-FILE_VERSION, FILE_REVISION = 1, 1
+FILE_VERSION, FILE_REVISION = 1, 2
 CREATED = ("10:00AM", "11-01-2026")
-MODIFIED = ("10:00AM", "11-23-2026")
+MODIFIED = ("10:00AM", "11-24-2026")
 
 
 def render() -> str:

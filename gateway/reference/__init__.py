@@ -27,6 +27,8 @@ from gateway.reference.toml import (
     paper_profile,
     parse_profile,
     reference_limits,
+    resolve_profile,
+    shipped_profiles,
 )
 
 __all__ = [
@@ -46,5 +48,7 @@ __all__ = [
     "paper_profile",
     "parse_profile",
     "reference_limits",
+    "resolve_profile",
     "sample_times",
+    "shipped_profiles",
 ]

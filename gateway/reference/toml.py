@@ -460,6 +460,28 @@ def load_profile(path: str | Path,
     return parse_profile(text, src, limits)
 
 
+def shipped_profiles() -> list[str]:
+    """The names of the reference profiles shipped in ``gateway/profiles/`` (paper, quick,
+    …)."""
+    folder = resources.files("gateway").joinpath("profiles")
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def resolve_profile(arg: str | Path,
+                    limits: Mapping[str, Sequence[ReferenceLimit]] | None = None) -> Profile:
+    """A reference profile file, or the name of a shipped one ("quick": its
+    :attr:`Profile.source` is then ``profiles/quick.toml``); :class:`ProfileError` naming
+    the file, or the shipped names when ``arg`` is neither."""
+    path = Path(arg)
+    if not path.exists() and path.suffix != ".toml" and str(arg) in shipped_profiles():
+        text = resources.files("gateway").joinpath("profiles", f"{arg}.toml").read_text("utf-8")
+        return parse_profile(text, f"profiles/{arg}.toml", limits)
+    if not path.exists() and path.suffix != ".toml":
+        raise ProfileError(f"{arg}: no such profile file, and no shipped profile of that name "
+                           f"(shipped: {', '.join(shipped_profiles())})")
+    return load_profile(path, limits)
+
+
 def paper_profile() -> Profile:
     """The paper's section-6 reference profile (package data ``gateway/profiles/paper.toml``).
 

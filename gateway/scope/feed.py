@@ -79,6 +79,7 @@ class ScopeFeed:
         self._history: deque[list[Any]] = deque(maxlen=HISTORY_ROWS)
         self._clients: list[Client] = []
         self._lock = threading.Lock()
+        self._take_lock = threading.Lock()
         self._state: dict[str, Any] = {"running": False, "cycles": 0}
         self._sent_rows = 0
         self._dropped_gone = 0  # rows dropped for clients since gone
@@ -125,7 +126,12 @@ class ScopeFeed:
         self._take()
 
     def _take(self, upto: int | None = None) -> None:
-        """Read the rows appended since the last read, decimate, send one batch."""
+        """Read the rows appended since the last read, decimate, send one batch (one reader
+        at a time: the feed thread, or the end of the run)."""
+        with self._take_lock:
+            self._take_locked(upto)
+
+    def _take_locked(self, upto: int | None) -> None:
         rows = self._rows
         if rows is None:
             return
@@ -206,7 +212,9 @@ class ScopeFeed:
                 "decimation": self._step, "clients": clients}
 
     def finish(self, summary: dict[str, Any]) -> None:
-        """The run ended: its stop reason and errors to every client."""
+        """The run ended: its last rows, then its stop reason and errors, to every
+        client."""
+        self._take()
         run = summary.get("run", {})
         speed = summary.get("speed_error", {})
         self._state = {"running": False, "cycles": self._state.get("cycles", 0),

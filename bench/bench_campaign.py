@@ -1,0 +1,225 @@
+"""Campaign throughput: points per second in this process and on a local Dask cluster of 1
+and 2 workers, the campaign's overhead per point against calling the simulation directly,
+and the scaling of 2 workers against 1.
+
+    .venv/bin/python bench/bench_campaign.py            # 400 points of 150 ms, 3 repeats
+    .venv/bin/python bench/bench_campaign.py --quick    # 100 points, 1 repeat
+
+The points: the quick profile for 150 ms, a Monte Carlo of R_s (±5 %) and J (±20 %),
+the R_s-adaptive estimator. Baseline: the same points' simulations called directly
+(:func:`gateway.session.run` on a RunSpec made beforehand), in the same invocation,
+interleaved with the campaign in this process; and the points as the command line runs
+one (its inputs built from the options, :func:`gateway.cli.simulate_inputs`, then the same
+call), which is what a point runs. Overhead per point = (campaign time − direct time) /
+points, against the direct time per point (target < 5 %), and against the command line's
+path. Rates are over the points' running (the runner's loop, the table written per batch),
+the cluster's start-up apart. Scaling = rate of 2 workers / rate of 1 (target ≥ 1.8×; on
+a shared 2-core machine the second worker competes with everything else). Medians.
+
+A campaign that fails (a point not 'ok', the cluster not starting) is a failed
+measurement (bench/_common.py). ``--json [FILE]`` keys: ``points``, ``repeats``,
+``direct_s``, ``cli_s``, ``in_process_s``, ``overhead_per_point_pct``,
+``overhead_vs_cli_pct``, ``rate_direct``, ``rate_in_process``, ``rate_1_worker``,
+``rate_2_workers``, ``cluster_start_s``, ``scaling_2_vs_1`` (points per second, seconds),
+``failed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from _common import Figures, RunError, add_json_option, the_run  # noqa: E402
+
+CAMPAIGN = """
+[campaign]
+name = "bench"
+[base]
+profile = "{root}/profiles/quick.toml"
+duration = "150ms"
+estimator = "rs-adaptive"
+[random]
+n = {n}
+seed = {seed}
+"plant.motor.Rs" = {{dist = "uniform", low = 0.95, high = 1.05}}
+"plant.motor.J" = {{dist = "uniform", low = 0.8, high = 1.2}}
+"""
+
+
+def points(n: int, seed: int):
+    from gateway.campaign.model import parse_campaign
+    from gateway.campaign.options import command_options
+    from gateway.campaign.points import plan
+
+    campaign = parse_campaign(CAMPAIGN.format(root=ROOT, n=n, seed=seed), "<bench>",
+                              command_options)
+    return campaign, plan(campaign, ROOT)[0]
+
+
+def direct(pts) -> float:
+    """The points' simulations called directly: their RunSpecs made first (not timed)."""
+    from gateway.campaign.options import build_parser, parse_args
+    from gateway.cli import simulate_inputs
+    from gateway.session import run
+    from gateway.sim import scenario_from_text
+
+    parser = build_parser()
+    inputs = [simulate_inputs(parse_args(parser, p.command, p.argv),
+                              scenario_from_text(*p.plant)) for p in pts]
+    t0 = time.perf_counter()
+    for i in inputs:
+        result = run(i.spec, i.profile, i.motor, windows=i.windows)
+        if result.exit_status:
+            raise RunError(f"a direct run stopped: {result.summary['run']['stop_reason']}")
+    return time.perf_counter() - t0
+
+
+def direct_cli(pts) -> float:
+    """The points as the command line runs one: its inputs from the options
+    (:func:`gateway.cli.simulate_inputs`, timed), then :func:`gateway.session.run`."""
+    from gateway.campaign.options import build_parser, parse_args
+    from gateway.cli import simulate_inputs
+    from gateway.session import run
+    from gateway.sim import scenario_from_text
+
+    parser = build_parser()
+    t0 = time.perf_counter()
+    for p in pts:
+        i = simulate_inputs(parse_args(parser, p.command, p.argv), scenario_from_text(*p.plant))
+        if run(i.spec, i.profile, i.motor, windows=i.windows).exit_status:
+            raise RunError("a direct run stopped")
+    return time.perf_counter() - t0
+
+
+def campaign_run(campaign, pts, engine) -> float:
+    """The points through the campaign's runner on ``engine`` into a new table."""
+    from gateway.campaign import runner
+    from gateway.campaign.runpoint import Limits
+
+    with tempfile.TemporaryDirectory(prefix="bench-campaign-") as d:
+        table, _ = runner.prepare(Path(d), campaign, False)
+        t0 = time.perf_counter()
+        rows = runner.run(engine, pts, table, Limits(runs_dir=d), lambda rows: None)
+        seconds = time.perf_counter() - t0
+        bad = [r for r in rows if r["status"] != "ok"]
+        if bad or len(rows) != len(pts):
+            why = bad[0]["stop_reason"] if bad else f"{len(rows)} rows of {len(pts)}"
+            raise RunError(f"the campaign did not run every point: {why}")
+        table.compact()
+    return seconds
+
+
+def in_process(campaign, pts) -> float:
+    from gateway.campaign.engine import InProcess
+
+    return campaign_run(campaign, pts, InProcess())
+
+
+def on_dask(campaign, pts, workers: int) -> tuple[float, float]:
+    """(cluster start-up, running) seconds on a local cluster of ``workers``."""
+    from gateway.campaign.engine import DaskEngine
+    from gateway.campaign.options import Command
+
+    t0 = time.perf_counter()
+    engine = DaskEngine(Command.SIMULATE, workers=workers)
+    start = time.perf_counter() - t0
+    try:
+        # the workers' first points import the gateway: warm them up apart
+        campaign_run(campaign, pts[: 2 * workers], engine)
+        return start, campaign_run(campaign, pts, engine)
+    finally:
+        engine.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="100 points, one repeat")
+    ap.add_argument("--points", type=int, help="points per measurement (default 400)")
+    ap.add_argument("--repeats", type=int, help="repeats (default 3)")
+    add_json_option(ap)
+    args = ap.parse_args(argv)
+    n = args.points or (100 if args.quick else 400)
+    repeats = args.repeats or (1 if args.quick else 3)
+    campaign, pts = points(n, 1)
+    warm = points(4, 2)[1]
+    fig = Figures(points=n, repeats=repeats)
+    here = ("direct_s", "in_process_s", "rate_direct", "rate_in_process",
+            "overhead_per_point_pct", "cli_s", "overhead_vs_cli_pct")
+    try:
+        with the_run("warm-up"):
+            direct(warm)
+            in_process(campaign, warm)
+        d_s, p_s, c_s = [], [], []
+        for _ in range(repeats):  # interleaved: the machine's load falls on all alike
+            with the_run("direct"):
+                d_s.append(direct(pts))
+            with the_run("command line's inputs"):
+                c_s.append(direct_cli(pts))
+            with the_run("in process"):
+                p_s.append(in_process(campaign, pts))
+    except RunError as exc:
+        fig.fail(here, str(exc))
+    else:
+        d, p = statistics.median(d_s), statistics.median(p_s)
+        fig.put("direct_s", d)
+        fig.put("in_process_s", p)
+        fig.put("rate_direct", n / d)
+        fig.put("rate_in_process", n / p)
+        fig.put("overhead_per_point_pct", 100.0 * (p - d) / d)
+        c = statistics.median(c_s)
+        fig.put("cli_s", c)
+        fig.put("overhead_vs_cli_pct", 100.0 * (p - c) / c)
+    rates: dict[int, list[float]] = {1: [], 2: []}
+    starts: list[float] = []
+    for _ in range(repeats):
+        for w in (1, 2):
+            try:
+                with the_run(f"{w} worker(s)"):
+                    start, seconds = on_dask(campaign, pts, w)
+            except RunError as exc:
+                fig.fail(f"rate_{w}_worker{'s' if w > 1 else ''}", str(exc))
+                continue
+            starts.append(start)
+            rates[w].append(n / seconds)
+    for w, name in ((1, "rate_1_worker"), (2, "rate_2_workers")):
+        if rates[w]:
+            fig.put(name, statistics.median(rates[w]))
+    fig.put("cluster_start_s", statistics.median(starts) if starts else None)
+    if rates[1] and rates[2]:
+        fig.put("scaling_2_vs_1", fig.values["rate_2_workers"] / fig.values["rate_1_worker"])
+    else:
+        fig.fail("scaling_2_vs_1", "a cluster measurement failed")
+
+    print(f"campaign throughput: {n} points (quick profile, 150 ms each), median of "
+          f"{repeats}")
+    print(f"{'':34}{'points/s':>10}{'s':>9}   baseline / target")
+    print(f"{'direct session.run (baseline)':34}"
+          + fig.show("rate_direct", lambda v: f"{v:10.1f}{n / v:9.2f}"))
+    print(f"{'inputs from options + session.run':34}"
+          + fig.show("cli_s", lambda v: f"{n / v:10.1f}{v:9.2f}   the command line's path"))
+    print(f"{'campaign, in this process':34}"
+          + fig.show("rate_in_process", lambda v: f"{v:10.1f}{n / v:9.2f}")
+          + fig.show("overhead_per_point_pct",
+                     lambda v: f"   overhead {v:+.1f} % per point (target < 5 %)")
+          + fig.show("overhead_vs_cli_pct", lambda v: f", {v:+.1f} % against the line above"))
+    for w, name in ((1, "rate_1_worker"), (2, "rate_2_workers")):
+        label = f"campaign, local cluster, {w} worker{'s' if w > 1 else ''}"
+        print(f"{label:34}" + fig.show(name, lambda v: f"{v:10.1f}{n / v:9.2f}"))
+    print(f"{'scaling 2 workers / 1':34}" + fig.show(
+        "scaling_2_vs_1", lambda v: f"{v:10.2f}×{'':8}   target ≥ 1.8×"))
+    print(f"(the local cluster starts in {fig.show('cluster_start_s', '{:.1f}')} s, not in "
+          "the rates)")
+    fig.report_failures()
+    fig.emit(args.json)
+    return fig.exit_status()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
