@@ -350,7 +350,7 @@ def _simulate(args: argparse.Namespace, worker: Any) -> int:
     spec, profile, label = inputs.spec, inputs.profile, inputs.label
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
-        with _live_scope(args.scope, f"simulate {profile.name}") as scope:
+        with _live_scope(args, f"simulate {profile.name}") as scope:
             result = run(spec, profile, inputs.motor,
                          output=Output(args.out, f"simulate-{args.law}", args.force,
                                        args.figures),
@@ -365,14 +365,15 @@ def _simulate(args: argparse.Namespace, worker: Any) -> int:
     return result.exit_status  # 1 when a file could not be written (write_results)
 
 
-def _live_scope(address: str | None, title: str) -> Any:
-    """``--scope``: the live scope of the run (:func:`gateway.scope.live_scope`), imported
-    only when asked for (it brings an HTTP server)."""
-    if address is None:
+def _live_scope(args: argparse.Namespace, title: str) -> Any:
+    """``--scope`` and ``--plotjuggler``: the live view of the run
+    (:func:`gateway.scope.live_scope`), imported only when asked for (it brings an HTTP
+    server)."""
+    if args.scope is None and args.plotjuggler is None:
         return contextlib.nullcontext(None)
     from gateway.scope import live_scope
 
-    return live_scope(address, title)
+    return live_scope(args.scope, title, args.plotjuggler)
 
 
 def _print_next(result: Any) -> None:
@@ -494,6 +495,10 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
                         "by default; PORT 0: any free port, printed): speed, flux, currents, "
                         "voltages, torque, timing, the drive's state and stop reason, with "
                         "signal choice, pause, zoom, time base and a trigger")
+    p.add_argument("--plotjuggler", metavar="[HOST:]PORT", nargs="?", const="9870",
+                   help="stream the scope's rows to PlotJuggler's UDP server (JSON, one "
+                        "datagram a row, timestamp field t; HOST 127.0.0.1 by default, PORT "
+                        "9870 when not given)")
 
 
 def _drive_mode(args: argparse.Namespace) -> Any:
@@ -641,7 +646,7 @@ def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) 
     drive, node = target.drive, target.node
     progress = Progress(kind, True if args.progress else None)
     try:
-        with _live_scope(args.scope, f"{kind} {profile.name}") as scope:
+        with _live_scope(args, f"{kind} {profile.name}") as scope:
             result = run(spec, profile, inputs.motor, target=target,
                          output=Output(args.out, kind, args.force, args.figures),
                          windows=inputs.windows, progress=progress, watcher=scope,
@@ -898,6 +903,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     if args.output:  # checked before anything is read or drawn
         htmlreport.check_output(Path(args.output))
+    from gateway.campaign.table import is_campaign
+
+    if any(is_campaign(Path(d)) for d in args.runs):
+        return _report_campaign(args)
     runs = [htmlreport.load(Path(d)) for d in args.runs]
     if args.output:
         out = Path(args.output)
@@ -906,6 +915,31 @@ def cmd_report(args: argparse.Namespace) -> int:
     else:
         out = Path(htmlreport.COMPARISON_NAME)
     written = htmlreport.write_report(runs, out)
+    print(f"wrote {written}")
+    return 0
+
+
+def _report_campaign(args: argparse.Namespace) -> int:
+    """`hil-gateway report CAMPAIGN_DIR`: the campaign's table as one HTML page
+    (CAMPAIGN_DIR/report.html, or -o FILE)."""
+    from gateway import htmlreport
+    from gateway.atomicfile import write_text_atomic
+    from gateway.campaign.htmlpage import render
+    from gateway.campaign.table import open_table
+    from gateway.rundir import REPORT_FILE
+
+    if len(args.runs) != 1:
+        raise UserError(f"report {' '.join(args.runs)}: a campaign's page is of one campaign; "
+                        "give its directory alone (runs are compared with several run "
+                        "directories)")
+    table, meta, where = open_table(args.runs[0])
+    out = Path(args.output) if args.output else where / REPORT_FILE
+    text = render(table.to_pylist(), meta, where)
+    try:
+        written = write_text_atomic(htmlreport.check_output(out), text)
+    except OSError as exc:
+        raise UserError(f"cannot write the report to {str(out)!r}: {exc.strerror or exc}; "
+                        "choose a writable place with -o FILE.html") from exc
     print(f"wrote {written}")
     return 0
 
@@ -1149,11 +1183,15 @@ def _add_report(sub: Any) -> None:
                     "again). Several: one comparison page (outcomes and metrics side by "
                     "side, configuration differences, errors overlaid, each run below), "
                     "./compare.html or -o FILE. A run that did not finish (only running.json) "
-                    "is reported as such. Exit status 0 when the page is written (whatever "
+                    "is reported as such. A campaign's directory: its page (the statuses, "
+                    "the pass criteria, the worst points with the command that reproduces "
+                    "each, the figures, the points worst first) as DIR/report.html. "
+                    "Exit status 0 when the page is written (whatever "
                     "the runs' own), 2 for a directory that is not a run or a file that "
                     "cannot be written. See docs/outputs.md.")
     p.add_argument("runs", nargs="+", metavar="RUN_DIR",
-                   help="run directories written by simulate, sim or run")
+                   help="run directories written by simulate, sim or run; or one campaign's "
+                        "directory (its --out DIR) or results.parquet")
     p.add_argument("-o", "--output", metavar="FILE.html",
                    help="the page to write (default: RUN_DIR/report.html for one run, "
                         "./compare.html for several); written completely or not at all")

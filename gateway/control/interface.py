@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import importlib
 import math
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Protocol, runtime_checkable
 
 from dbc.errors import UserError
+from dbc.filecache import FileMemo
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from dbc.timing import Sampling
@@ -217,8 +219,17 @@ class ControllerError(UserError):
 
 
 def registered() -> dict[str, metadata.EntryPoint]:
-    """The controllers registered in :data:`CONTROLLER_GROUP`, by name."""
-    return {ep.name: ep for ep in metadata.entry_points(group=CONTROLLER_GROUP)}
+    """The controllers registered in :data:`CONTROLLER_GROUP`, by name. Reading the
+    installed packages' metadata takes milliseconds (a campaign's points each look up
+    their controller): kept while ``sys.path`` and its directories are unchanged (an
+    installed or removed package changes its directory)."""
+    path = tuple(sys.path)
+    return dict(_REGISTERED.get(path, lambda: (
+        {ep.name: ep for ep in metadata.entry_points(group=CONTROLLER_GROUP)}, path)))
+
+
+#: :func:`registered`'s scans, by ``sys.path``.
+_REGISTERED: FileMemo[dict[str, metadata.EntryPoint]] = FileMemo(4)
 
 
 def controller_factory(name: str) -> ControllerFactory:
