@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from dbc.cia301 import is_service
+from dbc.filecache import FileMemo, resolved
 from dbc.frame import FLOAT_BITS, MAX_BITS, SignalSpec, frame_layout
 
 __all__ = [
@@ -96,17 +97,31 @@ def ab_companion(path: Path) -> Path:
     return path.with_name(f"{path.stem}{AB_SUFFIX}{path.suffix}")
 
 
+#: Databases read, kept while their files are unchanged (a campaign's points read the same
+#: DBC again and again): :func:`_load`'s results by path.
+_DATABASES: FileMemo[tuple[Any, dict[str, str | None]]] = FileMemo()
+#: :func:`parse_dbc`'s results by path, likewise.
+_PARSED: FileMemo[tuple[dict[str, _Message], dict[str, SignalSpec]]] = FileMemo()
+
+
 def load_database(path: Path = DBC_PATH):
     """``path`` (default ``drive.dbc``) as a cantools database, with the messages that only
     its (a, b) companion (:func:`ab_companion`) has, if there is one; without cantools'
     warning that such a message shares a frame id (it does on purpose). ValueError naming
-    the file when one cannot be read."""
+    the file when one cannot be read. Read once while the files are unchanged
+    (:mod:`dbc.filecache`): the database is shared, read-only."""
     return _load(Path(path))[0]
 
 
 def _load(path: Path) -> tuple[Any, dict[str, str | None]]:
     """The database of :func:`load_database` and its messages taken from the companion:
     name → the message of ``path`` on the same frame id (None if none)."""
+    return _DATABASES.get(resolved(path), lambda: (_read(path),
+                                                    (path, ab_companion(path))))
+
+
+def _read(path: Path) -> tuple[Any, dict[str, str | None]]:
+    """:func:`_load` from the files."""
     import cantools
 
     log = logging.getLogger("cantools.database.can.database")
@@ -139,17 +154,23 @@ def _load(path: Path) -> tuple[Any, dict[str, str | None]]:
         log.removeFilter(quiet)
 
 
-@functools.cache
 def parse_dbc(path: Path = DBC_PATH) -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
-    """Parse a DBC (and its (a, b) companion) once with cantools (immutable result): its
-    PDO messages and their signals by name; the CANopen service messages are skipped.
+    """Parse a DBC (and its (a, b) companion) once with cantools, again only when a file
+    changed (:mod:`dbc.filecache`; a shared result: read-only): its PDO messages and their
+    signals by name; the CANopen service messages are skipped.
 
     What the codec cannot take raises :class:`ValueError` naming it and what to do: an
     unreadable file, a multiplexed message, an extended (29-bit) id, a message longer than
     8 bytes, a signal longer than 64 bits, a float that is not a REAL32 or REAL64, a factor
     of 0, a signal name used twice with different encodings.
     """
-    db, alternatives = _load(Path(path))
+    path = Path(path)
+    return _PARSED.get(resolved(path), lambda: (_parse(path), (path, ab_companion(path))))
+
+
+def _parse(path: Path) -> tuple[dict[str, _Message], dict[str, SignalSpec]]:
+    """:func:`parse_dbc` from the files."""
+    db, alternatives = _load(path)
     messages: dict[str, _Message] = {}
     specs: dict[str, SignalSpec] = {}
     for m in db.messages:
@@ -228,8 +249,10 @@ def scaling(signal_name: str) -> tuple[float, int, bool]:
     return s.factor, s.bits, s.signed
 
 
+@functools.lru_cache(maxsize=256)
 def _build_raw_function(signals: tuple[SignalSpec, ...]) -> Callable[[Mapping], tuple]:
-    """Generate ``values -> raw tuple``: (value − offset) / factor rounded to nearest (a
+    """Generate ``values -> raw tuple`` (once per layout: compiling takes about half a
+    millisecond, and every run builds its codecs): (value − offset) / factor rounded to nearest (a
     float: to the nearest REAL32/REAL64) and saturated at the raw range; integers of
     :data:`WRAPPING_SIGNALS` wrap modulo their range instead. NaN raises ValueError."""
     lines = ["def raw(v):"]
@@ -276,9 +299,10 @@ def _nan(name: str) -> None:
     raise ValueError(f"{name} is NaN: a signal carries numbers")
 
 
+@functools.lru_cache(maxsize=256)
 def _build_phys_function(signals: tuple[SignalSpec, ...]) -> Callable[[tuple], dict]:
-    """Generate ``raw tuple -> {name: raw × factor + offset}`` (the raw value itself, an
-    int, for :data:`INT_SIGNALS`)."""
+    """Generate (once per layout) ``raw tuple -> {name: raw × factor + offset}`` (the raw
+    value itself, an int, for :data:`INT_SIGNALS`)."""
     items = []
     for k, s in enumerate(signals):
         if (s.name in INT_SIGNALS and not s.is_float) or _exact_int(s):

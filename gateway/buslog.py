@@ -899,7 +899,8 @@ def cmd_log(args: argparse.Namespace) -> int:
             if what and drive is not None:
                 what += f" with {drive.source}"
             print(f"logging {cfg.label()} to {path}{what} {until}", flush=True)
-        with _stop_on_signals(stop), live_scope(args.scope, f"log {cfg.label()}") as feed:
+        with _stop_on_signals(stop), live_scope(args.scope, f"log {cfg.label()}",
+                                                     args.plotjuggler) as feed:
             sampler = None
             if feed is not None:
                 sampler = LatestValues(c for c in csv_columns(node, (), drive)
@@ -951,5 +952,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--scope", metavar="[HOST:]PORT",
                    help="serve a live scope of the decoded signals at http://HOST:PORT/ "
                         "(HOST 127.0.0.1 by default; PORT 0: any free port, printed)")
+    p.add_argument("--plotjuggler", metavar="[HOST:]PORT", nargs="?", const="9870",
+                   help="stream the decoded signals to PlotJuggler's UDP server (JSON, one "
+                        "datagram a row, timestamp field t; HOST 127.0.0.1 by default, PORT "
+                        "9870 when not given)")
     add_bus_options(p)
     p.set_defaults(func=cmd_log)

@@ -7,6 +7,7 @@ Every subcommand returns an exit status; bad input ends in one paragraph on stde
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
@@ -334,25 +335,45 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """`hil-gateway simulate`: the closed loop without CAN."""
-    from gateway.scope import live_scope
+    """`hil-gateway simulate`: the closed loop without CAN. A worker process gets ready to
+    draw the figures first (:class:`gateway.drawing.FigureWorker`), while the rest loads."""
+    from gateway.drawing import FigureWorker
+
+    with (FigureWorker.start() if args.figures else None) or contextlib.nullcontext() as worker:
+        return _simulate(args, worker)
+
+
+def _simulate(args: argparse.Namespace, worker: Any) -> int:
     from gateway.session import Output, run
 
     inputs = simulate_inputs(args)
     spec, profile, label = inputs.spec, inputs.profile, inputs.label
     progress = Progress(f"simulate {args.law} {label}", True if args.progress else None)
     try:
-        with live_scope(args.scope, f"simulate {profile.name}") as scope:
+        with _live_scope(args, f"simulate {profile.name}") as scope:
             result = run(spec, profile, inputs.motor,
-                         output=Output(args.out, f"simulate-{args.law}", args.force),
-                         windows=inputs.windows, progress=progress, watcher=scope)
+                         output=Output(args.out, f"simulate-{args.law}", args.force,
+                                       args.figures),
+                         windows=inputs.windows, progress=progress, watcher=scope,
+                         figure_worker=worker)
     except BaseException:
         progress.done(complete=False)
         raise
     progress.done(complete=result.summary["run"]["stop"] == "END_OF_PROFILE")
-    _print_simulation(spec, profile, label, result)
+    _print_simulation(spec, profile, label, result, args.figures)
     _print_next(result)
     return result.exit_status  # 1 when a file could not be written (write_results)
+
+
+def _live_scope(args: argparse.Namespace, title: str) -> Any:
+    """``--scope`` and ``--plotjuggler``: the live view of the run
+    (:func:`gateway.scope.live_scope`), imported only when asked for (it brings an HTTP
+    server)."""
+    if args.scope is None and args.plotjuggler is None:
+        return contextlib.nullcontext(None)
+    from gateway.scope import live_scope
+
+    return live_scope(args.scope, title, args.plotjuggler)
 
 
 def _print_next(result: Any) -> None:
@@ -371,7 +392,8 @@ def _duration_words(args: argparse.Namespace, profile: Any) -> str:
             else f"the profile's duration ({profile.duration:g} s)")
 
 
-def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
+def _print_simulation(spec: Any, profile: Any, label: str, result: Any,
+                      figures: bool = True) -> None:
     """What `simulate` did: configuration, the metrics, the files, why it stopped early."""
     from gateway import report
 
@@ -388,7 +410,8 @@ def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
     drawn = any(p.suffix == ".png" for p in result.files)
     print(f"{summary['run']['cycles']} samples, {summary['wall_time_s']:.2f} s wall time; "
           f"wrote {result.out}/" + ", ".join(p.name for p in result.files)
-          + ("" if drawn or result.write_errors else " (install matplotlib for the figures)"))
+          + ("" if drawn or result.write_errors or not figures
+             else " (install matplotlib for the figures)"))
     stop = summary["run"]["stop"]
     if stop == "DIVERGED":
         print(f"{PROG}: the loop diverged and the simulation stopped: "
@@ -405,7 +428,7 @@ def _print_simulation(spec: Any, profile: Any, label: str, result: Any) -> None:
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     from dbc.modes import DriveMode
-    from gateway.loop import Timing
+    from dbc.timing import Timing
 
     _add_control_options(p)
     p.add_argument("--node", type=int, help="CANopen node id of the drive (default: the drive "
@@ -463,12 +486,19 @@ def _add_output_options(p: argparse.ArgumentParser, default_dir: str) -> None:
                    help="metric windows: auto (default: one per segment of the reference "
                         "profile), paper ([0,0.5), [0.5,1.5), [1.5,end)), none, or boundaries "
                         "in s such as 0.5,1.5 (docs/outputs.md)")
+    p.add_argument("--no-figures", dest="figures", action="store_false",
+                   help="write signals.csv and summary.json only, no figures (faster; "
+                        "`hil-gateway compare` and the scope read the run as well)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
     p.add_argument("--scope", metavar="[HOST:]PORT",
                    help="serve a live scope of the run at http://HOST:PORT/ (HOST 127.0.0.1 "
                         "by default; PORT 0: any free port, printed): speed, flux, currents, "
                         "voltages, torque, timing, the drive's state and stop reason, with "
                         "signal choice, pause, zoom, time base and a trigger")
+    p.add_argument("--plotjuggler", metavar="[HOST:]PORT", nargs="?", const="9870",
+                   help="stream the scope's rows to PlotJuggler's UDP server (JSON, one "
+                        "datagram a row, timestamp field t; HOST 127.0.0.1 by default, PORT "
+                        "9870 when not given)")
 
 
 def _drive_mode(args: argparse.Namespace) -> Any:
@@ -491,9 +521,8 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
               controller_params: dict[str, Any] | None = None):
     """The run's specification, checked against what the drive can do."""
     from dbc.modes import DriveMode
-    from dbc.timing import Sampling
+    from dbc.timing import Sampling, Timing
     from gateway.control.controller import FluxSource
-    from gateway.loop import Timing
     from gateway.process_data import process_data
     from gateway.spec import RunSpec
 
@@ -596,8 +625,19 @@ def bus_inputs(args: argparse.Namespace, target: Any, plant: Any = None,
 def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -> int:
     """What `run` and `sim` share: inputs checked before the run directory is made
     (:func:`bus_inputs`), the run (:func:`gateway.session.run`), the report, the exit
-    status."""
-    from gateway.scope import live_scope
+    status. Where figures will be drawn (the drive maps its speed), a worker process gets
+    ready for them first, at a lower priority than the loop
+    (:class:`gateway.drawing.FigureWorker`)."""
+    from gateway.drawing import FigureWorker
+    from gateway.session import maps_speed
+
+    worker = (FigureWorker.start(nice=10) if args.figures and maps_speed(target.drive)
+              else None)
+    with worker or contextlib.nullcontext():
+        return _on_the_bus(args, target, plant, worker)
+
+
+def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
     from gateway.session import Output, run
 
     kind = target.command
@@ -606,10 +646,11 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     drive, node = target.drive, target.node
     progress = Progress(kind, True if args.progress else None)
     try:
-        with live_scope(args.scope, f"{kind} {profile.name}") as scope:
+        with _live_scope(args, f"{kind} {profile.name}") as scope:
             result = run(spec, profile, inputs.motor, target=target,
-                         output=Output(args.out, kind, args.force),
-                         windows=inputs.windows, progress=progress, watcher=scope)
+                         output=Output(args.out, kind, args.force, args.figures),
+                         windows=inputs.windows, progress=progress, watcher=scope,
+                         figure_worker=worker)
     except BaseException:
         progress.done(complete=False)
         raise
@@ -862,6 +903,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     if args.output:  # checked before anything is read or drawn
         htmlreport.check_output(Path(args.output))
+    from gateway.campaign.table import is_campaign
+
+    if any(is_campaign(Path(d)) for d in args.runs):
+        return _report_campaign(args)
     runs = [htmlreport.load(Path(d)) for d in args.runs]
     if args.output:
         out = Path(args.output)
@@ -870,6 +915,31 @@ def cmd_report(args: argparse.Namespace) -> int:
     else:
         out = Path(htmlreport.COMPARISON_NAME)
     written = htmlreport.write_report(runs, out)
+    print(f"wrote {written}")
+    return 0
+
+
+def _report_campaign(args: argparse.Namespace) -> int:
+    """`hil-gateway report CAMPAIGN_DIR`: the campaign's table as one HTML page
+    (CAMPAIGN_DIR/report.html, or -o FILE)."""
+    from gateway import htmlreport
+    from gateway.atomicfile import write_text_atomic
+    from gateway.campaign.htmlpage import render
+    from gateway.campaign.table import open_table
+    from gateway.rundir import REPORT_FILE
+
+    if len(args.runs) != 1:
+        raise UserError(f"report {' '.join(args.runs)}: a campaign's page is of one campaign; "
+                        "give its directory alone (runs are compared with several run "
+                        "directories)")
+    table, meta, where = open_table(args.runs[0])
+    out = Path(args.output) if args.output else where / REPORT_FILE
+    text = render(table.to_pylist(), meta, where)
+    try:
+        written = write_text_atomic(htmlreport.check_output(out), text)
+    except OSError as exc:
+        raise UserError(f"cannot write the report to {str(out)!r}: {exc.strerror or exc}; "
+                        "choose a writable place with -o FILE.html") from exc
     print(f"wrote {written}")
     return 0
 
@@ -902,8 +972,11 @@ def _values_not_options(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of `hil-gateway` (all subcommands)."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of `hil-gateway`: all subcommands, or only ``command`` when it
+    is one of this module's (:data:`LOCAL_COMMANDS`): a `simulate` does not wait for the
+    imports of the others (`sim`, `run`, `log`, `scan`, `check` and `bridge` import
+    python-can and python-canopen)."""
     parser = _Parser(
         prog=PROG,
         description="CANopen hardware-in-the-loop gateway: the sensorless speed and flux "
@@ -913,25 +986,32 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true",
                         help="show tracebacks and debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    if command in LOCAL_COMMANDS:
+        LOCAL_COMMANDS[command](sub)
+    else:
+        _add_simulate(sub)
+        _add_sim(sub)
+        _add_run(sub)
+        from gateway import bridgecmd, buslog, check, scan
 
-    _add_simulate(sub)
-    _add_sim(sub)
-    _add_run(sub)
-    from gateway import bridgecmd, buslog, check, scan
+        buslog.add_parser(sub)
+        scan.add_parser(sub)
+        check.add_parser(sub)
+        bridgecmd.add_parser(sub)
+        _add_compare(sub)
+        _add_report(sub)
+        _add_scope(sub)
+        _add_reference(sub)
+        from gateway.campaign import command as campaign
 
-    buslog.add_parser(sub)
-    scan.add_parser(sub)
-    check.add_parser(sub)
-    bridgecmd.add_parser(sub)
-    _add_compare(sub)
-    _add_report(sub)
-    _add_scope(sub)
-    _add_reference(sub)
-    from gateway.campaign import command as campaign
-
-    campaign.add_parser(sub)
+        campaign.add_parser(sub)
     _debug_everywhere(parser)
     return parser
+
+
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word that is not an option), or None."""
+    return next((a for a in argv if not a.startswith("-")), None)
 
 
 def _add_simulate(sub: Any) -> None:
@@ -1103,11 +1183,15 @@ def _add_report(sub: Any) -> None:
                     "again). Several: one comparison page (outcomes and metrics side by "
                     "side, configuration differences, errors overlaid, each run below), "
                     "./compare.html or -o FILE. A run that did not finish (only running.json) "
-                    "is reported as such. Exit status 0 when the page is written (whatever "
+                    "is reported as such. A campaign's directory: its page (the statuses, "
+                    "the pass criteria, the worst points with the command that reproduces "
+                    "each, the figures, the points worst first) as DIR/report.html. "
+                    "Exit status 0 when the page is written (whatever "
                     "the runs' own), 2 for a directory that is not a run or a file that "
                     "cannot be written. See docs/outputs.md.")
     p.add_argument("runs", nargs="+", metavar="RUN_DIR",
-                   help="run directories written by simulate, sim or run")
+                   help="run directories written by simulate, sim or run; or one campaign's "
+                        "directory (its --out DIR) or results.parquet")
     p.add_argument("-o", "--output", metavar="FILE.html",
                    help="the page to write (default: RUN_DIR/report.html for one run, "
                         "./compare.html for several); written completely or not at all")
@@ -1148,6 +1232,15 @@ def _add_reference(sub: Any) -> None:
     p.set_defaults(func=lambda a: _usage(p))
 
 
+#: The subcommands defined in this module, by name, and what registers each (the others live
+#: in their own modules: gateway.buslog, scan, check, bridgecmd).
+LOCAL_COMMANDS: dict[str, Callable[[Any], None]] = {
+    "simulate": _add_simulate, "sim": _add_sim, "run": _add_run, "compare": _add_compare,
+    "scope": _add_scope, "reference": _add_reference, "profile": _add_reference,
+    "report": _add_report,
+}
+
+
 def _debug_everywhere(parser: argparse.ArgumentParser) -> None:
     """--debug also after the subcommand (``hil-gateway sim --debug``), as in hil-plant:
     every subparser gets it with default SUPPRESS, so the top-level value stands unless
@@ -1168,11 +1261,17 @@ def _usage(p: argparse.ArgumentParser) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `hil-gateway`; returns the exit status."""
-    from gateway.campaign.command import rewrite
+    # numpy's OpenBLAS starts a thread per core that spins on import (0.1 s of CPU taken
+    # from the figure worker); nothing here multiplies matrices large enough to need them
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if _command_of(argv) == "campaign":  # `campaign show` is one word for argparse
+        from gateway.campaign.command import rewrite
 
-    parser = build_parser()
-    args = parser.parse_args(_values_not_options(rewrite(sys.argv[1:] if argv is None
-                                                         else argv)))
+        argv = rewrite(argv)
+    argv = _values_not_options(argv)
+    parser = build_parser(_command_of(argv))
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)

@@ -59,6 +59,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from dbc.codec import ab_companion
+from dbc.filecache import FileMemo, resolved
 from dbc.modes import DriveMode
 from gateway.errors import UserError
 
@@ -210,11 +212,24 @@ def load_drive_profile(path: str | Path | None = None, builtin: str = EMULATOR
             raise UserError(f"cannot read the drive profile {str(p)!r}: {exc.strerror or exc}; "
                             "give an existing TOML file with --drive") from exc
         source, base = str(p), p.parent
+    return _CHECKED.get((text, source, resolved(base)),
+                        lambda: _checked(text, source, base))
+
+
+#: Drive profiles read and checked, kept while the profile's text and its EDS and DBC are
+#: unchanged (a campaign's points load the same profile again and again; checking its EDS
+#: and DBC takes about 30 ms). :class:`DriveProfile` is frozen: shared, read-only.
+_CHECKED: FileMemo[DriveProfile] = FileMemo()
+
+
+def _checked(text: str, source: str, base: Path) -> tuple[DriveProfile, tuple[Path, ...]]:
+    """The profile of ``text`` checked, and the files it depends on."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{source}: not valid TOML: {exc}; fix the syntax") from exc
-    return _from_mapping(data, source, base)
+    prof = _from_mapping(data, source, base)
+    return prof, (prof.eds, prof.dbc, ab_companion(prof.dbc))
 
 
 def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile:

@@ -126,7 +126,7 @@ def load(path: Path) -> ReportRun:
 def render_run(run: ReportRun) -> str:
     """The whole page of one run."""
     body = _run_body(run, "")
-    return _page(f"run {run.name}", f"<h1>Run {_e(run.name)}</h1>\n{body}")
+    return page(f"run {run.name}", f"<h1>Run {escape(run.name)}</h1>\n{body}")
 
 
 def render_comparison(runs: Sequence[ReportRun]) -> str:
@@ -134,16 +134,16 @@ def render_comparison(runs: Sequence[ReportRun]) -> str:
     keys that differ, the errors overlaid, then each run's own page folded."""
     names = run_labels([r.path for r in runs])
     parts = [f"<h1>Comparison of {len(runs)} runs</h1>",
-             "<nav>" + "".join(f'<a href="#r{j}">{_e(n)}</a>' for j, n in enumerate(names))
+             "<nav>" + "".join(f'<a href="#r{j}">{escape(n)}</a>' for j, n in enumerate(names))
              + "</nav>",
              "<h2>Outcome</h2>", _comparison_outcome(runs, names),
              "<h2>Metrics</h2>", _comparison_metrics(runs, names),
              "<h2>Configuration</h2>", _comparison_config(runs, names),
              "<h2>Errors overlaid</h2>", _comparison_figure(runs, names)]
     for j, (run, name) in enumerate(zip(runs, names, strict=True)):
-        parts.append(f'<details id="r{j}"><summary>{_e(name)} — {_e(_stop_text(run))}'
+        parts.append(f'<details id="r{j}"><summary>{escape(name)} — {escape(_stop_text(run))}'
                      f"</summary>\n{_run_body(run, f'r{j}-')}</details>")
-    return _page(f"comparison of {len(runs)} runs", "\n".join(parts))
+    return page(f"comparison of {len(runs)} runs", "\n".join(parts))
 
 
 def check_output(out: Path) -> Path:
@@ -167,9 +167,9 @@ def write_report(runs: Sequence[ReportRun], out: Path) -> Path:
                         "choose a writable place with -o FILE.html") from exc
 
 
-def _page(title: str, body: str) -> str:
+def page(title: str, body: str) -> str:
     return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
-            f"<title>{_e(title)}</title>\n<style>{_CSS}</style>\n</head>\n<body>\n{body}\n"
+            f"<title>{escape(title)}</title>\n<style>{_CSS}</style>\n</head>\n<body>\n{body}\n"
             "</body>\n</html>\n")
 
 
@@ -193,10 +193,10 @@ def _run_body(run: ReportRun, ids: str) -> str:
     sections += [(f"x-{key}", _title(key), _value(s[key])) for key in s if key not in _KNOWN]
     shown = [(f"{ids}{a}", t, h) for a, t, h in sections if h is not None]
     conf = s.get("configuration") or {}
-    head = [f'<p class="config">{_e(report.title_for(conf))}</p>' if conf else "",
+    head = [f'<p class="config">{escape(report.title_for(conf))}</p>' if conf else "",
             _status(run),
-            "<nav>" + "".join(f'<a href="#{a}">{_e(t)}</a>' for a, t, _ in shown) + "</nav>"]
-    body = [f'<section id="{a}"><h2>{_e(t)}</h2>\n{h}</section>' for a, t, h in shown]
+            "<nav>" + "".join(f'<a href="#{a}">{escape(t)}</a>' for a, t, _ in shown) + "</nav>"]
+    body = [f'<section id="{a}"><h2>{escape(t)}</h2>\n{h}</section>' for a, t, h in shown]
     return "\n".join(head + body)
 
 
@@ -218,7 +218,7 @@ def _status(run: ReportRun) -> str:
     good = stop == "END_OF_PROFILE" and status == 0
     text = (f"Stopped: {stop} — {r.get('stop_reason', '')} · exit status {status}"
             if stop else f"exit status {status}")
-    return f'<div class="status {"ok" if good else "bad"}">{_e(text)}</div>'
+    return f'<div class="status {"ok" if good else "bad"}">{escape(text)}</div>'
 
 
 def _outcome(run: ReportRun) -> str:
@@ -233,9 +233,9 @@ def _outcome(run: ReportRun) -> str:
     if wall is not None:
         rows.append(("wall time, s", wall))
     rows += [(f"run.{k}", r[k]) for k in r if k not in _OUTCOME_KEYS]
-    out = _kv_table(rows)
+    out = kv_table(rows)
     if s.get("write_errors"):
-        out += "<h3>Files that could not be written</h3>" + _list(s["write_errors"])
+        out += "<h3>Files that could not be written</h3>" + bullet_list(s["write_errors"])
     if s.get("shutdown"):
         out += "<h3>Shutdown</h3>" + _value(s["shutdown"])
     return out
@@ -247,7 +247,7 @@ def _configuration(s: Mapping[str, Any]) -> str | None:
         return None
     out = _value(conf) if conf else ""
     if s.get("configuration_notes"):
-        out += "<h3>Configuration notes</h3>" + _list(s["configuration_notes"])
+        out += "<h3>Configuration notes</h3>" + bullet_list(s["configuration_notes"])
     return out
 
 
@@ -255,17 +255,17 @@ def _identification(ident: Any) -> str | None:
     if not ident:
         return None
     line = report.identification_line(ident) if isinstance(ident, Mapping) else ""
-    return (f"<p>{_e(line)}</p>" if line else "") + _value(ident)
+    return (f"<p>{escape(line)}</p>" if line else "") + _value(ident)
 
 
 def _metrics(s: Mapping[str, Any]) -> str | None:
     if not any(key in s for _, key, _ in _METRICS):
         truth = "the drive sends no truth (ω, |ψr|), so there are no tracking errors"
-        return f"<p>{_e(truth)}.</p>" if s.get("run") and s.get("timing") else None
+        return f"<p>{escape(truth)}.</p>" if s.get("run") and s.get("timing") else None
     heads = ["", "max", "rms", "final"]
     rows = [[label, *(_si(s[key].get(k), unit) for k in ("max", "rms", "final"))]
             for label, key, unit in _METRICS if isinstance(s.get(key), Mapping)]
-    out = _table(heads, rows)
+    out = table(heads, rows)
     windows = _windows(s)
     if windows:
         out += "<h3>Per window</h3>" + windows
@@ -274,12 +274,12 @@ def _metrics(s: Mapping[str, Any]) -> str | None:
              if key in s]
     if "truth" in s:
         peaks.append(("truth (ω, |ψr|)", s["truth"]))
-    out += _kv_table(peaks)
+    out += kv_table(peaks)
     q = s.get("quantisation")
     if isinstance(q, Mapping):
         applied = "applied" if q.get("applied") else f"not applied ({q.get('reason', '')})"
-        out += (f"<h3>Bus resolution</h3><p>{_e(applied)}, from "
-                f"{_e(q.get('source', ''))}</p>")
+        out += (f"<h3>Bus resolution</h3><p>{escape(applied)}, from "
+                f"{escape(q.get('source', ''))}</p>")
         sig = q.get("signals")
         if isinstance(sig, Mapping) and sig:
             out += _records_table([{"signal": k, **v} for k, v in sig.items()
@@ -304,7 +304,7 @@ def _windows(s: Mapping[str, Any]) -> str:
             other = ws[j] if j < len(ws) else {}
             row += [_si(other.get("max"), unit), _si(other.get("rms"), unit)]
         rows.append(row)
-    return _table(heads, rows)
+    return table(heads, rows)
 
 
 def _figures(run: ReportRun) -> str:
@@ -312,8 +312,8 @@ def _figures(run: ReportRun) -> str:
         why = ("the run's results were never written" if not run.finished else
                "no truth from the drive, so no figures" if "truth" not in run.summary
                else "none in the run directory (matplotlib was not installed?)")
-        return f"<p>No figures: {_e(why)}.</p>"
-    return "\n".join(_png(p.read_bytes(), p.name) for p in run.figures)
+        return f"<p>No figures: {escape(why)}.</p>"
+    return "\n".join(png_figure(p.read_bytes(), p.name) for p in run.figures)
 
 
 def _bus(s: Mapping[str, Any]) -> str | None:
@@ -325,8 +325,8 @@ def _bus(s: Mapping[str, Any]) -> str | None:
     if isinstance(timing, Mapping) and timing:
         rows = [[name, *(_us(v.get(k)) for k in ("median", "p99", "max", "min"))]
                 for name, v in timing.items() if isinstance(v, Mapping)]
-        out += _table(["per cycle", "median, µs", "p99, µs", "max, µs", "min, µs"], rows)
-    out += _kv_table([(k, r[k]) for k in _BUS_COUNTERS if k in r])
+        out += table(["per cycle", "median, µs", "p99, µs", "max, µs", "min, µs"], rows)
+    out += kv_table([(k, r[k]) for k in _BUS_COUNTERS if k in r])
     events = r.get("tpdo_events")
     if events is not None:
         out += "<h3>TPDO events</h3>" + (_value(events) if events else
@@ -352,7 +352,7 @@ def _injected(s: Mapping[str, Any]) -> str | None:
                 ("exit status", r.get("exit_status"))]
     reaction += [(k, r[k]) for k in ("tpdo_events", "max_consecutive_missed", "error_frames")
                  if k in r]
-    return _value(s["bus_faults"]) + "<h3>Reaction</h3>" + _kv_table(reaction)
+    return _value(s["bus_faults"]) + "<h3>Reaction</h3>" + kv_table(reaction)
 
 
 # ---------------------------------------------------------------------- comparison
@@ -367,7 +367,7 @@ def _comparison_outcome(runs: Sequence[ReportRun], names: list[str]) -> str:
                      report.profile_name(conf.get("profile")) or "—",
                      r.get("stop") if run.finished else "did not finish",
                      r.get("exit_status"), r.get("cycles")])
-    return _table(["run", "command", "profile", "stop", "exit status", "cycles"], rows)
+    return table(["run", "command", "profile", "stop", "exit status", "cycles"], rows)
 
 
 def _comparison_metrics(runs: Sequence[ReportRun], names: list[str]) -> str:
@@ -380,17 +380,17 @@ def _comparison_metrics(runs: Sequence[ReportRun], names: list[str]) -> str:
                 v = v.get(k) if isinstance(v, Mapping) else None
             cells.append(_si(v, unit))
         rows.append(cells)
-    return _table(["", *names], rows)
+    return table(["", *names], rows)
 
 
 def _comparison_config(runs: Sequence[ReportRun], names: list[str]) -> str:
     as_runs = [report.Run(r.path, r.summary, {}) for r in runs]
     diffs = report.config_differences(as_runs)
-    out = (_table(["configuration key", *names], [[k, *v] for k, v in diffs.items()])
+    out = (table(["configuration key", *names], [[k, *v] for k, v in diffs.items()])
            if diffs else "<p>the same configuration</p>")
     some = report.config_only_in_some(as_runs)
     if some:
-        out += f"<p>Not compared (only in some runs): {_e(', '.join(some))}</p>"
+        out += f"<p>Not compared (only in some runs): {escape(', '.join(some))}</p>"
     return out
 
 
@@ -405,15 +405,15 @@ def _comparison_figure(runs: Sequence[ReportRun], names: list[str]) -> str:
         loaded.append(report.Run(Path(name), run.summary, sig))
     with tempfile.TemporaryDirectory(prefix="hil-report-") as tmp:
         png = report.plot_compare(loaded, Path(tmp) / "compare.png")
-        figure = (_png(png.read_bytes(), "speed and flux errors of every run")
+        figure = (png_figure(png.read_bytes(), "speed and flux errors of every run")
                   if png is not None else "<p>No figure: matplotlib is not installed.</p>")
-    return figure + (_list(notes) if notes else "")
+    return figure + (bullet_list(notes) if notes else "")
 
 
 # -------------------------------------------------------------------------- pieces
 
 
-def _e(x: Any) -> str:
+def escape(x: Any) -> str:
     return html.escape(str(x), quote=True)
 
 
@@ -422,10 +422,10 @@ def _title(key: str) -> str:
     return words[:1].upper() + words[1:]
 
 
-def _png(data: bytes, caption: str) -> str:
+def png_figure(data: bytes, caption: str) -> str:
     b64 = base64.b64encode(data).decode("ascii")
-    return (f'<figure><img alt="{_e(caption)}" src="data:image/png;base64,{b64}">'
-            f"<figcaption>{_e(caption)}</figcaption></figure>")
+    return (f'<figure><img alt="{escape(caption)}" src="data:image/png;base64,{b64}">'
+            f"<figcaption>{escape(caption)}</figcaption></figure>")
 
 
 def _si(x: Any, unit: str) -> str:
@@ -457,9 +457,9 @@ def _cell(x: Any) -> str:
     if isinstance(x, list | tuple) and x and not _all_scalar(x):
         return f"<td>{_value(x)}</td>"
     if isinstance(x, list | tuple):
-        return f"<td>{_e(', '.join(_scalar(v) for v in x))}</td>"
+        return f"<td>{escape(', '.join(_scalar(v) for v in x))}</td>"
     num = isinstance(x, int | float) and not isinstance(x, bool)
-    return f'<td class="num">{_e(_scalar(x))}</td>' if num else f"<td>{_e(_scalar(x))}</td>"
+    return f'<td class="num">{escape(_scalar(x))}</td>' if num else f"<td>{escape(_scalar(x))}</td>"
 
 
 def _all_scalar(x: Any) -> bool:
@@ -467,15 +467,15 @@ def _all_scalar(x: Any) -> bool:
     return not any(isinstance(v, Mapping | list | tuple) for v in values)
 
 
-def _table(heads: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    head = "".join(f"<th>{_e(h)}</th>" for h in heads)
+def table(heads: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    head = "".join(f"<th>{escape(h)}</th>" for h in heads)
     body = "".join("<tr>" + "".join(_cell(c) for c in row) + "</tr>\n" for row in rows)
     return f"<table>\n<tr>{head}</tr>\n{body}</table>\n"
 
 
-def _kv_table(rows: Sequence[tuple[str, Any]]) -> str:
+def kv_table(rows: Sequence[tuple[str, Any]]) -> str:
     """Rows of a name and its value, without a header."""
-    body = "".join(f"<tr><th>{_e(k)}</th>{_cell(v)}</tr>\n" for k, v in rows)
+    body = "".join(f"<tr><th>{escape(k)}</th>{_cell(v)}</tr>\n" for k, v in rows)
     return f"<table>\n{body}</table>\n" if rows else ""
 
 
@@ -483,20 +483,20 @@ def _records_table(records: Sequence[Mapping[str, Any]]) -> str:
     """A list of tables as one table: a column per (dotted) key any of them has."""
     flat = [flatten(r) for r in records]
     heads = list(dict.fromkeys(k for f in flat for k in f))
-    return _table(heads, [[f.get(k) for k in heads] for f in flat])
+    return table(heads, [[f.get(k) for k in heads] for f in flat])
 
 
-def _list(items: Sequence[Any]) -> str:
-    return "<ul>" + "".join(f"<li>{_e(_scalar(i))}</li>" for i in items) + "</ul>\n"
+def bullet_list(items: Sequence[Any]) -> str:
+    return "<ul>" + "".join(f"<li>{escape(_scalar(i))}</li>" for i in items) + "</ul>\n"
 
 
 def _value(x: Any) -> str:
     """Any summary value as HTML: a table as rows of dotted keys, a list of tables as one
     table, a list of values as a list, a value as text."""
     if isinstance(x, Mapping):
-        return _kv_table(list(flatten(x).items())) if x else "<p>empty</p>"
+        return kv_table(list(flatten(x).items())) if x else "<p>empty</p>"
     if isinstance(x, list | tuple) and x and all(isinstance(v, Mapping) for v in x):
         return _records_table(x)
     if isinstance(x, list | tuple):
-        return _list(x) if x else "<p>none</p>"
-    return f"<p>{_e(_scalar(x))}</p>"
+        return bullet_list(x) if x else "<p>none</p>"
+    return f"<p>{escape(_scalar(x))}</p>"

@@ -40,7 +40,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import can
@@ -125,6 +125,8 @@ class MasterState:
     faults: list[FaultEvent] = field(default_factory=list)
     last_heartbeat: float = 0.0
     nmt_state: NmtState | None = None
+    #: the gateway's heartbeats the bus refused (bus-off, a full queue); it goes on
+    heartbeat_send_errors: int = 0
 
 
 @dataclass
@@ -141,13 +143,24 @@ class ShutdownReport:
     steps: list[str] = field(default_factory=list)
     supervision_off: bool = False
 
-#: CiA 402 states in which the power stage applies no voltage to the motor.
 #: How long the shutdown retries while the bus refuses frames (a controller recovering
 #: from bus-off), s.
 BUS_OFF_RETRY_S = 3.0
 
+#: CiA 402 states in which the power stage applies no voltage to the motor.
 POWER_OFF_STATES = (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
                     State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.FAULT)
+
+
+def keep_sending(task: can.broadcastmanager.CyclicSendTaskABC,
+                 refused: Callable[[Exception], bool]) -> can.broadcastmanager.CyclicSendTaskABC:
+    """``task``, going on across sends the bus refuses (a bus-off, a full queue): python-can's
+    cyclic thread stops at the first one unless told otherwise; ``refused(exc)`` is told
+    each and returns True to go on. (The kernel's broadcast manager, on SocketCAN, goes on
+    by itself.)"""
+    if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask):
+        task.on_error = refused
+    return task
 
 
 def _objects_text(mapped: list[tuple[int, int, int]]) -> str:
@@ -672,7 +685,8 @@ class DriveMaster:
             self.network.subscribe(cob_id, self._on_alive)
         msg = can.Message(arbitration_id=HEARTBEAT_BASE + self.gateway_node,
                           data=[NmtState.OPERATIONAL.heartbeat], is_extended_id=False)
-        self._heartbeat_task = self.bus.send_periodic(msg, self.heartbeat_period)
+        self._heartbeat_task = keep_sending(self.bus.send_periodic(msg, self.heartbeat_period),
+                                            self._heartbeat_refused)
         self._operational.clear()
         self.nmt_command(NmtCommand.START)
         limit = self._watch_limit()
@@ -689,6 +703,11 @@ class DriveMaster:
                                           daemon=True)
         self._watchdog.start()
         self._armed = True
+
+    def _heartbeat_refused(self, exc: Exception) -> bool:
+        """A heartbeat the bus refused: counted; the heartbeat goes on (True)."""
+        self.state.heartbeat_send_errors += 1
+        return True
 
     def _on_alive(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """A frame that only a live drive sends (lockstep: a TPDO answering our SYNC)."""

@@ -1,4 +1,5 @@
-"""Run records: per-cycle signals, the metrics summary, the summary table and the figures.
+"""Run records: per-cycle signals, the metrics summary, the summary table, the comparison
+of runs. The run's figures are :mod:`gateway.figures` (their names are re-exported here).
 
 The same record serves `hil-gateway simulate` and the CAN runs, so their files compare
 column for column. Signals are SI; columns are named like the code (``w_m``, ``psi_ref``).
@@ -9,7 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,13 @@ import numpy as np
 from dbc.modes import DriveMode
 from gateway.atomicfile import write_text_atomic
 from gateway.dotted import flatten
+from gateway.figures import DRAWN_ELSEWHERE as DRAWN_ELSEWHERE
+from gateway.figures import FIG4_MAX as FIG4_MAX
+from gateway.figures import controller_signals
+from gateway.figures import fig3_limits_text as fig3_limits_text
+from gateway.figures import limits_for as limits_for
+from gateway.figures import plot_figures as plot_figures
+from gateway.figures import zoom_windows as zoom_windows
 
 #: Metric windows of the paper scenario, s: start-up and first load, load steps, field weakening.
 DEFAULT_WINDOWS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.5), (1.5, math.inf))
@@ -93,14 +101,14 @@ class Record:
 
 
 def write_columns_csv(path: Path, sig: Mapping[str, np.ndarray]) -> None:
-    """Write columns (e.g. from :func:`read_csv`, amended) like :meth:`Record.write_csv`."""
+    """Write columns (e.g. from :func:`read_csv`, amended) like :meth:`Record.write_csv`:
+    the csv module's header, then the rows joined directly (a float's repr needs no quoting:
+    the same bytes, a third faster)."""
     names = list(sig)
     data = np.column_stack([np.asarray(sig[n], dtype=float) for n in names])
     with path.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(names)
-        for row in data.tolist():
-            w.writerow([repr(x) for x in row])
+        csv.writer(f).writerow(names)
+        f.writelines([",".join(map(repr, row)) + "\r\n" for row in data.tolist()])
 
 
 def read_csv(path: Path) -> dict[str, np.ndarray]:
@@ -388,294 +396,6 @@ def title_for(config: Mapping[str, Any]) -> str:
         bus = str(config.get("bus", "")).split(":")[0] or "CAN"
         how = f"over CANopen ({bus}, {config.get('timing', '?')})"
     return ", ".join(parts) + " — " + how
-
-
-def limits_for(gains: Any, u_lim: float | None = None, i_trip: float | None = None
-               ) -> dict[str, float]:
-    """The limits Fig. 3 draws: the controller's current limit ``gains.i_max``, and the
-    drive's voltage limit and over-current trip when known."""
-    out = {"i_max": float(gains.i_max)}
-    if u_lim is not None:
-        out["u_lim"] = float(u_lim)
-    if i_trip is not None and math.isfinite(i_trip):
-        out["i_trip"] = float(i_trip)
-    return out
-
-
-def zoom_windows(sig: Mapping[str, np.ndarray], windows: Iterable[Mapping[str, Any]] = ()
-                 ) -> list[tuple[str, float, float]]:
-    """Fig. 3's zoomed panels, chosen from the profile's segments: start-up (to the end of
-    the first speed window, at most 0.3 s after it starts), the first load step (50 ms
-    before to 150 ms after), steady state (the last 150 ms). Panels outside the run are left
-    out."""
-    t = sig["t"]
-    if not t.size:
-        return []
-    t0, t1 = float(t[0]), float(t[-1])
-    span = min(0.15, 0.3 * (t1 - t0))
-    w = list(windows)
-    out: list[tuple[str, float, float]] = []
-    speed = [x for x in w if "speed" in str(x.get("label", ""))]
-    end_start = min(t1, 0.5 if not speed else max(min(speed[0]["to"], speed[0]["from"] + 0.3),
-                                                  0.1))
-    out.append(("start-up", t0, max(end_start, t0 + span)))
-    load = [x for x in w if "load" in str(x.get("label", ""))]
-    if load:
-        tl = float(load[0]["from"])
-        if t0 < tl < t1:
-            out.append((f"load step at {tl:g} s", max(t0, tl - span / 3), min(t1, tl + span)))
-    else:
-        dT = np.abs(np.diff(sig["T_L"])) if "T_L" in sig else np.array([])
-        if dT.size and np.max(dT) > 0:
-            tl = float(t[int(np.argmax(dT))])
-            out.append((f"load change at {tl:.3g} s", max(t0, tl - span / 3),
-                        min(t1, tl + span)))
-    out.append(("steady state (end)", max(t0, t1 - span), t1))
-    return out
-
-
-def _setpoints_ab(sig: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """The current setpoints in the (a, b) frame: (i_sd*, i_sq*) turned by the frame angle
-    sent with them (for the interval they act on)."""
-    i = (sig["i_sd_ref"] + 1j * sig["i_sq_ref"]) * np.exp(1j * sig["eps_0"])
-    return i.real, i.imag
-
-
-def plot_figures(sig: Mapping[str, np.ndarray], out_dir: Path, title: str = "",
-                 windows: Iterable[Mapping[str, Any]] = (),
-                 limits: Mapping[str, float] | None = None, delay_s: float = 0.0,
-                 stopped: str = "") -> list[Path]:
-    """The paper's Fig. 1 (references and load) and Fig. 2 (errors), and Fig. 3 (stator
-    currents and voltages: the whole run's magnitudes, then zoomed panels of start-up, a
-    load step and steady state with the setpoints and the limits).
-
-    ``title``: the configuration (:func:`title_for`); ``windows``: the metric windows of
-    the summary (drawn in Fig. 2, used to pick Fig. 3's zooms); ``limits``:
-    :func:`limits_for`; ``delay_s``: time from a row's sample to its setpoints acting
-    (delay·T); ``stopped``: why a run ended before its profile (said in every title, and a
-    red line at its last sample in Figs. 1, 2 and 4). Returns the PNG paths written, or []
-    when matplotlib is not installed.
-    """
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return []
-    t = sig["t"]
-    windows = list(windows)
-    limits = dict(limits or {})
-    suptitle = _suptitler(t, title, stopped)
-    written = [_plot_fig1(plt, sig, out_dir, suptitle),
-               _plot_fig2(plt, sig, out_dir, windows, suptitle),
-               _plot_fig3(plt, sig, out_dir, windows, limits, delay_s, suptitle)]
-    own = controller_signals(sig)
-    if own:
-        written.append(_plot_fig4(plt, sig, own, out_dir, suptitle))
-    return written
-
-
-def _suptitler(t: np.ndarray, title: str, stopped: str) -> Callable[[Any, str], None]:
-    """The figures' title writer: what a figure shows, then the configuration ``title``
-    (:func:`title_for`, one line each side of " — "); a run ``stopped`` early says why in
-    dark red and gets a red dashed line at its last sample ``t[-1]`` (s) on the time axes."""
-    def suptitle(fig: Any, what: str) -> None:
-        conf = title.replace(" — ", "\n")  # configuration, then how it ran
-        if stopped:
-            conf += f"\nSTOPPED EARLY at t = {t[-1]:.3f} s: {stopped}"
-            for a in fig.axes:
-                if a.get_xlabel() == "time [s]" or a.get_shared_x_axes().joined(a, fig.axes[0]):
-                    a.axvline(t[-1], color="red", ls="--", lw=1)
-        text = f"{what}\n{conf}" if title or stopped else what
-        fig.suptitle(text, fontsize="medium", color="darkred" if stopped else "black")
-
-    return suptitle
-
-
-def _plot_fig1(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
-               suptitle: Callable[[Any, str], None]) -> Path:
-    """Fig. 1: speed (rad/s) and flux (Wb) references against the motor's, and the load
-    torque (N·m)."""
-    t = sig["t"]
-    fig, ax = plt.subplots(3, 1, sharex=True, figsize=(8, 7.5), layout="constrained")
-    ax[0].plot(t, sig["w_ref"], label="ω* reference")
-    ax[0].plot(t, sig["w_m"], "--", label="ω motor")
-    ax[0].set_ylabel("speed [rad/s]")
-    ax[1].plot(t, sig["psi_ref"], label="ψ* reference")
-    ax[1].plot(t, sig["psi_r_mod"], "--", label="|ψr| motor")
-    ax[1].set_ylabel("rotor flux [Wb]")
-    ax[2].plot(t, sig["T_L"], color="C3", label="T_L load")
-    ax[2].set_ylabel("load torque [N·m]")
-    ax[2].set_xlabel("time [s]")
-    for a in ax:
-        a.grid(True, alpha=0.3)
-        a.legend(loc="best", fontsize="small")
-    suptitle(fig, "Fig. 1 — speed and flux references, applied load")
-    p = out_dir / "fig1_references.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
-
-
-def _plot_fig2(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
-               windows: list, suptitle: Callable[[Any, str], None]) -> Path:
-    """Fig. 2: the speed (rad/s) and flux (Wb) tracking errors, and the speed estimate's
-    error when there is one (``w_hat``); dotted lines where the metric ``windows`` after
-    the first start."""
-    t = sig["t"]
-    estimate = "w_hat" in sig
-    fig, ax = plt.subplots(3 if estimate else 2, 1, sharex=True,
-                           figsize=(8, 7.5 if estimate else 5.5), layout="constrained")
-    ax[0].plot(t, sig["w_m"] - sig["w_ref"])
-    ax[0].set_ylabel("ω − ω* [rad/s]")
-    ax[1].plot(t, sig["psi_r_mod"] - sig["psi_ref"])
-    ax[1].set_ylabel("|ψr| − ψ* [Wb]")
-    if estimate:
-        ax[2].plot(t, sig["w_hat"] - sig["w_m"])
-        ax[2].set_ylabel("ω̂ − ω [rad/s]")
-    ax[-1].set_xlabel("time [s]")
-    for a in ax:
-        a.grid(True, alpha=0.3)
-        for w in windows[1:]:
-            a.axvline(w["from"], color="0.6", lw=0.8, ls=":")
-    suptitle(fig, "Fig. 2 — tracking and estimation errors (dotted: metric windows)"
-             if estimate else "Fig. 2 — tracking errors (dotted: metric windows)")
-    p = out_dir / "fig2_errors.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
-
-
-#: The signals Fig. 2 already shows, and the paper's flux estimate (checked by the guard):
-#: not drawn again in Fig. 4.
-DRAWN_ELSEWHERE = frozenset({"w_hat", "psi_r_mod_hat", "psi_rd_hat", "psi_rq_hat"})
-#: Fig. 4 draws at most this many of the controller's signals.
-FIG4_MAX = 8
-
-
-def controller_signals(sig: Mapping[str, np.ndarray]) -> list[str]:
-    """The columns a controller logged (:attr:`DriveController.signals`) that no other
-    figure draws: those not of the cycle, the bus or :data:`DRAWN_ELSEWHERE`."""
-    from gateway.cycle import BUS_COLUMNS, CYCLE_COLUMNS
-
-    known = set(CYCLE_COLUMNS) | set(BUS_COLUMNS) | DRAWN_ELSEWHERE
-    return [n for n in sig if n not in known]
-
-
-def _plot_fig4(plt: Any, sig: Mapping[str, np.ndarray], names: list[str], out_dir: Path,
-               suptitle: Callable[[Any, str], None]) -> Path:
-    """Fig. 4: the controller's own signals, one panel each (the first FIG4_MAX)."""
-    shown = names[:FIG4_MAX]
-    fig, ax = plt.subplots(len(shown), 1, sharex=True, squeeze=False,
-                           figsize=(8, 1.2 + 1.6 * len(shown)), layout="constrained")
-    for a, name in zip(ax[:, 0], shown, strict=True):
-        a.plot(sig["t"], sig[name], lw=1)
-        a.set_ylabel(name)
-        a.grid(True, alpha=0.3)
-    ax[-1, 0].set_xlabel("time [s]")
-    more = f" (first {FIG4_MAX} of {len(names)})" if len(names) > FIG4_MAX else ""
-    suptitle(fig, f"Fig. 4 — the controller's signals{more}")
-    p = out_dir / "fig4_controller.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
-
-
-def fig3_limits_text(limits: Mapping[str, float]) -> str:
-    """What Fig. 3's title says of the limits it draws: the ones drawn, and that no voltage
-    limit is known when none is (an ideal current source has none; a real drive's is its
-    own)."""
-    drawn = [text for key, text in (("i_max", "the current limit i_max"),
-                                     ("i_trip", "the over-current trip"),
-                                     ("u_lim", "the voltage limit u_dc/√3")) if key in limits]
-    out = f", with {', '.join(drawn)}" if drawn else ""
-    return out + ("" if "u_lim" in limits else " (no voltage limit known)")
-
-
-def _plot_fig3(plt: Any, sig: Mapping[str, np.ndarray], out_dir: Path,
-               windows: list, limits: Mapping[str, float], delay_s: float,
-               suptitle: Callable[[Any, str], None]) -> Path:
-    """Fig. 3: the whole run's |i_s| (A) and |u_s| (V) on top, below one column per zoom
-    (:func:`zoom_windows`) of the (a, b) currents with their setpoints (acting ``delay_s``
-    after their row) and the period-average voltages; the ``limits`` drawn dotted."""
-    t = sig["t"]
-    zooms = zoom_windows(sig, windows)
-    i_ref_a, i_ref_b = _setpoints_ab(sig)
-    t_ref = t + delay_s
-    fig = plt.figure(figsize=(11, 8), layout="constrained")
-    grid = fig.add_gridspec(3, len(zooms), height_ratios=(1.0, 1.3, 1.3))
-    _fig3_overview(fig.add_subplot(grid[0, :]), sig, zooms, limits)
-    for j, zoom in enumerate(zooms):
-        ai = fig.add_subplot(grid[1, j])
-        au = fig.add_subplot(grid[2, j], sharex=ai)
-        _fig3_zoom(ai, au, sig, zoom, (t_ref, i_ref_a, i_ref_b), limits)
-        if j == 0:
-            ai.set_ylabel("current [A]")
-            au.set_ylabel("voltage, period average [V]")
-        for a in (ai, au):
-            a.grid(True, alpha=0.3)
-        if j == len(zooms) - 1:
-            ai.legend(loc="upper right", fontsize="x-small")
-            au.legend(loc="upper right", fontsize="x-small")
-    suptitle(fig, "Fig. 3 — stator currents (solid: measured, dashed: setpoints) and "
-                  f"average voltages{fig3_limits_text(limits)}")
-    p = out_dir / "fig3_currents_voltages.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
-
-
-def _fig3_overview(top: Any, sig: Mapping[str, np.ndarray],
-                   zooms: list[tuple[str, float, float]], limits: Mapping[str, float]) -> None:
-    """Fig. 3's top panel: |i_s| (A) and, on a twin axis, |u_s| (V) over the whole run,
-    with ``i_max`` and ``u_lim`` dotted and the ``zooms`` (name, from, to in s) shaded."""
-    t = sig["t"]
-    top.plot(t, np.hypot(sig["i_sa"], sig["i_sb"]), label="|i_s| [A]")
-    top.set_ylabel("|i_s| [A]")
-    top2 = top.twinx()
-    top2.plot(t, np.hypot(sig["u_sa"], sig["u_sb"]), color="C1", lw=0.8, label="|u_s| [V]")
-    top2.set_ylabel("|u_s| [V]", color="C1")
-    if "i_max" in limits:
-        top.axhline(limits["i_max"], color="C0", ls=":", lw=1, label="i_max (controller)")
-    if "u_lim" in limits:
-        top2.axhline(limits["u_lim"], color="C1", ls=":", lw=1, label="u_dc/√3 (drive)")
-    for _, lo, hi in zooms:
-        top.axvspan(lo, hi, color="0.85", zorder=0)
-    top.set_xlabel("time [s] (shaded: the zoomed panels below)")
-    top.grid(True, alpha=0.3)
-    h1, l1 = top.get_legend_handles_labels()
-    h2, l2 = top2.get_legend_handles_labels()
-    top.legend(h1 + h2, l1 + l2, loc="upper left", fontsize="x-small", ncol=4)
-
-
-def _fig3_zoom(ai: Any, au: Any, sig: Mapping[str, np.ndarray], zoom: tuple[str, float, float],
-               ref: tuple[np.ndarray, np.ndarray, np.ndarray],
-               limits: Mapping[str, float]) -> None:
-    """One zoomed column of Fig. 3 over ``zoom`` (name, from, to in s): the (a, b) currents
-    (A) and, dashed, their setpoints ``ref`` (acting times in s, i_sa*, i_sb* in A) in
-    ``ai``; the voltages (V) in ``au``; ±i_max, ±i_trip and ±u_dc/√3 dotted if known."""
-    name, lo, hi = zoom
-    t = sig["t"]
-    t_ref, i_ref_a, i_ref_b = ref
-    sel = (t >= lo) & (t <= hi)
-    sel_ref = (t_ref >= lo) & (t_ref <= hi)
-    ai.plot(t[sel], sig["i_sa"][sel], color="C0", label="i_sa")
-    ai.plot(t[sel], sig["i_sb"][sel], color="C2", label="i_sb")
-    ai.step(t_ref[sel_ref], i_ref_a[sel_ref], "--", where="post", color="C0", lw=0.9,
-            label="i_sa* setpoint")
-    ai.step(t_ref[sel_ref], i_ref_b[sel_ref], "--", where="post", color="C2", lw=0.9,
-            label="i_sb* setpoint")
-    au.plot(t[sel], sig["u_sa"][sel], color="C1", label="u_sa")
-    au.plot(t[sel], sig["u_sb"][sel], color="C4", label="u_sb")
-    for key, a, color, text in (("i_max", ai, "k", "±i_max"), ("i_trip", ai, "C3", "±i_trip"),
-                                ("u_lim", au, "C3", "±u_dc/√3")):
-        if key in limits:
-            for sign in (1, -1):
-                a.axhline(sign * limits[key], color=color, ls=":", lw=1,
-                          label=text if sign > 0 else None)
-    ai.set_title(name, fontsize="small")
-    au.set_xlabel("time [s]")
 
 
 # --------------------------------------------------------------------------- comparison

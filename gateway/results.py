@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from gateway import report
+from gateway.figures import Worker
 
 log = logging.getLogger(__name__)
 
@@ -59,10 +60,12 @@ def _try_write(errors: list[str], path: Path, write: Callable[[Path], object], w
 
 def write_results(out: Path, sig: Mapping[str, np.ndarray] | None, summary: dict[str, Any],
                   *, figures: bool, limits: Mapping[str, float] | None = None,
-                  delay_s: float = 0.0, errors: list[str] | None = None) -> list[Path]:
+                  delay_s: float = 0.0, errors: list[str] | None = None,
+                  worker: Worker | None = None) -> list[Path]:
     """Write ``signals.csv`` (``sig``: the record's columns; None: no cycle ran), the figures
-    (``figures``: the run has the truth they need) and ``summary.json``, once each; the
-    figure titles come from ``summary["configuration"]``, the metric windows from its
+    (``figures``: the run has the truth they need; drawn by ``worker`` where there is one,
+    :class:`gateway.drawing.FigureWorker`) and ``summary.json``, once each; the figure
+    titles come from ``summary["configuration"]``, the metric windows from its
     ``speed_error``. What cannot be written goes into ``summary["write_errors"]`` with exit
     status 1. Returns the files written, in that order (a file that failed is not among
     them: never a false "wrote")."""
@@ -91,7 +94,7 @@ def write_results(out: Path, sig: Mapping[str, np.ndarray] | None, summary: dict
             written.extend(_try_write(errors, out, lambda p: report.plot_figures(
                 sig, p, report.title_for(summary.get("configuration", {})),
                 windows=summary["speed_error"]["windows"], limits=limits,
-                delay_s=delay_s, stopped=stopped), "the figures") or [])
+                delay_s=delay_s, stopped=stopped, worker=worker), "the figures") or [])
     n = len(errors)
     write_summary_noting(out, summary, errors)  # appends to ``errors`` when it fails
     if len(errors) == n:

@@ -364,7 +364,8 @@ def _summarise(loop: CycleLoop | None, stats: Any, master: DriveMaster,
         if stop in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
             stop, message = StopReason.UNSAFE, f"{message}; then {StopReason.UNSAFE.value}"
     summary["run"] = {**_run_account(stats, stop, message, exit_status, t_start),
-                      **recorder.account()}
+                      **recorder.account(),
+                      "heartbeat_refused": master.state.heartbeat_send_errors}
     if loop is not None and stop not in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
         summary["run"]["frames_before_stop"] = [
             {"time": t, "dir": d, "cob_id": f"0x{c:03X}", "data": data}

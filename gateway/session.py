@@ -28,6 +28,7 @@ from dbc.motor import MotorParams
 from dbc.signals import SETPOINT_MESSAGE
 from gateway import report
 from gateway.errors import UserError
+from gateway.figures import Worker
 from gateway.guard import DivergenceWatch, profile_envelope
 from gateway.reference import Profile
 from gateway.results import merge_truth, write_results
@@ -40,11 +41,12 @@ Progress = Callable[[float], None]
 @dataclass(frozen=True)
 class Output:
     """Where a run writes: ``dir`` (``--out``; None: a new ``runs/<time>-<name>``),
-    ``force`` (reuse a non-empty ``dir``)."""
+    ``force`` (reuse a non-empty ``dir``), ``figures`` (draw them; ``--no-figures``: no)."""
 
     dir: str | None = None
     name: str = "run"
     force: bool = False
+    figures: bool = True
 
 
 @dataclass
@@ -81,7 +83,7 @@ class Watcher(Protocol):
 def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = None,
         output: Output | None = None, windows: tuple = report.DEFAULT_WINDOWS,
         progress: Progress | None = None, signals: StopSignals | None = None,
-        watcher: Watcher | None = None) -> RunResult:
+        watcher: Watcher | None = None, figure_worker: Worker | None = None) -> RunResult:
     """Run ``spec`` on ``profile`` with the controller's ``motor``: in this process
     (``target`` None) or against ``target`` (:class:`gateway.runner.BusTarget`) on its bus.
 
@@ -91,18 +93,21 @@ def run(spec: RunSpec, profile: Profile, motor: MotorParams, *, target: Any = No
     fraction done. ``signals``: the stop requests (SIGINT/SIGTERM, installed here when
     this is the main thread; a caller may request a stop through it too). ``watcher``: a
     live view of the run (:class:`Watcher`); its account goes into summary.json as
-    ``scope``."""
+    ``scope``. ``figure_worker``: the figures are drawn by this
+    :class:`gateway.drawing.FigureWorker` (the caller started it early and closes it); else
+    a simulation with files starts one, and a bus run draws them itself."""
     signals = signals or StopSignals()
     if target is None:
         if output is None:
             return _simulate(spec, profile, motor, None, windows, progress, signals, watcher)
         with run_dir(output.dir, output.name, output.force) as out:
-            return _simulate(spec, profile, motor, out, windows, progress, signals, watcher)
+            return _simulate(spec, profile, motor, out, windows, progress, signals, watcher,
+                             figure_worker, output.figures)
     if output is None:
         raise ValueError("a bus run writes its bus log: give it an Output")
     with run_dir(output.dir, output.name, output.force, (spec.bus_log,)) as out:
         return _on_bus(spec, profile, motor, target, out, windows, progress, signals,
-                       watcher)
+                       watcher, output.figures, figure_worker)
 
 
 def _writing_politely(signals: StopSignals) -> None:
@@ -125,46 +130,65 @@ def _watched(summary: dict[str, Any], watcher: Watcher | None) -> None:
 
 def _simulate(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
               windows: tuple, progress: Progress | None, signals: StopSignals,
-              watcher: Watcher | None = None) -> RunResult:
+              watcher: Watcher | None = None, worker: Worker | None = None,
+              figures: bool = True) -> RunResult:
     """The simulation, its summary and (``out``) its files. The signal handlers stay
     installed until every file is written: a second Ctrl-C (or one that comes while the
-    figures are drawn) must not lose the run's files."""
-    from gateway import simulate
+    figures are drawn) must not lose the run's files. With files to write, a worker
+    process gets ready to draw the figures while the simulation runs
+    (:class:`gateway.drawing.FigureWorker`)."""
+    from gateway.drawing import FigureWorker
 
     stop = threading.Event()
     signals.on_stop = lambda reason: stop.set()
     watch = DivergenceWatch(profile_envelope(profile, motor, spec.gains.i_max))
     installed: AbstractContextManager[Any] = (signals.installed() if out is not None
                                               else nullcontext())
+    own = (FigureWorker.start() if out is not None and figures and worker is None
+           else None)
+    with installed, own or nullcontext():
+        return _simulated(spec, profile, motor, out, windows, progress, signals, watcher,
+                          stop, watch, worker or own, figures)
+
+
+def _simulated(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | None,
+               windows: tuple, progress: Progress | None, signals: StopSignals,
+               watcher: Watcher | None, stop: threading.Event, watch: DivergenceWatch,
+               worker: Worker | None, figures: bool) -> RunResult:
+    """:func:`_simulate`'s run and results, with its handlers installed."""
+    from gateway import simulate
+
     t0 = time.perf_counter()
-    with installed:
-        try:
-            rec = simulate.run(profile, motor, spec, progress, stop, watch,
-                               None if watcher is None else watcher.attach)
-        except ValueError as exc:  # also a plant scenario's error (ScenarioError)
-            raise UserError(f"the simulation could not run: {exc}") from exc
-        _writing_politely(signals)
-        wall = time.perf_counter() - t0
-        if not len(rec):
-            raise UserError(f"the simulation stopped before its first period "
-                            f"({signals.reason})", exit_code=130)
-        sig = rec.arrays()
-        summary = _simulation_summary(spec, profile, sig, windows, watch,
-                                      signals.reason if stop.is_set() else "", wall)
-        if rec.identification is not None:
-            summary["identification"] = rec.identification
-        _watched(summary, watcher)
-        if out is None:
-            return RunResult(sig, summary)
-        files = _write_simulation(out, spec, sig, summary)
+    try:
+        rec = simulate.run(profile, motor, spec, progress, stop, watch,
+                           None if watcher is None else watcher.attach)
+    except ValueError as exc:  # also a plant scenario's error (ScenarioError)
+        raise UserError(f"the simulation could not run: {exc}") from exc
+    _writing_politely(signals)
+    wall = time.perf_counter() - t0
+    if not len(rec):
+        raise UserError(f"the simulation stopped before its first period "
+                        f"({signals.reason})", exit_code=130)
+    sig = rec.arrays()
+    summary = _simulation_summary(spec, profile, sig, windows, watch,
+                                  signals.reason if stop.is_set() else "", wall)
+    if rec.identification is not None:
+        summary["identification"] = rec.identification
+    _watched(summary, watcher)
+    if out is None:
+        return RunResult(sig, summary)
+    files = _write_simulation(out, spec, sig, summary, figures, worker)
     return RunResult(sig, summary, out, files)
 
 
 def _write_simulation(out: Path, spec: RunSpec, sig: dict[str, np.ndarray],
-                      summary: dict[str, Any]) -> list[Path]:
-    """A simulation's files, as `simulate` writes them."""
-    return write_results(out, sig, summary, figures=True, limits=_figure_limits(spec, True),
-                         delay_s=_delay_s(spec))
+                      summary: dict[str, Any], figures: bool = True,
+                      worker: Worker | None = None) -> list[Path]:
+    """A simulation's files, as `simulate` writes them (the figures by ``worker`` when
+    given, else in this process)."""
+    return write_results(out, sig, summary, figures=figures,
+                         limits=_figure_limits(spec, True), delay_s=_delay_s(spec),
+                         worker=worker)
 
 
 def save(result: RunResult, spec: RunSpec, output: Output) -> RunResult:
@@ -214,9 +238,11 @@ def _delay_s(spec: RunSpec) -> float:
 
 def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, out: Path,
             windows: tuple, progress: Progress | None, signals: StopSignals,
-            watcher: Watcher | None = None) -> RunResult:
+            watcher: Watcher | None = None, figures: bool = True,
+            worker: Worker | None = None) -> RunResult:
     """The loop on the target's bus (opened and closed here), then its results, written
-    once with the emulator's truth merged first."""
+    once with the emulator's truth merged first (the figures: ``figures`` and the drive
+    sends the truth they need; drawn by ``worker`` where there is one)."""
     from gateway.runner import RUNNING_MARKER, run_gateway
 
     with signals.installed():
@@ -227,7 +253,7 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         drive = target.drive
         summary["quantisation"] = report.quantisation(True, drive.setpoints, dbc=drive.dbc,
                                                       messages=drive.messages)
-        speed = _maps_speed(drive)
+        speed = maps_speed(drive)
         if done.sig is not None and speed:  # tracking errors need the drive's speed
             where, lsb = _speed_signal(drive)
             if drive.truth:
@@ -240,15 +266,16 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
                                     "rad/s; no rotor flux")
             summary.update(report.metrics(done.sig, windows))
         _watched(summary, watcher)
-        files = write_results(out, done.sig, summary, figures=speed,
+        files = write_results(out, done.sig, summary, figures=figures and speed,
                               limits=_figure_limits(spec, drive.emulator),
-                              delay_s=_delay_s(spec), errors=summary.pop("write_errors", []))
+                              delay_s=_delay_s(spec), errors=summary.pop("write_errors", []),
+                              worker=worker)
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)
 
 
-def _maps_speed(drive: Any) -> bool:
+def maps_speed(drive: Any) -> bool:
     """The drive's process data carry its speed (role ``w_m``: the emulator's truth, or a
     standard drive's velocity actual value)."""
     from gateway.process_data import process_data

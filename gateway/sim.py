@@ -13,15 +13,12 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-import can
 import numpy as np
 
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
 from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
-from gateway.transport import InProcessChannel
-from plant.device import DriveDevice
 from plant.drive import Measurement
 from plant.params import DriveParams
 from plant.scenario import (
@@ -33,6 +30,8 @@ from plant.scenario import (
 )
 
 if TYPE_CHECKING:
+    import can
+
     from gateway.runner import BusTarget
 
 
@@ -102,6 +101,11 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
     hook (e.g. a :class:`TruthRecorder`); ``wrap``: given the gateway's bus and a bus of
     another node on the same medium, the bus the gateway uses (the scenario's bus faults,
     :func:`gateway.faultbus.inject`)."""
+    import can  # here: `simulate` reads its scenario (load_scenario) without python-can
+
+    from gateway.transport import InProcessChannel
+    from plant.device import DriveDevice
+
     if transport == "virtual":
         channel = f"hil-sim-{os.getpid()}"
         bus_gw = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)

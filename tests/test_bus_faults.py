@@ -93,6 +93,53 @@ def test_the_shutdown_retries_across_a_bus_off(tmp_path):
     assert "bus-off recovered" in steps and "statusword confirms" in steps
 
 
+def test_a_cyclic_send_goes_on_across_refused_sends():
+    """The gateway's heartbeat on a bus whose cyclic sends are python-can's thread (not the
+    kernel's): the sends refused during a bus-off are counted and the heartbeat goes on
+    (python-can's thread would stop at the first)."""
+    import threading
+    import time
+
+    import can
+
+    from gateway.master import keep_sending
+
+    class Flaky(can.BusABC):
+        def __init__(self):
+            super().__init__(channel="flaky")
+            self.off = threading.Event()
+            self.sent: list[float] = []
+
+        def send(self, msg, timeout=None):
+            if self.off.is_set():
+                raise can.CanOperationError("bus-off")
+            self.sent.append(time.monotonic())
+
+        def _recv_internal(self, timeout):
+            return None, False
+
+    bus = Flaky()
+    refused: list[Exception] = []
+    task = keep_sending(bus.send_periodic(can.Message(arbitration_id=0x77F, data=[5]), 0.005),
+                        lambda exc: refused.append(exc) or True)
+    try:
+        assert isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask)
+        deadline = time.monotonic() + 30
+        while len(bus.sent) < 2 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        bus.off.set()
+        while not refused and time.monotonic() < deadline:
+            time.sleep(0.005)
+        bus.off.clear()
+        before = len(bus.sent)
+        while len(bus.sent) < before + 2 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert refused and len(bus.sent) >= before + 2  # refused, then sent again
+    finally:
+        task.stop()
+        bus.shutdown()
+
+
 def test_a_seeded_run_is_reproducible_bit_for_bit(tmp_path):
     """Probability draws come from the fault's own seed, per frame it may act on, on the
     loop's cycles: two lockstep runs give the same signals and the same marks."""

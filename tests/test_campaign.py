@@ -430,3 +430,45 @@ n = 120
     again = cli("campaign", str(camp), "--out", str(out), "--in-process")
     assert f"{len(rows)} already in" in again.stdout
     assert len(pq.read_table(out / "results.parquet")) == 120
+
+
+def test_report_of_a_campaign_is_one_page_with_its_points_criteria_and_figures(tmp_path,
+                                                                               capsys):
+    """`hil-gateway report DIR` on a campaign's directory: one self-contained page (the
+    statuses, the criteria, the worst points and their commands, the figures embedded,
+    the points worst first) into DIR/report.html."""
+    import html as html_lib
+    import re
+
+    camp = write(tmp_path / "small.toml", SMALL.replace('"< 0.2"', '"< 3.5"'))
+    out = tmp_path / "out"
+    main(["campaign", str(camp), "--out", str(out), "--in-process"])
+    rows = pq.read_table(out / "results.parquet").to_pylist()
+    capsys.readouterr()
+    assert main(["report", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == f"wrote {out / 'report.html'}"
+    page = (out / "report.html").read_text(encoding="utf-8")
+    text = html_lib.unescape(page)
+    n_pass = sum(r["status"] == "ok" and r["speed_rms"] < 3.5 for r in rows)
+    assert 0 < n_pass < 4, "the threshold splits the points (else pick another)"
+    assert f"{n_pass} of 4 points passed every criterion" in text
+    assert 'class="status bad"' in page
+    assert "<td>speed_rms &lt; 3.5</td>" in page  # the criterion's row
+    assert re.search(rf"<td>speed_rms &lt; 3.5</td><td class=\"num\">{n_pass}</td>"
+                     rf"<td class=\"num\">{4 - n_pass}</td>", page)
+    assert page.count("data:image/png;base64,") == 3  # vs params, map, distribution
+    assert "src=\"http" not in page and "<script src" not in page  # opens offline
+    worst = max(rows, key=lambda r: r["speed_rms"])
+    assert "hil-gateway simulate" in text and f"{worst['point']:05d}-" in text
+    body = text[text.index("<h2>Points (4)</h2>"):]
+    order = [int(m) for m in re.findall(r"<tr><td class=\"num\">(\d+)</td>", page[
+        page.index("<h2>Points (4)</h2>"):])]
+    assert order[0] == worst["point"] or not any(
+        r["point"] == order[0] and r["speed_rms"] < 3.5 for r in rows)
+    assert sorted(order) == [0, 1, 2, 3] and "results.parquet" not in body
+
+    # -o elsewhere; a campaign with run directories is refused in one paragraph
+    assert main(["report", str(out / "results.parquet"), "-o", str(tmp_path / "c.html")]) == 0
+    assert (tmp_path / "c.html").is_file()
+    p = cli("report", str(out), str(tmp_path), "-o", str(tmp_path / "x.html"))
+    assert p.returncode == 2 and "one campaign" in p.stderr and "Traceback" not in p.stderr

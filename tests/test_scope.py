@@ -307,3 +307,50 @@ def test_a_campaigns_running_table_feeds_the_scope(tmp_path, capsys):
     assert main(["campaign", str(campaign), "--in-process", "--scope", "127.0.0.1:0",
                  "--out", str(tmp_path / "out")]) == 0
     assert re.search(r"scope: http://127\.0\.0\.1:\d+/", capsys.readouterr().err)
+
+
+def test_plotjuggler_gets_each_row_as_a_json_datagram_during_a_sim_run(tmp_path, capsys):
+    """`sim --plotjuggler PORT`: PlotJuggler's UDP server (JSON) receives the scope's rows,
+    one object a row with the time in ``t``; none carries a NaN (left out)."""
+    import socket
+
+    from gateway.cli import main
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.2)
+    port = sock.getsockname()[1]
+    got: list[dict] = []
+    done = threading.Event()
+
+    def receive():
+        while not done.is_set():
+            try:
+                data, _ = sock.recvfrom(65536)
+            except TimeoutError:
+                continue
+            got.append(json.loads(data))
+
+    thread = threading.Thread(target=receive, daemon=True)
+    thread.start()
+    try:
+        status = main(["sim", "--reference", "profiles/quick.toml", "--duration", "300ms",
+                       "--plotjuggler", str(port), "--no-figures", "--out",
+                       str(tmp_path / "run")])
+        time.sleep(0.5)  # the last datagrams on their way
+    finally:
+        done.set()
+        thread.join(2)
+        sock.close()
+    err = capsys.readouterr().err
+    assert status == 0
+    assert f"plotjuggler: streaming to udp://127.0.0.1:{port}" in err
+    sent = int(re.search(r"plotjuggler: (\d+) rows sent", err).group(1))
+    # UDP: a receiver's full buffer drops datagrams (about 100 fit in Linux's default)
+    assert sent >= 100 and sent // 2 <= len(got) <= sent
+    t = [row["t"] for row in got]
+    assert t == sorted(set(t)) and t[0] < 0.01
+    assert all("w_m" in row and "i_sa" in row for row in got[5:])
+    assert not any(isinstance(v, float) and math.isnan(v) for row in got for v in row.values())
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["scope"]["sent_rows"] == sent

@@ -19,7 +19,8 @@ Modules, one job each:
 * :mod:`~gateway.campaign.engine` — where batches run: this process or Dask;
 * :mod:`~gateway.campaign.runner` — the campaign: skip what is done, run the rest, record;
 * :mod:`~gateway.campaign.progress`, :mod:`~gateway.campaign.summary`,
-  :mod:`~gateway.campaign.figures` — what the user looks at;
+  :mod:`~gateway.campaign.figures`, :mod:`~gateway.campaign.htmlpage` — what the user
+  looks at (the page: `hil-gateway report DIR`);
 * :mod:`~gateway.campaign.command` — `hil-gateway campaign` and `campaign show`.
 
 Dask (`distributed`) and Parquet (`pyarrow`) are the optional extra ``campaign``; only the

@@ -30,6 +30,7 @@ RESERVED = {
     "force": "the campaign decides where its points write",
     "progress": "the campaign shows its own progress",
     "scope": "a live scope of thousands of runs is not what it is for",
+    "plotjuggler": "streaming thousands of runs to PlotJuggler is not what it is for",
     "debug": "give --debug to `hil-gateway campaign` itself",
     "help": "not an option of a run",
 }

@@ -202,6 +202,15 @@ class ResultTable:
             raise
 
 
+def is_campaign(path: Path) -> bool:
+    """``path`` is a campaign's table or its directory (its campaign.json, no run's
+    summary.json)."""
+    if path.suffix == ".parquet":
+        return True
+    return (path.is_dir() and not (path / "summary.json").exists()
+            and ((path / META).is_file() or (path / RESULTS).exists()))
+
+
 def open_table(arg: str) -> tuple[Any, dict[str, Any], Path]:
     """``campaign show TABLE``: TABLE is a campaign's DIR or its results.parquet; the table
     (with any parts not yet compacted), the campaign's metadata and DIR."""

@@ -189,8 +189,8 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
         if corrected:
             decay = cmath.exp(-self.w_c * T).real
             self.psi_s_ab = target + decay * (self.psi_s_ab - target)
-        self.psi_s_ab += increment
-        return self.rotor_flux(i_s_ab)
+        psi_s = self.psi_s_ab = self.psi_s_ab + increment
+        return self._k_r * (psi_s - self._sigma * i_s_ab)  # rotor_flux(i_s_ab), inline
 
     def set_rotor_flux(self, psi_r_ab: complex, i_s_ab: complex) -> None:
         """Take the stator flux σ·i_s + (M/L_r)·ψ_r of a model (a period without data)."""

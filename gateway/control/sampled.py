@@ -39,8 +39,8 @@ import cmath
 import math
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import replace
+from typing import Any, NamedTuple
 
 from dbc.modes import SetpointFrame
 from gateway.control.commissioning import Commissioning
@@ -59,12 +59,18 @@ from gateway.control.controller import (
     wrap_angle,
 )
 from gateway.control.estimator import IntervalFluxEstimator, IntervalRsAdaptiveFluxEstimator
-from gateway.control.interface import Command, ControllerContext, DriveController, Sample
-from gateway.control.laws import Refs, sat_tanh
+from gateway.control.interface import (
+    Command,
+    ControllerContext,
+    DriveController,
+    Sample,
+    make_command,
+)
+from gateway.control.laws import Refs
+from gateway.control.refwindow import ReferenceWindow
 
 
-@dataclass(frozen=True, slots=True)
-class Interval:
+class Interval(NamedTuple):
     """What the drive applies over one interval, as the controller commanded it.
 
     i_dq: current setpoint in the interval's frame, A. u_dq: voltage setpoint, V.
@@ -90,11 +96,50 @@ def phi(s: complex, T: float) -> complex:
     return (cmath.exp(x) - 1.0) / s
 
 
+#: Interval(…) with all six fields given, without NamedTuple's Python-level __new__
+_new_tuple = tuple.__new__
+
+
+def _same_number(x: float, y: float | None) -> bool:
+    """x and y are the same float, bit for bit (two zeros only as the same object: their
+    signs may differ)."""
+    return x is y or (x == y and x != 0.0)
+
+
+def phi_exp(s: complex, T: float) -> tuple[complex, complex]:
+    """(:func:`phi` (s, T), e^{sT}): the two share the one exponential."""
+    x = s * T
+    e = cmath.exp(x)
+    if abs(x) < 1e-4:
+        return T * (1.0 + x / 2.0 + x * x / 6.0), e
+    return (e - 1.0) / s, e
+
+
 class SampledController:
     """The sampled-data current-fed controller (15), (16), (20) (see the module docstring);
-    a :class:`gateway.control.interface.DriveController`."""
+    a :class:`gateway.control.interface.DriveController`.
 
+    Speed (about 2.5× the plain expressions, the same numbers bit for bit): what depends
+    only on the period (the pre-warped gain, the integrals of a constant current over an
+    interval) is computed once, the motor's constants at each change of motor
+    (:meth:`_set_motor`), the references at each instant once
+    (:class:`~gateway.control.refwindow.ReferenceWindow`), each interval's exponentials once
+    where several integrals use them; the model of the interval a step predicts is kept for
+    the next step, which corrects the same model with the measurement (:meth:`_advance`),
+    and the frame angle at t_k is the one the command for I_k carried. Every number is the
+    one the plain expressions give (tests/test_fast_paths.py, tools/same_signals.py).
+    """
+
+    # slots: a step reads some forty of them; an instance dict of that size loses CPython's
+    # fast attribute access (its shared keys hold 30). "__dict__": others may add their own.
+    __slots__ = ("_J", "_M", "_R_s", "_T", "__dict__", "_aM", "_ab", "_alpha", "_base", "_beta",
+                 "_cmd_refs", "_constant_current", "_d", "_di_prev", "_exp_0", "_g", "_gamma_1",
+                 "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_k", "_k_r", "_k_w_warped", "_kept",
+                 "_lag", "_mu", "_phi_0", "_psi_prev", "_refs", "_sigma", "_true_flux", "_w_prev",
+                 "commissioning", "config", "eps_0", "estimator", "motor", "refs_at", "w_hat")
     signals = PAPER_SIGNALS
+    #: reference instants n·T/2 a step reads, beyond 2(k − 1) … 2(k + d) + 1
+    _lookahead = 0
 
     def __init__(
         self,
@@ -106,24 +151,34 @@ class SampledController:
     ) -> None:
         if config.law is not Law.CURRENT_FED:
             raise ValueError("SampledController implements the current-fed law only")
-        self.motor = motor
         self.config = config
         self.refs_at = refs_at
-        self._T = config.sampling.period
+        T = self._T = config.sampling.period
         self._d = config.sampling.delay
-        self._g = config.gains
+        g = self._g = config.gains
         self._true_flux = config.flux is FluxSource.TRUE
         self._ab = config.sampling.setpoint_frame is SetpointFrame.AB
         self._lag = config.current_lag
-        m = motor
-        self._aM = m.alpha * m.M
+        # (d, q) setpoints from an ideal source: one constant term, i(τ) = I (_interval_dq)
+        self._constant_current = not self._ab and self._lag == 0.0
+        self._set_motor(motor)
+        # what depends on the period and the gains only
+        self._half_T = 0.5 * T
+        self._phi_0 = phi(0j, T)  # ∫_0^T e^{0·τ} dτ
+        self._exp_0 = cmath.exp(0j * T)  # e^{0·T}
+        self._k_w_warped = 2.0 / T * math.tanh(0.5 * g.k_w * T)  # kω pre-warped (_midpoint)
+        self._gamma_1 = g.gamma_1
+        self._i_max2 = g.i_max * g.i_max
+        self._refs = ReferenceWindow(refs_at, T, 2 * self._d + 4 + self._lookahead)
+        # where the commanded interval I_{k+d}'s references sit in the window: its start,
+        # midpoint (and end: the full-order law)
+        self._cmd_refs = slice(2 * self._d + 2, 2 * self._d + 4 + self._lookahead)
         if config.estimator is EstimatorKind.RS_ADAPTIVE:  # docs/robustness.md
             self.estimator: IntervalFluxEstimator = IntervalRsAdaptiveFluxEstimator(motor)
         else:
             self.estimator = IntervalFluxEstimator(
                 motor, config.w_c if config.estimator is EstimatorKind.DRIFT_FREE else 0.0)
         self._k = 0  # samples taken (t_k = k·T)
-        self._refs_cache: dict[int, Refs] = {}
         self.eps_0 = wrap_angle(eps_0)
         self.w_hat = w_hat  # ω̂ at t_k
         zero = Interval(0j, 0j, self.eps_0, 0.0)
@@ -158,21 +213,21 @@ class SampledController:
         return None if self.commissioning is None else self.commissioning.describe()
 
     def _set_motor(self, motor) -> None:
-        """The controller's motor from now on (the cached products too)."""
+        """The controller's motor from now on, and its constants (model (2)'s α, μ, σ, β,
+        the products αM and β·σ = M/L_r), read once here instead of at every use."""
         self.motor = motor
+        self._alpha = motor.alpha
+        self._M = motor.M
+        self._J = motor.J
+        self._R_s = motor.R_s
+        self._mu = motor.mu
+        self._sigma = motor.sigma
+        self._beta = motor.beta
         self._aM = motor.alpha * motor.M
+        self._k_r = motor.beta * motor.sigma  # M/L_r
+        self._kept: tuple | None = None  # a model of the old motor: not for the next step
 
     # ------------------------------------------------------------------ the model
-
-    def _at(self, n: int) -> Refs:
-        """refs_at(n·T/2), cached (each instant is asked for several times)."""
-        cache = self._refs_cache
-        r = cache.get(n)
-        if r is None:
-            if len(cache) > 16:
-                cache.clear()
-            r = cache[n] = self.refs_at(0.5 * n * self._T)
-        return r
 
     def _terms(self, c: Interval, i0_ab: complex) -> list[tuple[complex, complex]]:
         """The applied current over interval ``c`` in its turning frame, Σ I_n·e^{s_n·τ}.
@@ -195,31 +250,56 @@ class SampledController:
         return terms
 
     def _interval(self, c: Interval, psi0: complex, w_m: float,
-                  terms: list[tuple[complex, complex]]):
+                  terms: list[tuple[complex, complex]]
+                  ) -> tuple[complex, complex, complex]:
         """The rotor-flux model over one interval, in its turning frame, from ψ0.
 
         With the rotor speed constant at w_m the first three rows of (2) are linear
         time-invariant in the frame: dψ/dτ = −a·ψ + αM·i(τ), a = α + j(ω0 − ω). For
         i(τ) = Σ I_n·e^{s_n·τ}: ψ(τ) = Σ P_n·e^{s_n·τ} + C·e^{−aτ}, P_n = αM·I_n/(a + s_n),
-        C = ψ0 − Σ P_n. Returns (ψ(T), ∫ψ dτ, ∫conj(ψ)·i dτ, the current's terms).
+        C = ψ0 − Σ P_n. Returns (ψ(T), ∫ψ dτ, ∫conj(ψ)·i dτ).
         """
         T = self._T
         aM = self._aM
-        a = complex(self.motor.alpha, c.w_0 - w_m)
+        a = complex(self._alpha, c.w_0 - w_m)
         ps = [(aM * big_i / (a + s_n), s_n) for big_i, s_n in terms]
         coef = psi0 - sum(p for p, _ in ps)
-        psi_end = coef * cmath.exp(-a * T)
-        int_psi = coef * phi(-a, T)
+        phi_a, e_a = phi_exp(-a, T)
+        psi_end = coef * e_a
+        int_psi = coef * phi_a
         int_ci = 0j
         a_c = a.conjugate()
         for p, s_p in ps:
-            psi_end += p * cmath.exp(s_p * T)
-            int_psi += p * phi(s_p, T)
+            phi_p, e_p = phi_exp(s_p, T)
+            psi_end += p * e_p
+            int_psi += p * phi_p
         for big_i, s_n in terms:
             int_ci += coef.conjugate() * big_i * phi(s_n - a_c, T)
             for p, s_p in ps:
                 int_ci += p.conjugate() * big_i * phi(s_p.conjugate() + s_n, T)
-        return psi_end, int_psi, int_ci, terms
+        return psi_end, int_psi, int_ci
+
+    def _interval_dq(self, i_dq: complex, w_0: float, psi0: complex, w_m: float
+                     ) -> tuple[complex, complex, complex]:
+        """:meth:`_interval` for a (d, q) setpoint from an ideal source: the one term
+        i(τ) = I (s = 0), whose e^{0·T} and ∫e^{0·τ}dτ are the period's constants; the same
+        operations in the same order, so the same numbers."""
+        T = self._T
+        a = complex(self._alpha, w_0 - w_m)
+        p = self._aM * i_dq / (a + 0j)  # P = αM·I/(a + s), s = 0
+        coef = psi0 - (0j + p)  # C = ψ0 − ΣP (sum() starts from 0)
+        s = -a  # phi(−a, T) (inline), sharing e^{−aT}
+        x = s * T
+        e_a = cmath.exp(x)
+        phi_a = T * (1.0 + x / 2.0 + x * x / 6.0) if abs(x) < 1e-4 else (e_a - 1.0) / s
+        s = 0j - a.conjugate()  # phi(s − ā, T), s = 0 (inline)
+        x = s * T
+        phi_c = (T * (1.0 + x / 2.0 + x * x / 6.0) if abs(x) < 1e-4
+                 else (cmath.exp(x) - 1.0) / s)
+        psi_end = coef * e_a + p * self._exp_0
+        int_psi = coef * phi_a + p * self._phi_0
+        int_ci = 0j + coef.conjugate() * i_dq * phi_c + p.conjugate() * i_dq * self._phi_0
+        return psi_end, int_psi, int_ci
 
     def _current(self, c: Interval, terms: list[tuple[complex, complex]]
                  ) -> tuple[complex, complex]:
@@ -234,45 +314,70 @@ class SampledController:
             i_end += big_i * cmath.exp(s_n * T)
         return rot0 * int_i, rot0 * cmath.exp(jw * T) * i_end
 
-    def _dw(self, int_psi: complex, int_ci: complex, T_L: float, r_mid: Refs) -> float:
-        """∫ of (16) with (20) over an interval: μ∫(ψ_rd i_sq − ψ_rq i_sd) − ∫T_L/J + ψ*∫ψ_rq/γ1.
-
-        The load is the one the timing contract applies over the interval: T_L at its start,
-        held (docs/ARCHITECTURE.md); ψ* at the midpoint.
-        """
-        m = self.motor
-        return (m.mu * int_ci.imag - self._T * T_L / m.J
-                + r_mid.psi_ref * int_psi.imag / self._g.gamma_1)
+    def _current_dq(self, c: Interval) -> tuple[complex, complex]:
+        """:meth:`_current` for a (d, q) setpoint from an ideal source (one term, s = 0).
+        e^{jω0T} is taken from ∫e^{jω0τ}dτ's exponential: their arguments differ at most in
+        the sign of a zero real part, which e^x does not see."""
+        T = self._T
+        rot0 = cmath.exp(1j * c.eps)
+        s = 0j + 1j * c.w_0  # phi(s + jω0, T), s = 0 (inline)
+        x = s * T
+        e_w = cmath.exp(x)
+        phi_w = T * (1.0 + x / 2.0 + x * x / 6.0) if abs(x) < 1e-4 else (e_w - 1.0) / s
+        int_i = 0j + c.i_dq * phi_w
+        i_end = 0j + c.i_dq * self._exp_0
+        return rot0 * int_i, rot0 * e_w * i_end
 
     def _rate(self, psi: complex, i_dq: complex, r: Refs, T_L: float) -> float:
         """dω̂/dt of (16), (20) at one instant with the load T_L."""
-        m = self.motor
-        return (m.mu * (psi.real * i_dq.imag - psi.imag * i_dq.real) - T_L / m.J
-                + r.psi_ref * psi.imag / self._g.gamma_1)
+        return (self._mu * (psi.real * i_dq.imag - psi.imag * i_dq.real) - T_L / self._J
+                + r.psi_ref * psi.imag / self._gamma_1)
 
-    def _advance(self, c: Interval, psi0: complex, w0: float, j: int,
-                 terms: list[tuple[complex, complex]], psi_end_meas: complex | None = None,
-                 di: complex = 0j) -> tuple[complex, float]:
-        """ψ_r (frame at the end) and ω̂ at the end of interval ``c`` = I_j.
+    def _advance(self, c: Interval, psi0: complex, w0: float, r_mid: Refs, T_L: float,
+                 terms: list[tuple[complex, complex]] | None,
+                 psi_end_meas: complex | None = None, di: complex = 0j, keep: bool = False
+                 ) -> tuple[complex, float]:
+        """ψ_r (frame at the end) and ω̂ at the end of interval ``c``, whose midpoint's
+        references are ``r_mid`` and whose load (the one the timing contract applies over
+        the interval: T_L at its start, held, docs/ARCHITECTURE.md) is ``T_L``.
 
-        ω̂ integrates (16), (20) over the interval exactly for the model; with the measured
-        flux at the end, the model's trajectory is corrected linearly, δ·τ/T; ``di`` is the
-        mean difference between the measured and the modelled current over the interval
-        (a drive that could not follow: voltage limit), added to the torque integral.
+        The rotor-flux model (:meth:`_interval`) runs at the speed of the interval's
+        midpoint; ω̂ integrates (16), (20) over the interval exactly for the model:
+        μ∫(ψ_rd i_sq − ψ_rq i_sd) − ∫T_L/J + ψ*∫ψ_rq/γ1, ψ* at the midpoint. With the
+        measured flux at the end, the model's trajectory is corrected linearly, δ·τ/T;
+        ``di`` is the mean difference between the measured and the modelled current over
+        the interval (a drive that could not follow: voltage limit), added to the torque
+        integral. ``terms``: the applied current (:meth:`_terms`); None for a constant
+        (d, q) one (:meth:`_interval_dq`).
+
+        Step k predicts I_k from (ψ_k, ω̂_k) (``keep``); step k + 1 models the same interval
+        from the same start with the same references before it corrects the model with the
+        measured end: it takes the prediction, kept in ``_kept`` (cleared when the motor
+        changes).
         """
-        T = self._T
-        r_mid = self._at(2 * j + 1)
-        T_L = self._at(2 * j).T_L  # the load applied over the interval
-        w_m = w0 + 0.5 * T * self._rate(psi0, c.i_dq, r_mid, T_L)  # speed at the midpoint
-        psi_end, int_psi, int_ci, _ = self._interval(c, psi0, w_m, terms)
+        kept = self._kept
+        if kept is not None and kept[0] is c and kept[1] is psi0 and kept[2] is w0:
+            psi_end, int_psi, int_ci = kept[3]
+        else:
+            i = c.i_dq  # the speed at the midpoint, with dω̂/dt of (16), (20) (_rate, inline)
+            w_m = w0 + self._half_T * (self._mu * (psi0.real * i.imag - psi0.imag * i.real)
+                                       - T_L / self._J
+                                       + r_mid.psi_ref * psi0.imag / self._gamma_1)
+            model = (self._interval_dq(i, c.w_0, psi0, w_m) if terms is None
+                     else self._interval(c, psi0, w_m, terms))
+            if keep:
+                self._kept = (c, psi0, w0, model)
+            psi_end, int_psi, int_ci = model
         if psi_end_meas is not None:
             delta = psi_end_meas - psi_end
-            int_psi += 0.5 * T * delta
-            int_ci += 0.5 * T * delta.conjugate() * terms[0][0]
+            int_psi += self._half_T * delta
+            int_ci += self._half_T * delta.conjugate() * (c.i_dq if terms is None
+                                                          else terms[0][0])
             psi_end = psi_end_meas
         if di:
             int_ci += int_psi.conjugate() * di
-        return psi_end, w0 + self._dw(int_psi, int_ci, T_L, r_mid)
+        return psi_end, w0 + (self._mu * int_ci.imag - self._T * T_L / self._J
+                              + r_mid.psi_ref * int_psi.imag / self._gamma_1)
 
     # ------------------------------------------------------------------ a cycle
 
@@ -280,60 +385,71 @@ class SampledController:
         """One sample at t_k: ω̂ over I_{k−1} with the measured flux, predict to I_{k+d},
         command it."""
         T = self._T
+        d = self._d
         self._k += 1
         k = self._k
+        win = self._refs.starting(2 * k - 2)  # references at (2(k − 1) + i)·T/2: win[i]
         hist = self._hist
         prev = hist[0]  # I_{k−1}, ended at t_k
-        eps_k = wrap_angle(prev.eps + T * prev.w_0)  # the drive's frame at t_k
+        # the drive's frame at t_k: ε_{k−1} + T·ω0, the angle the command for I_k carried
+        eps_k = hist[1].eps if k > d > 0 else wrap_angle(prev.eps + T * prev.w_0)
         # flux at t_k: the stator flux integrated over I_{k−1} with the applied current
-        terms = self._terms(prev, self._i_prev_ab)
-        int_i_ab, i_end_ab = self._current(prev, terms)
-        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
-                                           i_end_ab, eps_k, refs.psi_ref)
-        psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
-        psi_ab = law_flux(self._true_flux, sample, psi_hat_ab)
-        psi_k = psi_ab * cmath.exp(-1j * eps_k)
+        constant = self._constant_current
+        if constant:
+            terms = None
+            int_i_ab, i_end_ab = self._current_dq(prev)
+        else:
+            terms = self._terms(prev, self._i_prev_ab)
+            int_i_ab, i_end_ab = self._current(prev, terms)
+        psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab, i_end_ab,
+                                       eps_k, refs.psi_ref)
+        if self.commissioning is not None:
+            psi_ab = self._commission(refs, sample, psi_ab)
+        if self._true_flux:
+            psi_ab = law_flux(True, sample, psi_ab)
+        to_k = cmath.exp(-1j * eps_k)
+        psi_k = psi_ab * to_k
         # ω̂ at t_k: (16), (20) integrated over I_{k−1}, model corrected by the measured end
         psi0 = self._psi_prev
         if psi0 is None:
             psi0 = psi_k * cmath.exp(1j * prev.w_0 * T)
-        di_k = (sample.i_s_ab - i_end_ab) * cmath.exp(-1j * eps_k)
+        di_k = (sample.i_s_ab - i_end_ab) * to_k
         di = 0.5 * (self._di_prev + di_k)
         self._di_prev = di_k
-        _, w_k = self._advance(prev, psi0, self._w_prev, k - 1, terms, psi_k, di)
+        _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms, psi_k, di,
+                               False)
         self.w_hat = w_k
         # predict through the committed intervals I_k … I_{k+d−1}
         psi, w, i0 = psi_k, w_k, sample.i_s_ab
-        for j in range(1, self._d + 1):
-            terms = self._terms(hist[j], i0)
-            psi, w = self._advance(hist[j], psi, w, k - 1 + j, terms)
+        for j in range(1, d + 1):
+            c = hist[j]
+            terms = None if constant else self._terms(c, i0)
+            psi, w = self._advance(c, psi, w, win[2 * j + 1], win[2 * j].T_L, terms, None, 0j,
+                                   j == 1)
             if self._lag > 0.0:
-                i0 = self._current(hist[j], terms)[1]
+                i0 = self._current(c, terms)[1]
         last = hist[-1]
-        eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
+        eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
         # the command for I_{k+d}: references and ω̂ at its midpoint
-        r = self._at(2 * (k + self._d) + 1)
-        T_L = self._at(2 * (k + self._d)).T_L  # the load the drive will apply
+        r0, r = win[self._cmd_refs]
+        T_L = r0.T_L  # the load the drive will apply
         w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
-        m = self.motor
         w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
-        k_r = m.beta * m.sigma
-        u_sd = m.R_s * i_sd + k_r * r.dpsi_ref - w_0 * m.sigma * i_sq
-        u_sq = m.R_s * i_sq + w_0 * (m.sigma * i_sd + k_r * r.psi_ref)
-        new = Interval(complex(i_sd, i_sq), complex(u_sd, u_sq), eps_app, w_0)
-        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
-        self._base = hist[-1]
-        hist.append(new)
+        R_s, sigma, k_r = self._R_s, self._sigma, self._k_r
+        u_sd = R_s * i_sd + k_r * r.dpsi_ref - w_0 * sigma * i_sq
+        u_sq = R_s * i_sq + w_0 * (sigma * i_sd + k_r * r.psi_ref)
+        i_dq = complex(i_sd, i_sq)
+        u_dq = complex(u_sd, u_sq)
+        self._base = last
+        hist.append(_new_tuple(Interval, (i_dq, u_dq, eps_app, w_0, 0j, 0j)))
         hist.popleft()
         self._psi_prev = psi_k
         self._w_prev = w_k
         self._i_prev_ab = sample.i_s_ab
         self.eps_0 = eps_k
-        return Command(
-            i_s_dq_ref=new.i_dq, u_s_dq_ref=new.u_dq, eps_0=eps_app, w_0=w_0,
-            i_s_ab_ref=new.i_dq * to_ab, u_s_ab_ref=new.u_dq * to_ab,
-            i_limited=limited, logged=paper_logged(w_k, psi_k),
-        )
+        to_ab = cmath.exp(1j * (eps_app + self._half_T * w_0))
+        return make_command(i_dq, u_dq, eps_app, w_0, i_dq * to_ab, u_dq * to_ab, limited,
+                            paper_logged(w_k, psi_k))
 
     def _midpoint(self, psi: complex, w: float, r: Refs, T_L: float
                   ) -> tuple[float, float, float, bool]:
@@ -347,40 +463,45 @@ class SampledController:
         error decays by e^{−kω·T} per period like the continuous loop (k′ → kω as T → 0).
         Returns (ω̂_mid, i_sd*, i_sq*, limited).
         """
-        m, g = self.motor, self._g
-        T = self._T
+        half_T = self._half_T
         psi_ref = r.psi_ref
-        i_sd = psi_ref / m.M + r.dpsi_ref / (m.alpha * m.M)
-        k_w = 2.0 / T * math.tanh(0.5 * g.k_w * T)
-        ff = T_L / m.J + r.dw_ref
+        i_sd = psi_ref / self._M + r.dpsi_ref / self._aM
+        k_w = self._k_w_warped
+        load = T_L / self._J
+        ff = load + r.dw_ref
         c1 = k_w * psi.real / psi_ref
-        c0 = (psi.real * ff / psi_ref - m.mu * psi.imag * i_sd - T_L / m.J
-              + psi_ref * psi.imag / g.gamma_1)
-        b = w - r.w_ref + 0.5 * T * c0
-        h = 0.5 * T * c1
+        c0 = (psi.real * ff / psi_ref - self._mu * psi.imag * i_sd - load
+              + psi_ref * psi.imag / self._gamma_1)
+        b = w - r.w_ref + half_T * c0
+        h = half_T * c1
         x = b / (1.0 + h) if h > -1.0 else b
-        for _ in range(4):  # Newton on x + h·sat(x) − b = 0 (monotone for h > −1)
-            th = math.tanh(x)
-            x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
-        i_sq = (-k_w * math.tanh(x) + ff) / (m.mu * psi_ref)
-        q2 = g.i_max * g.i_max - i_sd * i_sd
+        tanh = math.tanh  # four Newton steps on x + h·sat(x) − b = 0 (monotone for h > −1)
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        th = tanh(x)
+        x -= (x + h * th - b) / (1.0 + h * (1.0 - th * th))
+        i_sq = (-k_w * tanh(x) + ff) / (self._mu * psi_ref)
+        q2 = self._i_max2 - i_sd * i_sd
         q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
         limited = abs(i_sq) > q_max
         if limited:
             i_sq = math.copysign(q_max, i_sq)
-            w_mid = w + 0.5 * T * self._rate(psi, complex(i_sd, i_sq), r, T_L)
+            w_mid = w + half_T * self._rate(psi, complex(i_sd, i_sq), r, T_L)
         else:
             w_mid = r.w_ref + x
         return w_mid, i_sd, i_sq, limited
 
     def _currents(self, r: Refs, w_hat: float, T_L: float) -> tuple[float, float, bool]:
         """i_sd*, i_sq* of (15) with the current limit (as :mod:`gateway.control.laws`)."""
-        m, g = self.motor, self._g
         psi_ref = r.psi_ref
-        s = sat_tanh(w_hat - r.w_ref)
-        i_sd = psi_ref / m.M + r.dpsi_ref / (m.alpha * m.M)
-        i_sq = (-g.k_w * s + T_L / m.J + r.dw_ref) / (m.mu * psi_ref)
-        q2 = g.i_max * g.i_max - i_sd * i_sd
+        s = math.tanh(w_hat - r.w_ref)  # sat = tanh (laws.sat_tanh, §E7)
+        i_sd = psi_ref / self._M + r.dpsi_ref / self._aM
+        i_sq = (-self._g.k_w * s + T_L / self._J + r.dw_ref) / (self._mu * psi_ref)
+        q2 = self._i_max2 - i_sd * i_sd
         q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
         limited = abs(i_sq) > q_max
         if limited:
@@ -391,7 +512,7 @@ class SampledController:
         """The interval after ``c`` when no new command arrives: the drive holds ``c``'s
         setpoints and keeps turning their frame at its ω0 (full-order law: the current
         reference held at the one ``c`` ended with)."""
-        return replace(c, eps=wrap_angle(c.eps + self._T * c.w_0), i_ref0=c.i_ref1)
+        return c._replace(eps=wrap_angle(c.eps + self._T * c.w_0), i_ref0=c.i_ref1)
 
     def withhold(self) -> None:
         """The command of the last :meth:`step` was not sent (it was ready only after the
@@ -412,12 +533,17 @@ class SampledController:
         """
         T = self._T
         self._k += 1
+        win = self._refs.starting(2 * self._k - 2)
         hist = self._hist
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
-        terms = self._terms(prev, self._i_prev_ab)
-        psi_k, w_k = self._advance(prev, psi0, self._w_prev, self._k - 1, terms)
-        i_end_ab = self._current(prev, terms)[1]
+        if self._constant_current:
+            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, None)
+            i_end_ab = self._current_dq(prev)[1]
+        else:
+            terms = self._terms(prev, self._i_prev_ab)
+            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms)
+            i_end_ab = self._current(prev, terms)[1]
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
         self._i_prev_ab = i_end_ab
@@ -433,18 +559,28 @@ class SampledController:
 Mat2 = tuple[complex, complex, complex, complex]
 
 
-def expm2(a: Mat2, tau: float) -> Mat2:
-    """e^{A·τ} of a complex 2×2 matrix (row-major), by its two eigenvalues (Sylvester)."""
+def expm2(a: Mat2, tau: float, det: complex | None = None, first_row: bool = False
+          ) -> tuple[complex, ...]:
+    """e^{A·τ} of a complex 2×2 matrix (row-major), by its two eigenvalues (Sylvester).
+    ``det``: A's determinant a11·a22 − a12·a21 where the caller has it; ``first_row``: only
+    (e11, e12)."""
     a11, a12, a21, a22 = a
     half_tr = 0.5 * (a11 + a22)
-    disc = cmath.sqrt(half_tr * half_tr - (a11 * a22 - a12 * a21))
+    if det is None:
+        det = a11 * a22 - a12 * a21
+    disc = cmath.sqrt(half_tr * half_tr - det)
     l1, l2 = half_tr + disc, half_tr - disc
     e1, e2 = cmath.exp(l1 * tau), cmath.exp(l2 * tau)
-    if abs(l1 - l2) * tau < 1e-9:  # (nearly) repeated eigenvalue: e^{λτ}(I + (A − λI)τ)
+    gap = l1 - l2
+    if abs(gap) * tau < 1e-9:  # (nearly) repeated eigenvalue: e^{λτ}(I + (A − λI)τ)
+        if first_row:
+            return e1 * (1 + (a11 - l1) * tau), e1 * a12 * tau
         return (e1 * (1 + (a11 - l1) * tau), e1 * a12 * tau, e1 * a21 * tau,
                 e1 * (1 + (a22 - l1) * tau))
-    f = (e1 - e2) / (l1 - l2)  # coefficient of A
-    g = (l1 * e2 - l2 * e1) / (l1 - l2)  # coefficient of I
+    f = (e1 - e2) / gap  # coefficient of A
+    g = (l1 * e2 - l2 * e1) / gap  # coefficient of I
+    if first_row:
+        return g + f * a11, f * a12
     return (g + f * a11, f * a12, f * a21, g + f * a22)
 
 
@@ -452,13 +588,17 @@ class FullOrderSampledController(SampledController):
     """The sampled-data full-order law (25)–(27), (32) for a voltage-fed drive.
 
     Over an interval the drive holds u_dq in the frame turning at ω0; with the rotor speed
-    at its estimate the stator-current and rotor-flux rows of (2) are linear time-invariant
-    in that frame, x = (i_s, ψ_r): dx/dτ = A·x + (u/σ, 0), solved with e^{Aτ}. The voltage
+    at its estimate ω the stator-current and rotor-flux rows of (2) are linear time-invariant
+    in that frame, x = (i_s, ψ_r): dx/dτ = A·x + (u/σ, 0), solved with e^{Aτ}, where
+    A(ω0, ω) = [[−c1 − jω0, β(α − jω)], [αM, −α + j(ω − ω0)]], c1 = R_s/σ + β·αM. The voltage
     of the interval is the one that brings the modelled current error (28) at the
     interval's end to what (34) would give, e(T) = e^{−ke·T}·e(0) − (1 − e^{−ke·T})/ke·αM·ψ̃_rd
     (the unknown e_ω term dropped). ω0 is (26) at the midpoint; the observer (27) with w of
     (32) is integrated with Simpson's rule on the model's trajectory.
     """
+
+    _lookahead = 1  # the end of the commanded interval, 2(k + d) + 2
+    __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_gamma_2", "_i_prev")
 
     def __init__(self, motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
                  eps_0: float = 0.0, w_hat: float = 0.0) -> None:
@@ -467,33 +607,19 @@ class FullOrderSampledController(SampledController):
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED), refs_at,
                                    eps_0, w_hat)
         self.config = config
-        m = motor
-        self._c1 = m.R_s / m.sigma + m.beta * self._aM
+        g = self._g
+        self._gamma_2 = g.gamma_2
+        self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
+        self._decay_gain = (1.0 - self._decay) / g.k_e  # (1 − e^{−ke·T})/ke
+        self._T_6 = self._T / 6.0  # Simpson's weight
         self._i_prev = 0j  # measured current at t_{k−1}, frame at t_{k−1}
 
     def _set_motor(self, motor) -> None:
         super()._set_motor(motor)
         self._c1 = motor.R_s / motor.sigma + motor.beta * self._aM
+        self._a21 = complex(self._aM, 0.0)
 
     # ------------------------------------------------------------------ the model
-
-    def _matrix(self, w_0: float, w_m: float) -> Mat2:
-        m = self.motor
-        return (complex(-self._c1, -w_0), m.beta * complex(m.alpha, -w_m),
-                complex(self._aM, 0.0), complex(-m.alpha, w_m - w_0))
-
-    def _flow2(self, a: Mat2, u: complex, i0: complex, psi0: complex, tau: float
-               ) -> tuple[complex, complex, complex, complex]:
-        """(i_s, ψ_r) after τ and after 2τ (e^{2Aτ} = e^{Aτ}·e^{Aτ})."""
-        a11, a12, a21, a22 = a
-        det = a11 * a22 - a12 * a21
-        b = u / self.motor.sigma
-        i_ss, p_ss = -a22 * b / det, a21 * b / det
-        e11, e12, e21, e22 = expm2(a, tau)
-        di, dp = i0 - i_ss, psi0 - p_ss
-        di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
-        di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
-        return i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1
 
     def _fo_rate(self, psi: complex, i: complex, i_ref: complex, r: Refs, T_L: float
                  ) -> float:
@@ -504,116 +630,159 @@ class FullOrderSampledController(SampledController):
         observer's own prediction error back through kω/(μψ*) ≈ 6 A per rad/s and β·ψ/γ2,
         a loop gain near 1 per period at 1 ms (docs/paper.md §E10).
         """
-        m, g = self.motor, self._g
         e_d, e_q = i.real - i_ref.real, i.imag - i_ref.imag
-        w = (r.psi_ref * psi.imag + m.beta * (psi.imag * e_d - psi.real * e_q)) / g.gamma_2
-        return m.mu * (psi.real * i.imag - psi.imag * i.real) - T_L / m.J + w
+        w = (r.psi_ref * psi.imag + self._beta * (psi.imag * e_d - psi.real * e_q)
+             ) / self._gamma_2
+        return self._mu * (psi.real * i.imag - psi.imag * i.real) - T_L / self._J + w
 
-    def _fo_model(self, c: Interval, i0: complex, psi0: complex, w0: float, j: int):
-        """The model over interval ``c`` = I_j from (i0, ψ0, ω̂0): the references at its start,
-        middle and end, the rate at the start and (i, ψ) at the middle and the end."""
-        T = self._T
-        r0, rh, r1 = self._at(2 * j), self._at(2 * j + 1), self._at(2 * j + 2)
-        f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
-        a = self._matrix(c.w_0, w0 + 0.5 * T * f0)
-        return (c, w0, r0, rh, r1, f0, *self._flow2(a, c.u_dq, i0, psi0, 0.5 * T))
+    def _fo_model(self, c: Interval, i0: complex, psi0: complex, w0: float,
+                  r0: Refs, rh: Refs, r1: Refs, f0: float | None = None):
+        """The model over interval ``c`` from (i0, ψ0, ω̂0), the references at its start,
+        middle and end ``r0``, ``rh``, ``r1``: the rate at the start (``f0`` where the
+        caller has it) and (i, ψ) at the middle and the end, by e^{A·T/2} applied twice.
+        The step after a prediction takes the predicted model of the same interval from
+        the same start (``_kept``, as :meth:`SampledController._advance`)."""
+        kept = self._kept  # the prediction of the step before
+        if (kept is not None and kept[0] is c and kept[1] is i0 and kept[2] is psi0
+                and kept[3] is w0):
+            return kept[4]
+        if f0 is None:
+            f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
+        w_m = w0 + self._half_T * f0
+        a = (complex(-self._c1, -c.w_0), self._beta * complex(self._alpha, -w_m), self._a21,
+             complex(-self._alpha, w_m - c.w_0))  # A(ω0, ω) at the midpoint's speed
+        a11, a12, a21, a22 = a
+        det = a11 * a22 - a12 * a21
+        b = c.u_dq / self._sigma
+        i_ss, p_ss = -a22 * b / det, a21 * b / det
+        e11, e12, e21, e22 = expm2(a, self._half_T, det)
+        di, dp = i0 - i_ss, psi0 - p_ss
+        di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
+        di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
+        # for _fo_finish: the load over the interval (T_L/J) and the reference at the middle
+        return (c, w0, r0.T_L / self._J, 0.5 * (c.i_ref0 + c.i_ref1), rh, r1, f0,
+                i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1)
 
     def _fo_finish(self, model, end: tuple[complex, complex] | None = None
-                   ) -> tuple[complex, complex, float]:
-        """(i, ψ, ω̂) at the end of the modelled interval; ``end``: the measured (i, ψ) at
-        the end, which also correct the mid-point by half the end's mismatch. ω̂: Simpson's
-        rule on the trajectory."""
-        c, w0, r0, rh, r1, f0, i_h, p_h, i_1, p_1 = model
+                   ) -> tuple[complex, complex, float, float]:
+        """(i, ψ, ω̂, dω̂/dt) at the end of the modelled interval; ``end``: the measured (i, ψ)
+        at the end, which also correct the mid-point by half the end's mismatch. ω̂:
+        Simpson's rule on the trajectory; dω̂/dt: (27), (32) at the end, against the
+        interval's end reference ``i_ref1``."""
+        c, w0, load, i_ref, rh, r1, f0, i_h, p_h, i_1, p_1 = model
         if end is not None:
             i_h += 0.5 * (end[0] - i_1)
             p_h += 0.5 * (end[1] - p_1)
             i_1, p_1 = end
-        T_L = r0.T_L
-        f_h = self._fo_rate(p_h, i_h, 0.5 * (c.i_ref0 + c.i_ref1), rh, T_L)
-        f_1 = self._fo_rate(p_1, i_1, c.i_ref1, r1, T_L)
-        return i_1, p_1, w0 + self._T / 6.0 * (f0 + 4.0 * f_h + f_1)
+        # the rates of (27), (32) at the middle and the end (_fo_rate, inline)
+        mu, beta, gamma_2 = self._mu, self._beta, self._gamma_2
+        e_d, e_q = i_h.real - i_ref.real, i_h.imag - i_ref.imag
+        w = (rh.psi_ref * p_h.imag + beta * (p_h.imag * e_d - p_h.real * e_q)) / gamma_2
+        f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - load + w
+        i_ref = c.i_ref1
+        e_d, e_q = i_1.real - i_ref.real, i_1.imag - i_ref.imag
+        w = (r1.psi_ref * p_1.imag + beta * (p_1.imag * e_d - p_1.real * e_q)) / gamma_2
+        f_1 = mu * (p_1.real * i_1.imag - p_1.imag * i_1.real) - load + w
+        return i_1, p_1, w0 + self._T_6 * (f0 + 4.0 * f_h + f_1), f_1
 
     # ------------------------------------------------------------------ a cycle
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sample at t_k (see the class docstring)."""
         T = self._T
-        m, g = self.motor, self._g
+        d = self._d
         self._k += 1
         k = self._k
+        win = self._refs.starting(2 * k - 2)  # references at (2(k − 1) + i)·T/2: win[i]
         hist = self._hist
         prev = hist[0]
-        eps_k = wrap_angle(prev.eps + T * prev.w_0)
+        eps_k = hist[1].eps if k > d > 0 else wrap_angle(prev.eps + T * prev.w_0)
         rot_k = cmath.exp(-1j * eps_k)
         i_k = sample.i_s_ab * rot_k
         # the past interval by the model: the estimator's current integral, then ω̂
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
-        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, k - 1)
-        i_h, i_1 = model[6], model[8]
+        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, win[0], win[1], win[2])
+        i_h, i_1 = model[7], model[9]
         rot_s = cmath.exp(1j * prev.eps)
         turn_h = cmath.exp(0.5j * prev.w_0 * T)
         turn_1 = turn_h * turn_h
-        int_i_ab = T / 6.0 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
-        psi_hat_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
-                                           rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
-        psi_hat_ab = self._commission(refs, sample, psi_hat_ab)
-        psi_ab = law_flux(self._true_flux, sample, psi_hat_ab)
+        int_i_ab = self._T_6 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
+        psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
+                                       rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
+        if self.commissioning is not None:
+            psi_ab = self._commission(refs, sample, psi_ab)
+        if self._true_flux:
+            psi_ab = law_flux(True, sample, psi_ab)
         psi_k = psi_ab * rot_k
-        _, _, w_k = self._fo_finish(model, (i_k, psi_k))
+        _, _, w_k, f_end = self._fo_finish(model, (i_k, psi_k))
         self.w_hat = w_k
+        # (27), (32) at the end of an interval, against its end reference, is the rate at
+        # the start of the next against that one's start reference (the same reference
+        # object) when the two intervals' loads are the same number: f_end is kept for it
+        load_end = win[0].T_L  # the load of the interval f_end ended
         i, psi, w = i_k, psi_k, w_k
-        for j in range(1, self._d + 1):
-            i, psi, w = self._fo_finish(self._fo_model(hist[j], i, psi, w, k - 1 + j))
-        n = 2 * (k + self._d)  # I_{k+d} starts at n·T/2
+        for j in range(1, d + 1):
+            c = hist[j]
+            r0 = win[2 * j]
+            model = self._fo_model(c, i, psi, w, r0, win[2 * j + 1], win[2 * j + 2],
+                                   f_end if (c.i_ref0 is hist[j - 1].i_ref1
+                                             and _same_number(r0.T_L, load_end)) else None)
+            if j == 1:  # the next step's model of its past interval
+                self._kept = (c, i, psi, w, model)
+            i, psi, w, f_end = self._fo_finish(model)
+            load_end = r0.T_L
         last = hist[-1]
-        eps_app = wrap_angle(last.eps + T * last.w_0) if self._d else eps_k
-        # the command for I_{k+d} = (t0, t0 + T]
-        r0, rh, r1 = self._at(n), self._at(n + 1), self._at(n + 2)
+        eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
+        # the command for I_{k+d} = (t0, t0 + T], t0 = (k + d)·T
+        r0, rh, r1 = win[self._cmd_refs]
         T_L = r0.T_L
-        i_ref0 = last.i_ref1 if self._k > self._d + 1 else complex(
-            *self._currents(r0, w, T_L)[:2])
-        i_sd0, i_sq0 = i_ref0.real, i_ref0.imag
-        f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
+        if self._k > d + 1:
+            i_ref0 = last.i_ref1
+            # (27), (32) at t0 with i_ref0 = the end reference of I_{k+d−1}: the rate the
+            # model ended that interval with, when its load is this one (the same number)
+            f0 = (f_end if _same_number(T_L, load_end)
+                  else self._fo_rate(psi, i, i_ref0, r0, T_L))
+        else:
+            i_ref0 = complex(*self._currents(r0, w, T_L)[:2])
+            f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
         i_sd1, i_sq1, limited = self._currents(r1, w + T * f0, T_L)
-        decay = math.exp(-g.k_e * T)
-        e0 = i - complex(i_sd0, i_sq0)
-        e1 = decay * e0 - (1.0 - decay) / g.k_e * self._aM * (psi.real - r0.psi_ref)
-        target = complex(i_sd1, i_sq1) + e1
-        w_mid = w + 0.5 * T * f0
+        i_ref1 = complex(i_sd1, i_sq1)
+        e0 = i - i_ref0
+        e1 = self._decay * e0 - self._decay_gain * self._aM * (psi.real - r0.psi_ref)
+        target = i_ref1 + e1
+        w_mid = w + self._half_T * f0
         w_0 = w_mid + self._aM * 0.5 * (i.imag + target.imag) / rh.psi_ref  # (26)
-        a = self._matrix(w_0, w_mid)
+        a = (complex(-self._c1, -w_0), self._beta * complex(self._alpha, -w_mid), self._a21,
+             complex(-self._alpha, w_mid - w_0))  # A(ω0, ω̂_mid)
         a11, a12, a21, a22 = a
         det = a11 * a22 - a12 * a21
-        e11, e12, _, _ = expm2(a, T)
+        e11, e12 = expm2(a, T, det, True)
         free = e11 * i + e12 * psi  # i(T) with u = 0
         # i(T) = free − (u/σ)·[(I − E)·A⁻¹·e1]_0, A⁻¹·e1 = (a22, −a21)/det
         gain = ((1.0 - e11) * a22 + e12 * a21) / det
-        u = m.sigma * (free - target) / gain
-        new = Interval(target, u, eps_app, w_0, complex(i_sd0, i_sq0), complex(i_sd1, i_sq1))
-        to_ab = cmath.exp(1j * (eps_app + 0.5 * T * w_0))
-        self._base = hist[-1]
-        hist.append(new)
+        u = self._sigma * (free - target) / gain
+        self._base = last
+        hist.append(_new_tuple(Interval, (target, u, eps_app, w_0, i_ref0, i_ref1)))
         hist.popleft()
         self._psi_prev = psi_k
         self._i_prev = i_k
         self._w_prev = w_k
         self._i_prev_ab = sample.i_s_ab
         self.eps_0 = eps_k
-        return Command(
-            i_s_dq_ref=target, u_s_dq_ref=u, eps_0=eps_app, w_0=w_0,
-            i_s_ab_ref=target * to_ab, u_s_ab_ref=u * to_ab,
-            i_limited=limited, logged=paper_logged(w_k, psi_k),
-        )
+        to_ab = cmath.exp(1j * (eps_app + self._half_T * w_0))
+        return make_command(target, u, eps_app, w_0, target * to_ab, u * to_ab, limited,
+                            paper_logged(w_k, psi_k))
 
     def coast(self) -> None:
         """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
         T = self._T
         self._k += 1
+        win = self._refs.starting(2 * self._k - 2)
         hist = self._hist
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
-        i_k, psi_k, w_k = self._fo_finish(
-            self._fo_model(prev, self._i_prev, psi0, self._w_prev, self._k - 1))
+        i_k, psi_k, w_k, _ = self._fo_finish(
+            self._fo_model(prev, self._i_prev, psi0, self._w_prev, win[0], win[1], win[2]))
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot = cmath.exp(1j * eps_k)
         self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)

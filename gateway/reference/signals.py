@@ -128,6 +128,22 @@ class SetPoint:
 # ---------------------------------------------------------------------------------- signal
 
 
+def _on(seg: tuple[float, float, float, float, float, float, float, float], t: float
+        ) -> tuple[float, float, float]:
+    """(x, ẋ, ẍ) at t (s) on one segment of :attr:`Signal._segs` (the one t falls in)."""
+    t0, inv, v0, dv, k1, k2, v1, t1 = seg
+    if t >= t1:
+        return v1, 0.0, 0.0
+    s = (t - t0) * inv
+    s2 = s * s
+    u = 1.0 - s
+    return (
+        v0 + dv * s2 * s * (10.0 + s * (6.0 * s - 15.0)),
+        k1 * 30.0 * s2 * u * u,
+        k2 * 60.0 * s * u * (1.0 - 2.0 * s),
+    )
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Signal:
     """A piecewise-C² signal: ``initial`` then quintic-smoothstep transitions (``steps``).
@@ -195,17 +211,7 @@ class Signal:
 
     def at(self, t: float) -> tuple[float, float, float]:
         """(x, ẋ, ẍ) at time t (s): exact values of the quintic smoothstep."""
-        t0, inv, v0, dv, k1, k2, v1, t1 = self._segs[bisect_right(self._starts, t) - 1]
-        if t >= t1:
-            return v1, 0.0, 0.0
-        s = (t - t0) * inv
-        s2 = s * s
-        u = 1.0 - s
-        return (
-            v0 + dv * s2 * s * (10.0 + s * (6.0 * s - 15.0)),
-            k1 * 30.0 * s2 * u * u,
-            k2 * 60.0 * s * u * (1.0 - 2.0 * s),
-        )
+        return _on(self._segs[bisect_right(self._starts, t) - 1], t)
 
     def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Vectorised :meth:`at`: (x, ẋ, ẍ) as float arrays of the shape of ``t``."""
@@ -243,6 +249,13 @@ class Profile:
     source: str = field(default="<embedded>", compare=False)
     description: str = field(default="", compare=False)
 
+    # The stretches between the transitions' starts and ends: their boundaries and, per
+    # stretch, its References when all three signals are constant there (built once), or
+    # None and the segment of each signal (Signal._segs) that holds there.
+    _bounds: list[float] = field(init=False, repr=False, compare=False)
+    _still: list[References | None] = field(init=False, repr=False, compare=False)
+    _moving: list[tuple] = field(init=False, repr=False, compare=False)
+
     def __post_init__(self) -> None:
         if not (self.duration > 0.0 and math.isfinite(self.duration)):
             raise ProfileError(f"{self.source}: duration = {self.duration!r} must be > 0 s")
@@ -252,12 +265,41 @@ class Profile:
                 f"{self.source}: flux value {bad[0]!r} Wb: the flux reference must stay > 0 "
                 f"(ψ* > 0 is required by (15)); use positive values"
             )
+        signals = (self.speed, self.flux, self.load)
+        bounds = sorted({-math.inf, *(x for sig in signals for seg in sig._segs[1:]
+                                      for x in (seg[0], seg[7]))})
+        still: list[References | None] = []
+        moving: list[tuple] = []
+        for lo in bounds:
+            # no transition starts inside [lo, next bound): each signal's segment there is
+            # the one at lo, and the signal is constant there iff that segment has ended by
+            # lo (then _on gives (v1, 0.0, 0.0), the numbers built here)
+            segs = tuple(sig._segs[bisect_right(sig._starts, lo) - 1] for sig in signals)
+            moving.append(segs)
+            still.append(_make_references(segs[0][6], 0.0, 0.0, segs[1][6], 0.0, 0.0,
+                                          segs[2][6], 0.0)
+                         if all(lo >= seg[7] for seg in segs) else None)
+        # t beyond the last bound, +inf or NaN: each Signal.at decides
+        object.__setattr__(self, "_bounds", [*bounds, math.inf])
+        object.__setattr__(self, "_still", [*still, None])
+        object.__setattr__(self, "_moving", [*moving, None])
 
     def at(self, t: float) -> References:
-        """All references at time t (s). Pure Python, about 1–2 µs per call."""
-        w, dw, ddw = self.speed.at(t)
-        p, dp, ddp = self.flux.at(t)
-        tl, dtl, _ = self.load.at(t)
+        """All references at time t (s). Pure Python, about 1–2 µs per call during a
+        transition; between transitions (every signal constant) one bisection."""
+        n = bisect_right(self._bounds, t) - 1
+        r = self._still[n]
+        if r is not None:
+            return r
+        segs = self._moving[n]
+        if segs is None:
+            w, dw, ddw = self.speed.at(t)
+            p, dp, ddp = self.flux.at(t)
+            tl, dtl, _ = self.load.at(t)
+        else:
+            w, dw, ddw = _on(segs[0], t)
+            p, dp, ddp = _on(segs[1], t)
+            tl, dtl, _ = _on(segs[2], t)
         return _make_references(w, dw, ddw, p, dp, ddp, tl, dtl)
 
     def sample(self, t: np.ndarray) -> dict[str, np.ndarray]:
