@@ -83,6 +83,19 @@ def build_params(cls: type[_P], valid: tuple[str, ...], values: Mapping[str, Any
     return obj
 
 
+#: The motor file's table of what commissioning measured besides model (1)'s parameters.
+COMMISSIONING = "commissioning"
+
+
+def commissioning(path: str | Path) -> dict[str, Any]:
+    """A motor file's ``[commissioning]`` table (empty when it has none)."""
+    _, data = read_toml(path, None)
+    table = data.get(COMMISSIONING, {})
+    if not isinstance(table, dict):
+        raise ParamsError(f"{path}: [{COMMISSIONING}] must be a table")
+    return table
+
+
 @dataclass(frozen=True)
 class MotorParams:
     """Parameters of model (1): one pole pair, linear magnetics, SI units.
@@ -154,6 +167,11 @@ class MotorParams:
 
     @classmethod
     def from_toml(cls, path: str | Path, table: str | None = None) -> MotorParams:
-        """From a TOML file: top-level keys, or the keys of ``[table]`` if given."""
+        """From a TOML file: top-level keys, or the keys of ``[table]`` if given. A motor
+        file's ``[commissioning]`` table (what `hil-gateway identify` measured besides the
+        motor: sensor offsets, inverter voltage error; :func:`commissioning`) is not a
+        parameter of model (1)."""
         source, data = read_toml(path, table)
+        if table is None:
+            data = {k: v for k, v in data.items() if k != COMMISSIONING}
         return cls.from_mapping(data, source)

@@ -1002,6 +1002,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         _add_report(sub)
         _add_scope(sub)
         _add_reference(sub)
+        from gateway import identifycmd
+
+        identifycmd.add_parser(sub)
         from gateway.campaign import command as campaign
 
         campaign.add_parser(sub)
@@ -1271,7 +1274,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv = rewrite(argv)
     argv = _values_not_options(argv)
     parser = build_parser(_command_of(argv))
-    args = parser.parse_args(argv)
+    if _command_of(argv) == "identify":  # the other options are those of the command it runs
+        args, args.options = parser.parse_known_args(argv)
+    else:
+        args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)

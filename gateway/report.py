@@ -291,6 +291,14 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
     """The summary's line for a standstill identification (``--identify``), or ""."""
     if not ident:
         return ""
+    if ident.get("test") == "standstill":  # the commissioning test (--controller identify)
+        if not ident.get("ok"):
+            return f"standstill test: no result ({ident.get('reason', '')})"
+        v = ident["values"]
+        return (f"standstill test ({ident['samples']} samples): R_s {v['R_s']['value']:.4g} Ω, "
+                f"α {v['alpha']['value']:.4g} 1/s, σ {v['sigma']['value']:.4g} H, "
+                f"offsets {1e3 * v['offset_a']['value']:.2f}/{1e3 * v['offset_b']['value']:.2f}"
+                " mA (hil-gateway identify writes them as a motor file)")
     if ident.get("accepted"):
         return (f"identified at standstill ({ident['samples']} samples): R_s "
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s), "
