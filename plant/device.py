@@ -107,6 +107,14 @@ from plant.units import EMULATOR, TARGETS, DriveUnits, Quantity, units_from
 log = logging.getLogger(__name__)
 
 FAULT_LOG = 100  #: faults kept in the account
+#: Between runs (:meth:`DriveDevice._idle`): how often the idle motor advances, s; how hard
+#: the test bench brakes it to rest, rad/s² (from 100 rad/s in 0.2 s); the longest step,
+#: internal steps (a stalled thread does not make one huge step); the flux below which
+#: the motor is at rest, Wb.
+IDLE_STEP_S = 0.02
+IDLE_BRAKE = 500.0
+IDLE_MAX_STEPS = 1000
+IDLE_FLUX = 1e-6
 
 
 class DriveDevice:
@@ -178,6 +186,10 @@ class DriveDevice:
         self._setpoint_keys = tuple(k for n, k in self._k.items() if n in SETPOINT_SIGNALS)
         self._logged: set[tuple[str, type]] = set()  # internal errors logged with traceback
         # account (cumulative since construction)
+        #: how hard the test bench brakes the idle motor to rest between runs, rad/s² (0:
+        #: not at all; :meth:`_idle`)
+        self.idle_brake = IDLE_BRAKE
+        self._idle_at: float | None = None
         self._cycles_total = 0
         self._sync_gaps = 0
         self._faults: deque[tuple[int, float]] = deque(maxlen=FAULT_LOG)
@@ -717,8 +729,43 @@ class DriveDevice:
             self._wake.clear()
 
     def _timers(self, now: float) -> float:
-        """Heartbeat producer and consumer; returns the time to the next deadline, s."""
-        return self.nmt.timers(now)
+        """Heartbeat producer and consumer, and the idle motor; returns the time to the
+        next deadline, s."""
+        return min(self.nmt.timers(now), self._idle(now))
+
+    def _idle(self, now: float) -> float:
+        """Between runs the motor lives in real time: while the device is not OPERATIONAL
+        (no SYNC drives the model) and its power stage is off, the model advances by the
+        wall time that passed (the flux decays, the rotor coasts) and the test bench's load
+        machine brakes the rotor to rest at ``idle_brake`` rad/s², so a second run finds it
+        at rest as a real bench would. A motor at rest is left as it is (its time does not
+        move: runs stay deterministic). Returns the time to the next idle step, s."""
+        drive = self._drive
+        if self.nmt.state is NmtState.OPERATIONAL or drive.enabled or self.idle_brake <= 0:
+            self._idle_at = None
+            return IDLE_STEP_S
+        state = drive.state
+        if state.w_m == 0.0 and abs(state.psi_r_ab) < IDLE_FLUX and abs(state.i_s_ab) == 0.0:
+            self._idle_at = None
+            return IDLE_STEP_S
+        if self._idle_at is None:
+            self._idle_at = now
+            return IDLE_STEP_S
+        h = drive.params.h
+        n = int((now - self._idle_at) / h)
+        if n <= 0:
+            return IDLE_STEP_S
+        n = min(n, IDLE_MAX_STEPS)
+        self._idle_at = now if n == IDLE_MAX_STEPS else self._idle_at + n * h
+        meas = drive.advance(n * h, 0.0)
+        drive.brake(self.idle_brake * n * h)
+        if self._off_since is not None:  # what is left for _rest: the time since this step
+            self._off_since = self._idle_at
+        if abs(drive.state.psi_r_ab) < IDLE_FLUX and drive.state.w_m == 0.0:
+            drive.reset(MotorState(0.0, 0j, 0j))  # at rest: exactly (a deterministic start)
+        self._put(VELOCITY_ACTUAL, drive.state.w_m / self._units.velocity)
+        self._put(TORQUE_ACTUAL, meas.T_e / self._units.torque)
+        return IDLE_STEP_S
 
 
 def _finite(meas: Measurement) -> bool:

@@ -283,6 +283,11 @@ class Drive:
             return
         self._sp = replace(self._sp, i_s_ref=sp.i_s_ref, u_s_ref=sp.u_s_ref)
 
+    def brake(self, dw: float) -> None:
+        """Slow the rotor by ``dw`` rad/s towards rest, not past it: the test bench's load
+        machine holding an idle motor (:class:`plant.device.DriveDevice` between runs)."""
+        self._w = math.copysign(max(abs(self._w) - max(dw, 0.0), 0.0), self._w)
+
     def enable(self, on: bool) -> None:
         """Power stage on/off. Switching on clears an over-current trip."""
         if on and not self._enabled:

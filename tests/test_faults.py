@@ -414,10 +414,26 @@ def test_a_second_run_after_a_fault_starts_from_a_motor_at_rest(emulator, tmp_pa
     assert s["run"]["stop"] == "END_OF_PROFILE" and s["speed_error"]["max"] < 0.5
 
 
-def test_a_run_on_a_motor_still_turning_says_so(emulator, tmp_path, capsys):
-    """The quick profile ends at 100 rad/s and the model keeps that speed (no friction): a
-    new run from rest diverges at once, and its reason says the motor was turning."""
+def test_between_runs_the_idle_motor_comes_to_rest_in_real_time(emulator, tmp_path):
+    """The quick profile ends at 100 rad/s. Between runs the emulated motor lives in real
+    time: its flux decays and the test bench brakes it to rest (500 rad/s²), so a second
+    run a moment later starts from rest, as on a real bench."""
     emu = emulator()
+    assert gateway_run(emu, tmp_path / "r1", "--reference", "profiles/quick.toml") == 0
+    deadline = time.monotonic() + 30.0  # about 0.2 s on an idle host
+    while emu.device._drive.state.w_m != 0.0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert emu.device._drive.state.w_m == 0.0
+    assert gateway_run(emu, tmp_path / "r2", "--reference", "profiles/quick.toml") == 0
+    assert _summary(tmp_path / "r2")["run"]["stop"] == "END_OF_PROFILE"
+
+
+def test_a_run_on_a_motor_still_turning_says_so(emulator, tmp_path, capsys):
+    """On a bench that does not brake an idle motor (``idle_brake`` 0) the model keeps the
+    quick profile's final 100 rad/s (no friction): a new run from rest diverges at once,
+    and its reason says the motor was turning."""
+    emu = emulator()
+    emu.device.idle_brake = 0.0
     assert gateway_run(emu, tmp_path / "r1", "--reference", "profiles/quick.toml") == 0
     capsys.readouterr()
     assert gateway_run(emu, tmp_path / "r2", "--reference", "profiles/quick.toml") == 1
