@@ -43,7 +43,7 @@ CAMPAIGN = """
 name = "bench"
 [base]
 profile = "{root}/profiles/quick.toml"
-duration = "150ms"
+duration = "{duration}"
 estimator = "rs-adaptive"
 [random]
 n = {n}
@@ -53,12 +53,13 @@ seed = {seed}
 """
 
 
-def points(n: int, seed: int):
+def points(n: int, seed: int, duration: str = "150ms"):
     from gateway.campaign.model import parse_campaign
     from gateway.campaign.options import command_options
     from gateway.campaign.points import plan
 
-    campaign = parse_campaign(CAMPAIGN.format(root=ROOT, n=n, seed=seed), "<bench>",
+    campaign = parse_campaign(CAMPAIGN.format(root=ROOT, n=n, seed=seed, duration=duration),
+                              "<bench>",
                               command_options)
     return campaign, plan(campaign, ROOT)[0]
 
@@ -143,11 +144,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="100 points, one repeat")
     ap.add_argument("--points", type=int, help="points per measurement (default 400)")
     ap.add_argument("--repeats", type=int, help="repeats (default 3)")
+    ap.add_argument("--point-duration", default="150ms", metavar="DURATION",
+                    help="each point's simulated time (default 150ms: short points, where "
+                         "the per-point overhead shows most; the quick profile lasts 1.5 s)")
     add_json_option(ap)
     args = ap.parse_args(argv)
     n = args.points or (100 if args.quick else 400)
     repeats = args.repeats or (1 if args.quick else 3)
-    campaign, pts = points(n, 1)
+    campaign, pts = points(n, 1, args.point_duration)
     warm = points(4, 2)[1]
     fig = Figures(points=n, repeats=repeats)
     here = ("direct_s", "in_process_s", "rate_direct", "rate_in_process",
@@ -197,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         fig.fail("scaling_2_vs_1", "a cluster measurement failed")
 
-    print(f"campaign throughput: {n} points (quick profile, 150 ms each), median of "
+    print(f"campaign throughput: {n} points (quick profile, {args.point_duration} each), "
+          "median of "
           f"{repeats}")
     print(f"{'':34}{'points/s':>10}{'s':>9}   baseline / target")
     print(f"{'direct session.run (baseline)':34}"

@@ -18,7 +18,6 @@ import argparse
 import datetime
 import shlex
 import tempfile
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +38,31 @@ _EXTRA = {"offset_a": "A, added to the phase-a current reading",
           "u_dead": "V, the inverter's voltage error along a phase current's sign (dead "
                     "time: u_dead = dead_time·f_pwm·u_dc)",
           "R_s_drift": "1/s, R_s's relative change per second during the test (warming)"}
+
+#: The test's reference profile: ω* = 0, no load (the test steps the current itself; the
+#: flux reference only tells the divergence guard what to expect); its duration is set by
+#: --duration.
+STANDSTILL = """\
+[units]
+time = "s"
+speed = "rad/s"
+flux = "Wb"
+torque = "N*m"
+
+[profile]
+name = "standstill"
+description = "ω* = 0, no load: the standstill test of hil-gateway identify"
+duration = 2.5
+
+[flux]
+initial = 0.5
+
+[speed]
+initial = 0.0
+
+[load]
+initial = 0.0
+"""
 
 DESCRIPTION = """\
 Commission the motor at standstill, as a drive's identification run does: DC current steps
@@ -112,10 +136,11 @@ def cmd_identify(args: argparse.Namespace) -> int:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         run_dir = f"runs/{stamp}-identify"
         options += ["--out", run_dir]
-    profile = resources.files("gateway").joinpath("profiles/standstill.toml")
     with tempfile.TemporaryDirectory(prefix="hil-identify-") as tmp:
         params_file = Path(tmp) / "identify.toml"
         params_file.write_text("".join(f"{k} = {v!r}\n" for k, v in params.items()))
+        profile = Path(tmp) / "standstill.toml"
+        profile.write_text(STANDSTILL)
         argv = [args.on, *options, "--controller", "identify", "--controller-params",
                 str(params_file), "--reference", str(profile), "--duration",
                 f"{duration(params)}s"]

@@ -1,11 +1,12 @@
 """One point on a worker: the command line's own parser and inputs, then
 :func:`gateway.session.run`, within a time limit; the outcome as the table's columns.
 
-The run goes on in a thread of its own. At the time limit it is asked to stop as Ctrl-C
-would (:meth:`gateway.stop.StopSignals.request`; the loop stops within a cycle), and given
-a grace period; a run that still has not returned is left behind (its thread is a daemon)
-and the batch says so, so that the engine can restart that worker. Either way the point
-becomes a row (status ``timeout``), never a hung campaign.
+The runs of a batch go on in a thread of their own, one after the other. At the time
+limit a run is asked to stop as Ctrl-C would (:meth:`gateway.stop.StopSignals.request`;
+the loop stops within a cycle), and given a grace period; a run that still has not
+returned is left behind (its thread is a daemon) and the batch says so, so that the engine
+can restart that worker. Either way the point becomes a row (status ``timeout``), never a
+hung campaign.
 
 A point's run directory is written only on request (``keep_runs``) or when the point
 failed (it did not run to the end of its profile): into ``runs_dir``/<index>-<hash>/.
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import queue
 import shutil
 import socket
 import threading
@@ -89,49 +91,82 @@ def outcome(status: PointStatus, reason: str, exit_status: int, wall: float,
 
 
 def run_batch(points: Sequence[PointConfig], limits: Limits) -> BatchResult:
-    """Run ``points`` one after the other (one parser for the batch)."""
+    """Run ``points`` one after the other (one parser and one runner thread for the
+    batch: a new thread per point made each run about 5 % slower, its first steps on a
+    cold thread)."""
     parser = build_parser()
     result = BatchResult()
-    for point in points:
-        row, abandoned = run_point(point, limits, parser)
-        result.outcomes[point.hash] = row
-        if abandoned:
-            result.abandoned = True
-            break  # this process is no place for more runs: the rest go elsewhere
+    runner = _Runner(limits, parser)
+    try:
+        for point in points:
+            row, abandoned = runner.run(point)
+            result.outcomes[point.hash] = row
+            if abandoned:
+                result.abandoned = True
+                break  # this process is no place for more runs: the rest go elsewhere
+    finally:
+        runner.close()
     return result
 
 
-def run_point(point: PointConfig, limits: Limits, parser: argparse.ArgumentParser
-              ) -> tuple[dict[str, Any], bool]:
-    """One point within its time limit: its outcome columns, and whether its run was left
-    behind in its thread."""
-    signals = StopSignals()
-    box: dict[str, Any] = {}
-    t0 = time.perf_counter()
-    thread = threading.Thread(target=_run, args=(point, limits, parser, signals, box),
-                              name=f"campaign point {point.index}", daemon=True)
-    thread.start()
-    try:
-        thread.join(limits.timeout)
-    except BaseException:  # Ctrl-C in the in-process engine: the run stops within a cycle
-        signals.request("interrupted")
-        thread.join(limits.grace)
-        raise
-    if not thread.is_alive():
-        return box["row"], False
-    signals.request(f"time limit of {limits.timeout:g} s per point")
-    thread.join(limits.grace)
-    wall = time.perf_counter() - t0
-    if thread.is_alive():
-        return outcome(PointStatus.TIMEOUT, f"past the time limit of {limits.timeout:g} s "
-                       f"per point and not stopped {limits.grace:g} s after it (left behind; "
-                       "raise --timeout if the point is merely slow)",
-                       EXIT_TIMEOUT, wall), True
-    row = dict(box["row"])
-    row.update(status=PointStatus.TIMEOUT.value, exit_status=EXIT_TIMEOUT,
-               stop_reason=f"past the time limit of {limits.timeout:g} s per point; "
-                           f"stopped ({row['stop_reason']})")
-    return row, False
+class _Runner:
+    """The thread a batch's points run in, one at a time; a point past its time limit is
+    asked to stop, and if it does not within the grace period, it is left behind with its
+    thread (no further point is given to it)."""
+
+    def __init__(self, limits: Limits, parser: argparse.ArgumentParser) -> None:
+        self.limits = limits
+        self.parser = parser
+        self._thread: threading.Thread | None = None
+        self._todo: queue.SimpleQueue[tuple[PointConfig, StopSignals, dict[str, Any],
+                                            threading.Event] | None] = queue.SimpleQueue()
+
+    def _loop(self) -> None:
+        while (job := self._todo.get()) is not None:
+            point, signals, box, done = job
+            _run(point, self.limits, self.parser, signals, box)
+            done.set()
+
+    def run(self, point: PointConfig) -> tuple[dict[str, Any], bool]:
+        limits = self.limits
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name="campaign points",
+                                            daemon=True)
+            self._thread.start()
+        signals = StopSignals()
+        box: dict[str, Any] = {}
+        done = threading.Event()
+        t0 = time.perf_counter()
+        self._todo.put((point, signals, box, done))
+        try:
+            done.wait(limits.timeout)
+        except BaseException:  # Ctrl-C in the in-process engine: the run stops within a cycle
+            signals.request("interrupted")
+            done.wait(limits.grace)
+            raise
+        if done.is_set():
+            return box["row"], False
+        signals.request(f"time limit of {limits.timeout:g} s per point")
+        done.wait(limits.grace)
+        wall = time.perf_counter() - t0
+        if not done.is_set():
+            self._thread = None  # left behind with its point; never given another:
+            self._todo = queue.SimpleQueue()  # a next point gets a new thread and queue
+            return outcome(PointStatus.TIMEOUT, f"past the time limit of {limits.timeout:g} "
+                           f"s per point and not stopped {limits.grace:g} s after it (left "
+                           "behind; raise --timeout if the point is merely slow)",
+                           EXIT_TIMEOUT, wall), True
+        row = dict(box["row"])
+        row.update(status=PointStatus.TIMEOUT.value, exit_status=EXIT_TIMEOUT,
+                   stop_reason=f"past the time limit of {limits.timeout:g} s per point; "
+                               f"stopped ({row['stop_reason']})")
+        return row, False
+
+    def close(self) -> None:
+        """The runner thread ends after its point (if one is left behind, with it)."""
+        if self._thread is not None:
+            self._todo.put(None)
+            self._thread = None
 
 
 def _run(point: PointConfig, limits: Limits, parser: argparse.ArgumentParser,

@@ -57,6 +57,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from dbc.filecache import FileMemo, resolved
 from gateway.reference.signals import Profile, ProfileError, Signal, Step
 
 __all__ = ["ReferenceLimit", "load_profile", "paper_profile", "parse_profile",
@@ -441,10 +442,25 @@ def parse_profile(text: str, source: str = "<string>",
                    source=source, description=description)
 
 
+#: Profiles read, kept while their file is unchanged (a campaign's points read the same
+#: one again and again); a :class:`Profile` is frozen: shared, read-only.
+_READ: FileMemo[Profile] = FileMemo()
+
+
 def load_profile(path: str | Path,
                  limits: Mapping[str, Sequence[ReferenceLimit]] | None = None) -> Profile:
     """Read a reference profile TOML file; :class:`ProfileError` (naming the file) on any
-    problem, a value beyond ``limits`` included (see :func:`parse_profile`)."""
+    problem, a value beyond ``limits`` included (see :func:`parse_profile`). Read again
+    only when the file changed (:mod:`dbc.filecache`)."""
+    checks = None if limits is None else tuple(sorted((k, tuple(v))
+                                                      for k, v in limits.items()))
+    return _READ.get((str(path), resolved(path), checks),
+                     lambda: (_load_profile(path, limits), (path,)))
+
+
+def _load_profile(path: str | Path,
+                  limits: Mapping[str, Sequence[ReferenceLimit]] | None) -> Profile:
+    """:func:`load_profile` from the file."""
     src = str(path)
     try:
         text = Path(path).read_bytes().decode("utf-8")
