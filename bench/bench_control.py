@@ -58,7 +58,8 @@ def _samples(law: str, n: int) -> list[tuple[object, Sample]]:
     prof = paper_profile()
     drive = "ideal" if law == "current-fed" else "voltage"
     with the_run(f"the {law} samples' simulation"):
-        sig = run(RunSpec(law=law, drive_mode=drive, duration=n * 1e-3), prof, motor).sig
+        sig = run(RunSpec(law=law, drive_mode=drive, duration=n * 1e-3, identify=False),
+                  prof, motor).sig
     out = []
     for k in range(len(sig["t"])):
         t = float(sig["t"][k])
@@ -124,7 +125,7 @@ def bench_simulate(law: str, drive: str, repeats: int, duration: float) -> float
     for _ in range(repeats):
         with the_run():
             t0 = time.perf_counter()
-            run(RunSpec(law=law, drive_mode=drive, duration=duration), prof, motor)
+            run(RunSpec(law=law, drive_mode=drive, duration=duration, identify=False), prof, motor)
             walls.append(time.perf_counter() - t0)
     return duration / statistics.median(walls)
 

@@ -36,7 +36,13 @@ from gateway.reference import paper_profile
 from gateway.session import run
 from gateway.spec import RunSpec
 
-sim_config = RunSpec.from_words  # RunSpec from the command line's words
+
+def sim_config(*args, **kw) -> RunSpec:
+    """RunSpec from the command line's words, without the standstill identification (the
+    designs compared as they are; ``identify=True`` where a configuration asks for it)."""
+    kw.setdefault("identify", False)
+    return RunSpec.from_words(*args, **kw)
+
 
 
 

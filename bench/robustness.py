@@ -89,6 +89,7 @@ def sim_config(drive: str | None = None, **kw) -> RunSpec:
     [base]). Not imported from tests/: a third-party package (eds-utils) installs a
     top-level ``tests`` package that shadows the project's."""
     kw.setdefault("discretisation", "euler")
+    kw.setdefault("identify", False)  # as the campaign's [base]
     return RunSpec.from_words(1e-3, 1, "dq", drive, **kw)
 
 

@@ -221,10 +221,12 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "scenario's [load].known, else known where the drive applies the "
                         "profile's load (the emulator, a drive profile with a T_L signal) and "
                         "untold where it cannot")
-    p.add_argument("--identify", action="store_true",
-                   help="identify R_s and R_r from the standstill magnetisation (before the "
-                        "speed reference moves) and use them from then on; summary.json "
-                        "says what was found (docs/robustness.md §5; sampled runs)")
+    p.add_argument("--identify", action=argparse.BooleanOptionalAction, default=None,
+                   help="identify R_s and R_r from the standstill magnetisation (once the "
+                        "flux reference has settled, or when the speed or load reference "
+                        "first moves) and use them from then on; summary.json says what was "
+                        "found (docs/robustness.md §5). On by default in sampled runs; "
+                        "--no-identify: the motor file's values throughout")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
@@ -322,7 +324,8 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
         drive_mode=_drive_mode(args),
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
-        discretisation=_design(args, load), plant=plant, load=load, identify=args.identify,
+        discretisation=_design(args, load), plant=plant, load=load,
+        identify=args.identify,
         controller=_controller_choice(args, controller_params),
     )
     label = "continuous" if period is None else format_duration(period)
@@ -554,7 +557,8 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
                     else 5),
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
-        plant=plant, load=load, discretisation=_design(args, load), identify=args.identify,
+        plant=plant, load=load, discretisation=_design(args, load),
+        identify=args.identify,
         controller=_controller_choice(args, controller_params),
     )
 

@@ -94,7 +94,8 @@ class RunSpec:
     and the paper's options: ``law``, ``flux``, ``estimator``, ``gains``, ``w_c`` (the
     drift-free estimator's corner, rad/s), ``discretisation`` (EXACT, the sampled-data
     design of docs/sampled-control.md, or EULER), ``load`` (:class:`LoadSource`: the T_L the
-    laws are told), ``identify`` (R_s, R_r from the standstill magnetisation), and the
+    laws are told), ``identify`` (R_s, R_r from the standstill magnetisation; None: in every
+    sampled run, :attr:`identifies`), and the
     controller's state at t = 0: ``w_hat_0`` (rad/s), ``eps_0`` (rad).
 
     The drive and the sampling: ``drive_mode`` (:class:`DriveMode`); ``sampling`` (period,
@@ -122,7 +123,7 @@ class RunSpec:
     w_c: float = 2.0
     discretisation: Discretisation = Discretisation.EXACT
     load: LoadSource = LoadSource.KNOWN
-    identify: bool = False
+    identify: bool | None = None
     w_hat_0: float = 0.0
     eps_0: float = 0.0
     drive_mode: DriveMode = DriveMode.IDEAL
@@ -197,7 +198,7 @@ class RunSpec:
                             "voltage-fed (full-order law): choose --drive-mode ideal or "
                             "voltage, or a sampling --period such as 1ms for the current-loop "
                             "drive")
-        if self.identify:
+        if self.identify:  # asked for (by default: where it runs)
             raise UserError("--identify runs in the sampled controller: choose a sampling "
                             "--period such as 1ms")
         if self.load is LoadSource.OBSERVED:
@@ -208,6 +209,12 @@ class RunSpec:
             raise UserError(f"plant scenario {self.plant.source}: continuous time models the "
                             "motor factors and the load only (no sensors, inverter or drifts); "
                             "choose a sampling --period such as 1ms")
+
+    @property
+    def identifies(self) -> bool:
+        """The standstill identification runs: as asked (``identify``), else in every
+        sampled run (on by default; docs/robustness.md §5)."""
+        return self.identify if self.identify is not None else self.sampling is not None
 
     @property
     def period(self) -> float:
@@ -230,13 +237,14 @@ class RunSpec:
             sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
             discretisation=self.discretisation, current_lag=current_lag,
             load=self.load, **load_config(self.load, self.drive_mode),
-            identify=self.identify)
+            identify=self.identifies)
 
     def describe(self) -> dict[str, Any]:
         """A JSON-able description (summary.json's configuration)."""
         d = asdict(self)
         for key in ("sampling", "plant", "initial"):
             del d[key]
+        d["identify"] = self.identifies  # what ran, not whether it was asked for
         s = self.sampling
         d["period"] = "continuous" if s is None else s.period
         if s is not None:

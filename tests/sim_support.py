@@ -7,8 +7,10 @@ from gateway.spec import RunSpec
 
 def sim_config(period: float | None = 1e-3, delay: int = 1, setpoint_frame: str = "dq",
                drive: str | None = None, discretisation: str = "euler", **kw) -> RunSpec:
-    """A RunSpec (period None: continuous time). The Euler design by default: the plant
-    scenario and robustness figures (docs/robustness.md) were first measured with it, and the
-    load observer exists in it only."""
+    """A RunSpec (period None: continuous time). The Euler design and no standstill
+    identification by default: the plant scenario and robustness figures
+    (docs/robustness.md) were first measured so, and the load observer exists in the Euler
+    design only."""
+    kw.setdefault("identify", False)
     return RunSpec.from_words(period, delay, setpoint_frame, drive,
                                 discretisation=discretisation, **kw)

@@ -61,7 +61,7 @@ def test_a_diverging_simulation_stops_and_exits_1(tmp_path):
     out = tmp_path / "runaway"
     profile = ROOT / "gateway" / "profiles" / "zero-speed.toml"
     p = run_cli("simulate", "--profile", str(profile), "--plant", "rs+10", "--estimator",
-                "drift-free", "--discretisation", "euler", "--out", str(out))
+                "drift-free", "--discretisation", "euler", "--no-identify", "--out", str(out))
     assert p.returncode == 1, p.stderr
     assert "the loop diverged and the simulation stopped: cycle" in p.stderr
     assert "Traceback" not in p.stderr
@@ -102,7 +102,7 @@ def test_simulate_sampled_summary_shows_delay(tmp_path):
     for delay in ("0", "1"):
         out = tmp_path / f"d{delay}"
         assert main(["simulate", "--period", "1ms", "--delay", delay, "--flux", "true",
-                     "--out", str(out)]) == 0
+                     "--no-identify", "--out", str(out)]) == 0
         s = json.loads((out / "summary.json").read_text())
         assert s["configuration"]["delay"] == int(delay)
         rms[delay] = s["speed_error"]["rms"]

@@ -155,7 +155,8 @@ def test_sim_over_canopen_with_observed_load_equals_simulate(tmp_path):
     from gateway.report import read_csv
 
     out = tmp_path / "sim"
-    assert main(["sim", "--plant", "unknown-load", "--duration", "0.7s", "--out", str(out)]) == 0
+    assert main(["sim", "--plant", "unknown-load", "--duration", "0.7s", "--no-identify",
+                 "--out", str(out)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["configuration"]["load"] == "observed"
     bus = read_csv(out / "signals.csv")

@@ -28,7 +28,13 @@ from gateway.spec import RunSpec
 from plant.drive import Drive, Setpoints
 from plant.params import DriveParams
 
-sim_config = RunSpec.from_words  # RunSpec from the command line's words
+
+def sim_config(*args, **kw) -> RunSpec:
+    """RunSpec from the command line's words, without the standstill identification: the
+    design's own figures (README's table, bench/bench_sampled.py)."""
+    kw.setdefault("identify", False)
+    return RunSpec.from_words(*args, **kw)
+
 
 
 MOTOR = MotorParams.paper()

@@ -375,10 +375,12 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
 
 
 def _host_could_not_keep_10ms(run: dict, timing: dict) -> bool:
-    """What the run measured says the host held the loop for several periods: missed or
-    withheld cycles and a reaction or SYNC → TPDO time beyond the 10 ms period."""
-    late = max(timing.get("reaction", {}).get("max", 0.0),
-               timing.get("sync_to_tpdo", {}).get("max", 0.0))
+    """What the run measured says the host held the loop beyond a period: missed or
+    withheld cycles, and the longest SYNC → TPDO and TPDO → RPDO times adding up to more
+    than the 10 ms period (each alone may stay below it: seen on a CI host at 9.5 and
+    5.7 ms, 32 of 57 cycles' RPDOs late)."""
+    late = (timing.get("reaction", {}).get("max", 0.0)
+            + timing.get("sync_to_tpdo", {}).get("max", 0.0))
     return (run.get("missed_cycles", 0) + run.get("late_rpdo", 0) > 0) and late > 0.010
 
 

@@ -121,7 +121,8 @@ from gateway.spec import RunSpec
 prof = paper_profile()
 samples = {}
 for law, drive in (("current-fed", "ideal"), ("full-order", "voltage")):
-    sig = run(RunSpec(law=law, drive_mode=drive), prof, MotorParams.paper()).sig
+    sig = run(RunSpec(law=law, drive_mode=drive, identify=False), prof,
+              MotorParams.paper()).sig
     samples[law] = [Sample(complex(sig["i_sa"][k], sig["i_sb"][k]),
                            complex(sig["u_sa"][k], sig["u_sb"][k]),
                            complex(sig["psi_r_mod"][k], 0.0)) for k in range(len(sig["t"]))]

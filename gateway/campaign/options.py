@@ -52,12 +52,15 @@ class Option:
     name: str
     flag: bool
     choices: tuple[str, ...] | None = None
+    negatable: bool = False  #: a flag with a ``--no-`` form (on by default, e.g. identify)
 
     def argv(self, value: Any) -> list[str]:
-        """The command-line words of ``value`` (``--name=value``; a flag: ``--name`` or
-        nothing)."""
+        """The command-line words of ``value`` (``--name=value``; a flag: ``--name``, or
+        nothing or ``--no-name`` for false)."""
         if self.flag:
-            return [f"--{self.name}"] if value else []
+            if value:
+                return [f"--{self.name}"]
+            return [f"--no-{self.name}"] if self.negatable else []
         return [f"--{self.name}={text(value)}"]
 
 
@@ -102,11 +105,14 @@ def command_options(command: Command, parser: argparse.ArgumentParser | None = N
     sub = _subparser(parser or build_parser(), command)
     out: dict[str, Option] = {}
     for action in sub._actions:
-        longs = [s[2:] for s in action.option_strings if s.startswith("--")]
+        negatable = isinstance(action, argparse.BooleanOptionalAction)
+        longs = [s[2:] for s in action.option_strings
+                 if s.startswith("--") and not (negatable and s.startswith("--no-"))]
         if not longs:
             continue
-        opt = Option(longs[0], isinstance(action, argparse._StoreTrueAction),
-                     tuple(str(c) for c in action.choices) if action.choices else None)
+        opt = Option(longs[0], negatable or isinstance(action, argparse._StoreTrueAction),
+                     None if negatable or not action.choices
+                     else tuple(str(c) for c in action.choices), negatable)
         for name in (*longs, action.dest):
             out[name] = opt
             out[name.replace("_", "-")] = opt

@@ -188,11 +188,21 @@ class StandstillIdentifier:
 class Commissioning:
     """The controller's side of the identification: samples fed while the speed reference
     and the load rest at zero (the magnetisation at standstill), solved once at the first
-    sample where either does not. :attr:`result` is None until then."""
+    sample where either does not, or once the flux reference, after it rose, has held still
+    for :attr:`SETTLED_S` (a profile that stays at standstill under load, or long after its
+    magnetisation, gets the identified values before it needs them). :attr:`result` is
+    None until then."""
+
+    #: how long the flux reference holds still after its rise before the magnetisation is
+    #: over, s (the controller's flux follows its reference: (16)'s feedforward)
+    SETTLED_S = 0.05
 
     def __init__(self, motor: Motor, period: float) -> None:
         self.identifier = StandstillIdentifier(motor, period)
         self.result: Identification | None = None
+        self._settled = max(1, round(self.SETTLED_S / period))
+        self._rose = False  # the flux reference has moved
+        self._still = 0  # samples since it last moved
 
     def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex) -> Identification | None:
         """One sample with its references; the identification at the sample that ends the
@@ -200,7 +210,12 @@ class Commissioning:
         if self.result is not None:
             return None
         self.identifier.add(i_s_ab, u_s_ab)
-        if refs.w_ref == 0.0 and refs.dw_ref == 0.0 and refs.T_L == 0.0:
+        moving = getattr(refs, "dpsi_ref", 0.0) != 0.0 or getattr(refs, "ddpsi_ref", 0.0) != 0.0
+        self._rose = self._rose or moving
+        self._still = 0 if moving else self._still + 1
+        magnetised = self._rose and self._still >= self._settled
+        if (refs.w_ref == 0.0 and refs.dw_ref == 0.0 and refs.T_L == 0.0
+                and not magnetised):
             return None
         self.result = self.identifier.solve()
         return self.result
