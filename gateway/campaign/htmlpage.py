@@ -70,12 +70,7 @@ def _campaign(meta: Mapping[str, Any], where: Path, n: int) -> str:
 def _criteria(rows: Sequence[Mapping[str, Any]], criteria: Sequence[Any]) -> str:
     if not criteria:
         return "<p>No [pass] criteria: a point passes when it ran to the end.</p>"
-    body = []
-    for c in criteria:
-        values = [r.get(c.metric) for r in rows]
-        has = [v for v in values if isinstance(v, int | float) and v == v]
-        good = sum(c.passes(v) for v in has)
-        body.append([str(c), good, len(has) - good, len(rows) - len(has)])
+    body = [[str(c), *summary.criterion_counts(rows, c)] for c in criteria]
     return table(["criterion", "passed", "failed", "without a value"], body)
 
 

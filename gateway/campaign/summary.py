@@ -91,11 +91,9 @@ def text(rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any], metric: str
         lines.append(f"pass: {ok} of {n} points passed every criterion (and ran to the end)")
         width = max(len(str(c)) for c in criteria)
         for c in criteria:
-            values = [r.get(c.metric) for r in rows]
-            has = [v for v in values if v is not None and not _is_nan(v)]
-            good = sum(c.passes(v) for v in has)
-            lines.append(f"  {c!s:<{width}}  {good} passed, {len(has) - good} failed"
-                         + (f", {n - len(has)} without a value" if n > len(has) else ""))
+            good, bad, without = criterion_counts(rows, c)
+            lines.append(f"  {c!s:<{width}}  {good} passed, {bad} failed"
+                         + (f", {without} without a value" if without else ""))
     else:
         lines.append("pass: no [pass] criteria; a point passes when it ran to the end")
     bad = worst(rows, criteria, metric, k)
@@ -110,6 +108,15 @@ def text(rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any], metric: str
                          f"  {params_text(r, axes)}{why}")
             lines.append(f"    {reproduce(r, repro_dir)}")
     return "\n".join(lines)
+
+
+def criterion_counts(rows: Sequence[Mapping[str, Any]], criterion: Criterion
+                     ) -> tuple[int, int, int]:
+    """How many points pass ``criterion``, fail it, and have no value for its metric."""
+    has = [v for v in (r.get(criterion.metric) for r in rows)
+           if v is not None and not _is_nan(v)]
+    good = sum(criterion.passes(v) for v in has)
+    return good, len(has) - good, len(rows) - len(has)
 
 
 def _is_nan(v: Any) -> bool:
