@@ -9,6 +9,7 @@ without vcan0 they skip (fail under CI=true, see tests/conftest.py).
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import re
@@ -17,6 +18,7 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import can
 import numpy as np
 import pytest
 from conftest import require_vcan
@@ -313,17 +315,18 @@ def test_sigkill_gateway_emcy_power_off_then_restart(candump_channel, tmp_path):
 # ---------------------------------------------------------------------- real time
 
 
-def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
+def test_realtime_10ms_records_its_timing(candump_channel, tmp_path):
     """Real-time timing at 10 ms for 2 s: SYNC from the kernel's broadcast manager (a BCM
     tx_op of the 240 SYNC frames every 10 ms in /proc/net/can-bcm while the run lasts), timing
-    statistics in the summary."""
+    statistics in the summary, and the missed cycles it counts are those candump saw: SYNCs
+    whose answer was not complete before the next SYNC."""
     if IN_QEMU:
         pytest.skip("QEMU under TCG (vcan-run's last resort) emulates every instruction: the "
                     "emulated motor, 18-35x faster than real time natively (BENCHMARKS.md), "
                     "runs at about real time there, so no period keeps real time; the "
                     "real-time figures come from native vcan or UML")
-    ch = vcan_channel
-    with plant(ch, tmp_path):
+    ch = candump_channel
+    with candump(ch, tmp_path) as dump, plant(ch, tmp_path):
         # A stalled host costs cycles, not the run: neither the consecutive-miss limit nor
         # the rate limit (3 of any 10 cycles stopped a CI run at 0.93 s) applies; the whole
         # run's miss count is checked below.
@@ -363,8 +366,12 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
         return
     assert rc == 0, gw.describe()
     assert r["stop_reason"] == "end of the profile"
-    # best effort on a shared host: a stalled emulator costs cycles, not the run
-    assert r["cycles"] + r["missed_cycles"] == 200 and r["missed_cycles"] < 0.2 * 200
+    # A stalled emulator costs cycles, not the run. How many is the host's to say (43 of 200
+    # in UML under the load stage's stress-ng): what must hold is that every SYNC is counted,
+    # and that the cycles counted missed are the SYNCs whose answer candump saw incomplete.
+    assert r["cycles"] + r["missed_cycles"] == 200 and r["cycles"] > 0
+    on_wire = _missed_on_the_wire(candump_lines(dump.text()), 200)
+    assert abs(r["missed_cycles"] - on_wire) <= 1, (r, on_wire)
     assert 1.9 < r["wall_time_s"] < 3.0  # paced by the clock
     t = s["timing"]
     assert {"sync_period", "sync_jitter", "sync_to_tpdo", "reaction"} <= set(t)
@@ -372,6 +379,35 @@ def test_realtime_10ms_records_its_timing(vcan_channel, tmp_path):
     assert t["sync_jitter"]["median"] < 0.001
     assert 0 < t["sync_to_tpdo"]["median"] < 0.010  # the drive answers within the cycle
     assert 0 < t["reaction"]["median"] < 0.010
+
+
+def _missed_on_the_wire(lines: list[tuple[float, int, bytes]], n: int) -> int:
+    """Of the first ``n`` SYNCs on the wire, those not followed, before the next SYNC, by
+    the drive's TPDO1 echoing their counter and then each of its other TPDOs (the emulator
+    sends TPDO1, 2, 3 in this order for each SYNC). The last window counts only if closed
+    by a SYNC."""
+    from gateway.buslog import decode_frames
+
+    tpdo1 = 0x180 + NODE
+    others = {cob for _, cob, _ in lines if cob in (0x280 + NODE, 0x380 + NODE)}
+    syncs = [i for i, (_, cob, _) in enumerate(lines) if cob == SYNC]
+    missed = 0
+    for k, (start, end) in enumerate(itertools.pairwise(syncs), 1):
+        if k > n:
+            break
+        counter = lines[start][2][0]
+        seen: set[int] | None = None  # None until the echo of this SYNC
+        for t, cob, data in lines[start + 1:end]:
+            if cob == tpdo1:
+                msg = can.Message(timestamp=t, arbitration_id=cob, data=data,
+                                  is_extended_id=False)
+                rows = decode_frames([msg], node_id=NODE)
+                if rows and rows[0]["sync_counter"] == counter:
+                    seen = set()
+            elif seen is not None and cob in others:
+                seen.add(cob)
+        missed += seen != others
+    return missed
 
 
 def _host_could_not_keep_10ms(run: dict, timing: dict) -> bool:
