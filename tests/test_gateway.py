@@ -147,8 +147,17 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_fact
     s = json.loads((tmp_path / "summary.json").read_text())
     assert rc == 0, s["run"]
     run_ = s["run"]
-    assert run_["cycles"] + run_["missed_cycles"] >= 1495
-    assert run_["missed_cycles"] < 0.5 * 1500  # best effort in one process (see BENCHMARKS.md)
+    assert run_["cycles"] + run_["missed_cycles"] >= 1495 and run_["cycles"] > 0
+    # How many cycles a loaded host misses is the host's to say (a quarter under stress-ng on
+    # 2 cores; BENCHMARKS.md has the idle figures). What must hold: one row per cycle run, at
+    # its cycle's time, with the misses counted so far: the gaps between rows are the misses.
+    from gateway.report import read_csv
+
+    sig = read_csv(tmp_path / "signals.csv")
+    assert len(sig["t"]) == run_["cycles"]
+    steps = np.rint(np.diff(sig["t"]) / 2e-3).astype(int)
+    np.testing.assert_array_equal(steps - 1, np.diff(sig["missed"]))
+    assert sig["missed"][-1] <= run_["missed_cycles"] <= sig["missed"][-1] + 1
     assert 2.9 < run_["wall_time_s"] < 8.0  # paced by the clock, not as fast as possible
     t = s["timing"]
     assert t["sync_period"]["median"] == pytest.approx(2e-3, rel=0.05)
