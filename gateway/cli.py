@@ -82,6 +82,39 @@ def _load_motor(path: str | None):
                         "template to copy") from exc
 
 
+def _correction(args: argparse.Namespace, sampled: bool):
+    """``--commissioning``: the motor file's sensor and inverter corrections
+    (:class:`gateway.control.correction.SensorCorrection`), or None."""
+    from dbc.motor import COMMISSIONING, ParamsError, commissioning
+    from gateway.control.correction import SensorCorrection
+
+    asked = getattr(args, "commissioning", None)
+    if asked is False:
+        return None
+    how = ("give --motor FILE with a [commissioning] table (`hil-gateway identify -o FILE` "
+           "writes one), or leave --commissioning out")
+    if args.motor is None:
+        if asked:
+            raise UserError(f"--commissioning: no motor file; {how}")
+        return None
+    try:
+        table = commissioning(args.motor)
+        correction = SensorCorrection.from_table(table)
+    except ParamsError as exc:
+        raise UserError(str(exc)) from exc
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{args.motor} [{COMMISSIONING}]: {exc}; `hil-gateway identify -o "
+                        "FILE` writes the table") from exc
+    if correction is None:
+        if asked:
+            raise UserError(f"--commissioning: {args.motor} has no [{COMMISSIONING}] "
+                            f"offsets, gain or dead time; {how}")
+        return None
+    if not sampled and not asked:
+        return None  # continuous time runs the laws alone (the spec refuses an explicit ask)
+    return correction
+
+
 def _load_scenario(arg: str | None):
     """``--plant``: a scenario file or a shipped scenario's name; nominal when not given."""
     from gateway.sim import load_scenario
@@ -227,6 +260,13 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "first moves) and use them from then on; summary.json says what was "
                         "found (docs/robustness.md §5). On by default in sampled runs; "
                         "--no-identify: the motor file's values throughout")
+    p.add_argument("--commissioning", action=argparse.BooleanOptionalAction, default=None,
+                   help="correct the current sensors' offsets and gain and the inverter's "
+                        "dead time that the motor file's [commissioning] table holds "
+                        "(`hil-gateway identify -o FILE` writes it) around the controller "
+                        "(docs/robustness.md §7). On by default when --motor names such a "
+                        "file and the run is sampled; --no-commissioning: read the sensors "
+                        "as they are")
     p.add_argument("--k-w", type=float, default=g.k_w, help="speed gain kω, 1/s (%(default)s)")
     p.add_argument("--gamma-1", type=float, default=g.gamma_1,
                    help="observer gain γ1 of (20) (%(default)s)")
@@ -325,7 +365,7 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
         sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
         quantize=not args.no_quantize, gains=_gains(args), duration=duration,
         discretisation=_design(args, load), plant=plant, load=load,
-        identify=args.identify,
+        identify=args.identify, correction=_correction(args, period is not None),
         controller=_controller_choice(args, controller_params),
     )
     label = "continuous" if period is None else format_duration(period)
@@ -558,7 +598,7 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
         plant=plant, load=load, discretisation=_design(args, load),
-        identify=args.identify,
+        identify=args.identify, correction=_correction(args, True),
         controller=_controller_choice(args, controller_params),
     )
 

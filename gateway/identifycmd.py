@@ -28,7 +28,8 @@ PROG = "hil-gateway"
 #: The commands the test runs through.
 COMMANDS = ("simulate", "sim", "run")
 #: Options the test sets itself.
-_OWN = ("--controller", "--controller-params", "--reference", "--profile", "--duration")
+_OWN = ("--controller", "--controller-params", "--reference", "--profile", "--duration",
+        "--commissioning", "--no-commissioning")
 #: Model (1)'s parameters in the motor file, with their units.
 _MOTOR_UNITS = {"J": "kg·m²", "R_s": "Ω", "R_r": "Ω", "L_s": "H", "L_r": "H", "M": "H"}
 #: What the [commissioning] table keeps, from the fit's values.
@@ -141,9 +142,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
         params_file.write_text("".join(f"{k} = {v!r}\n" for k, v in params.items()))
         profile = Path(tmp) / "standstill.toml"
         profile.write_text(STANDSTILL)
+        # the test measures the sensors as they read: no earlier correction around it
         argv = [args.on, *options, "--controller", "identify", "--controller-params",
                 str(params_file), "--reference", str(profile), "--duration",
-                f"{duration(params)}s"]
+                f"{duration(params)}s", "--no-commissioning"]
         status = _run(argv)
     summary = _summary(Path(run_dir))
     if summary is None:

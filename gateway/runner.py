@@ -258,7 +258,7 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
     assert spec.sampling is not None
     ctl = spec.controller.make(ControllerContext(
         motor=motor, sampling=spec.sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
-        current_lag=lag, paper=spec.controller_config(lag)))
+        current_lag=lag, paper=spec.controller_config(lag), correction=spec.correction))
     who = f"the {spec.law} law" if spec.controller.is_paper else spec.who
     plan.pd.require(required_roles(spec, plan.pd, getattr(ctl, "requires", ())),
                     f"{who} with a {spec.drive_mode} drive",

@@ -27,6 +27,7 @@ from gateway.control.controller import (
     as_enum,
     euler_only,
 )
+from gateway.control.correction import SensorCorrection
 from gateway.control.interface import ControllerChoice
 from gateway.control.laws import Gains
 from gateway.control.load_observer import load_config
@@ -95,7 +96,8 @@ class RunSpec:
     drift-free estimator's corner, rad/s), ``discretisation`` (EXACT, the sampled-data
     design of docs/sampled-control.md, or EULER), ``load`` (:class:`LoadSource`: the T_L the
     laws are told), ``identify`` (R_s, R_r from the standstill magnetisation; None: in every
-    sampled run, :attr:`identifies`), and the
+    sampled run, :attr:`identifies`), ``correction`` (the commissioning's sensor offsets,
+    gain and dead time, corrected around the controller; None: none), and the
     controller's state at t = 0: ``w_hat_0`` (rad/s), ``eps_0`` (rad).
 
     The drive and the sampling: ``drive_mode`` (:class:`DriveMode`); ``sampling`` (period,
@@ -124,6 +126,7 @@ class RunSpec:
     discretisation: Discretisation = Discretisation.EXACT
     load: LoadSource = LoadSource.KNOWN
     identify: bool | None = None
+    correction: SensorCorrection | None = None
     w_hat_0: float = 0.0
     eps_0: float = 0.0
     drive_mode: DriveMode = DriveMode.IDEAL
@@ -198,6 +201,10 @@ class RunSpec:
                             "voltage-fed (full-order law): choose --drive-mode ideal or "
                             "voltage, or a sampling --period such as 1ms for the current-loop "
                             "drive")
+        if self.correction is not None:
+            raise UserError("the commissioning's corrections (the motor file's "
+                            "[commissioning]) act around the sampled controller: choose a "
+                            "sampling --period such as 1ms, or --no-commissioning")
         if self.identify:  # asked for (by default: where it runs)
             raise UserError("--identify runs in the sampled controller: choose a sampling "
                             "--period such as 1ms")

@@ -27,7 +27,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from dbc.errors import UserError
 from dbc.filecache import FileMemo
-from dbc.modes import DriveMode
+from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
 from dbc.timing import Sampling
 from gateway.control.laws import Refs
@@ -174,6 +174,10 @@ class ControllerContext:
         estimator, gains, discretisation, load, identification); other controllers may
         ignore it. A :class:`gateway.control.controller.ControllerConfig`.
     eps_0, w_hat_0: the initial frame angle and speed estimate (``simulate`` options).
+    correction: the commissioning's sensor and inverter corrections (a
+        :class:`gateway.control.correction.SensorCorrection`, from the motor file's
+        ``[commissioning]``), put around the controller by :meth:`ControllerChoice.make`
+        for a vector drive; None: none.
     """
 
     motor: MotorParams
@@ -184,6 +188,7 @@ class ControllerContext:
     paper: Any = None
     eps_0: float = 0.0
     w_hat_0: float = 0.0
+    correction: Any = None
 
 
 #: What makes a controller: a class or a function called as ``factory(context, params)``.
@@ -211,6 +216,12 @@ class ControllerChoice:
             raise ControllerError(f"controller {self.name!r} refused its parameters or the "
                                   f"run: {exc}") from exc
         check_controller(ctl, self.name)
+        if context.correction is not None and not context.drive_mode.standard:
+            from gateway.control.correction import CorrectedController
+
+            s = context.sampling
+            ctl = CorrectedController(ctl, context.correction, s.period, s.delay,
+                                      turning=s.setpoint_frame is SetpointFrame.DQ)
         return ctl
 
 
