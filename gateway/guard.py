@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -113,6 +113,17 @@ class Envelope:
                                                         1.25 * i_limit + 1.0),
                    psi_max=1.5 * psi_peak + 0.2, u_max=2.0 * u_peak + 100.0,
                    e_max=20.0 + 0.1 * w_peak, psi_on=0.25 * psi_peak)
+
+    def for_controller(self, controller: Any) -> Envelope:
+        """The envelope for ``controller``: a test that moves the rotor within its own speed
+        limit (its ``speed_limit``, rad/s: the rotating commissioning) instead of following
+        the profile's speed has |ω| bounded by 1.5× that limit + 50 rad/s and no speed-error
+        bound (the test stops its torque itself past its limit); any other controller, this
+        envelope."""
+        limit = getattr(controller, "speed_limit", None)
+        if limit is None:
+            return self
+        return replace(self, w_max=max(self.w_max, 1.5 * float(limit) + 50.0), e_max=math.inf)
 
     def check(self, r: Any) -> str | None:
         """None, or which bound a cycle's row (:func:`gateway.cycle.row_type`) crossed. The

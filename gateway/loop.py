@@ -181,7 +181,8 @@ class CycleLoop:
         self._misses: deque[int] = deque()  # cycles missed within the last window
         self._miss_window = max(5, round(MISS_WINDOW / cfg.sampling.period))
         self._syncs_sent = 0
-        self._watch = (DivergenceWatch(cfg.envelope, cfg.envelope_cycles)
+        self._watch = (DivergenceWatch(cfg.envelope.for_controller(controller),
+                                       cfg.envelope_cycles)
                        if cfg.envelope is not None else None)
         self.stats = LoopStats()
         self._lock = threading.Lock()

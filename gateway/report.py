@@ -288,7 +288,8 @@ def summary_table(summary: Mapping[str, Any]) -> str:
 
 
 def identification_line(ident: Mapping[str, Any] | None) -> str:
-    """The summary's line for a standstill identification (``--identify``), or ""."""
+    """The summary's line for an identification (``--identify``, or the commissioning's
+    standstill and rotating tests), or ""."""
     if not ident:
         return ""
     if ident.get("test") == "standstill":  # the commissioning test (--controller identify)
@@ -299,6 +300,13 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
                 f"α {v['alpha']['value']:.4g} 1/s, σ {v['sigma']['value']:.4g} H, "
                 f"offsets {1e3 * v['offset_a']['value']:.2f}/{1e3 * v['offset_b']['value']:.2f}"
                 " mA (hil-gateway identify writes them as a motor file)")
+    if ident.get("test") == "rotating":  # --controller identify-rotating
+        if not ident.get("ok"):
+            return f"rotating test: no result ({ident.get('reason', '')})"
+        v = ident["values"]
+        return (f"rotating test ({ident['samples']} samples): J {v['J']['value']:.4g} kg·m² "
+                f"± {v['J']['std']:.2g}, friction {v['friction_viscous']['value']:.3g} N·m·s "
+                f"viscous, {v['friction_coulomb']['value']:.3g} N·m Coulomb")
     if ident.get("accepted"):
         return (f"identified at standstill ({ident['samples']} samples): R_s "
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s), "

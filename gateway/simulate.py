@@ -191,6 +191,8 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
         motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
         current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0,
         correction=spec.correction))
+    if watch is not None:
+        watch.envelope = watch.envelope.for_controller(ctl)
     cycle = ControlCycle(ctl, profile, sampling)
     link = PdoLink(spec.quantize, sampling.setpoint_frame,
                    EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)

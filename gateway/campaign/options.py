@@ -9,6 +9,7 @@ writes (``out``, ``force``, ``progress``, ``scope``) belong to the campaign, not
 from __future__ import annotations
 
 import argparse
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
@@ -89,6 +90,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_sim(sub)
     return parser
+
+
+@functools.lru_cache(maxsize=1)
+def shared_parser() -> argparse.ArgumentParser:
+    """:func:`build_parser`'s parser, built once per process (5 ms, a quarter of a short
+    point's overhead when built per batch) and only read after: parsing makes a new
+    namespace and leaves the parser as it was."""
+    return build_parser()
 
 
 def _subparser(parser: argparse.ArgumentParser, command: Command) -> argparse.ArgumentParser:

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway.campaign.metrics import metrics_of
-from gateway.campaign.options import Command, build_parser, parse_args
+from gateway.campaign.options import Command, parse_args, shared_parser
 from gateway.campaign.points import PointConfig
 from gateway.errors import UserError
 from gateway.stop import StopSignals
@@ -94,7 +94,7 @@ def run_batch(points: Sequence[PointConfig], limits: Limits) -> BatchResult:
     """Run ``points`` one after the other (one parser and one runner thread for the
     batch: a new thread per point made each run about 5 % slower, its first steps on a
     cold thread)."""
-    parser = build_parser()
+    parser = shared_parser()
     result = BatchResult()
     runner = _Runner(limits, parser)
     try:
