@@ -353,5 +353,7 @@ def motor_file(ident: dict[str, Any], command: str, run_dir: str) -> str:
     for name, what in {**_EXTRA, **(_FRICTION if rotating else {})}.items():
         e = values[name]
         lines.append(f"{name} = {e['value']!r}  # {what}; ± {e['std']:.2g} ({e['verdict']})")
+        lines.append(f"{name}_std = {e['std']!r}  # its standard deviation (a value within "
+                     "3 of them of no error is not corrected)")
     lines.append(f"residual_rms_V = {ident['residual_rms_V']!r}")
     return "\n".join(lines) + "\n"

@@ -115,17 +115,23 @@ def test_identify_removes_the_rotor_resistance_error_and_the_standstill_runaway(
     assert err.max() < 1.0 and err[-1] < 0.05
 
 
-def test_identification_refused_on_the_current_loop_drive_with_dead_time_changes_nothing():
+def test_identification_refused_on_the_current_loop_drive_with_dead_time():
     """The PI-current-loop drive with the real-drive plant's 2 µs dead time: at standstill
     the voltages it reports are not the applied ones; the identification says so and the
-    controller keeps its own motor (the run equals one without --identify)."""
+    controller keeps its own motor. The magnetisation ran on the current model's flux (the
+    voltage model left it) and the estimator restarts from it, not from the flux it
+    integrated with the dead time's error: the run that runs away without the
+    identification (74 rad/s off, 28 RMS) stays within 15 rad/s (measured 12.4, 4.2 RMS)."""
     cfg = sim_config(drive="current-loop", plant=resolve_scenario("real-drive"),
                      estimator="rs-adaptive", load="known", duration=0.6)
     plain = run(paper_profile(), MOTOR, cfg).arrays()
     ident = run(paper_profile(), MOTOR, replace(cfg, identify=True))
     assert not ident.identification["accepted"]
     assert "do not agree" in ident.identification["reason"]
-    np.testing.assert_array_equal(ident.arrays()["i_sq_ref"], plain["i_sq_ref"])
+    e_plain = np.abs(plain["w_m"] - plain["w_ref"])
+    e = np.abs(ident.arrays()["w_m"] - ident.arrays()["w_ref"])
+    assert e_plain.max() > 50.0  # a runaway
+    assert e.max() < 15.0 and np.sqrt(np.mean(e ** 2)) < 0.2 * np.sqrt(np.mean(e_plain ** 2))
 
 
 def test_cli_identify_reports_what_it_found(tmp_path, capsys):

@@ -56,6 +56,11 @@ def test_the_corrections_invert_the_plants_sensor_and_dead_time_models(tmp_path)
 
 def test_bad_values_and_tables_without_corrections():
     assert SensorCorrection.from_table({"test": "standstill", "R_s_drift": 0.0}) is None
+    # within 3 standard deviations of no error: the test's noise, not corrected
+    noisy = {"offset_a": 9e-5, "offset_a_std": 5.6e-5, "offset_b": 3e-4, "offset_b_std": 9e-5,
+             "gain_b": 1.00004, "gain_b_std": 1.8e-5, "u_dead": -1e-4, "u_dead_std": 5e-4}
+    assert SensorCorrection.from_table(noisy) == SensorCorrection(
+        offset_a=0.0, offset_b=3e-4, gain_b=1.0, u_dead=0.0)
     c = SensorCorrection.from_table({"offset_a": 0.01, "residual_rms_V": 0.007})
     assert c == SensorCorrection(offset_a=0.01)
     for bad in ({"gain_b": 5.0}, {"offset_a": "x"}, {"u_dead": math.nan},
@@ -144,7 +149,7 @@ def _rms(tmp_path, name: str, *options: str) -> float:
 
 def test_a_run_with_the_motor_files_corrections_is_as_precise_as_without_the_errors(
         tmp_path):
-    """The paper's profile, current-fed: a 10 mA offset costs 0.59 rad/s RMS; the motor
+    """The paper's profile, current-fed: a 10 mA offset costs 0.53 rad/s RMS; the motor
     file's [commissioning] with the offset gives back the nominal run's precision."""
     exact = tmp_path / "motor.toml"
     exact.write_text(PAPER_MOTOR + "[commissioning]\noffset_a = 0.010\noffset_b = 0.0\n")
@@ -154,7 +159,7 @@ def test_a_run_with_the_motor_files_corrections_is_as_precise_as_without_the_err
     plain = _rms(tmp_path, "plain", "--plant", "offset10mA", "--motor", str(exact),
                  "--no-commissioning")
     assert base <= 0.005 and plain > 0.3  # the offset's cost
-    assert corrected <= 0.005  # measured 0.0024 (nominal 0.0016)
+    assert corrected <= 0.005  # measured 0.0038 (nominal 0.0016)
     assert nominal > 0.3  # a correction for an offset the sensors do not have costs as much
     summary = json.loads((tmp_path / "corrected" / "summary.json").read_text())
     assert summary["configuration"]["correction"]["offset_a"] == 0.010

@@ -163,7 +163,7 @@ def test_a_run_with_the_rotating_tests_J_reaches_the_nominal_precision(tmp_path)
     assert main(["simulate", "--motor", str(tmp_path / "motor.toml"), "--plant", same,
                  "--no-figures", "--out", str(tmp_path / "after")]) == 0
     after = json.loads((tmp_path / "after" / "summary.json").read_text())
-    assert after["speed_error"]["rms"] <= 0.005  # measured 0.0020 (nominal 0.0016)
+    assert after["speed_error"]["rms"] <= 0.005  # measured 0.0028 (nominal 0.0016)
     assert main(["simulate", "--plant", plant, "--no-figures", "--out",
                  str(tmp_path / "before")]) == 1  # the nameplate's J: the guard stops it
 

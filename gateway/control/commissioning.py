@@ -147,6 +147,11 @@ class StandstillIdentifier:
         """The voltage-model rotor flux at the last sample with ``R_s``, Wb (a, b)."""
         return self._a - R_s * self._b
 
+    def current_model_flux(self) -> complex:
+        """The current-model rotor flux at the last sample with the controller's α (row 2–3
+        of (1) at ω = 0, from zero flux), Wb (a, b): R_s does not enter it."""
+        return complex(self._c[self.POINTS // 2])
+
     def solve(self) -> Identification:
         """The identified R_s and α (see the module docstring), accepted or not."""
         m = self.motor
@@ -196,12 +201,17 @@ class Commissioning:
     #: how long the flux reference holds still after its rise before the magnetisation is
     #: over, s (the controller's flux follows its reference: (16)'s feedforward)
     SETTLED_S = 0.05
+    #: at standstill, before the identification: once the voltage model's flux is this far
+    #: from the current model's (Wb), the laws take the current model's until the
+    #: identification (docs/robustness.md §5)
+    DISAGREE = 0.1
 
     def __init__(self, motor: Motor, period: float) -> None:
         self.identifier = StandstillIdentifier(motor, period)
         self.result: Identification | None = None
         self._settled = max(1, round(self.SETTLED_S / period))
         self._rose = False  # the flux reference has moved
+        self._disagreed = False  # the voltage model left the current model at standstill
         self._still = 0  # samples since it last moved
 
     def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex) -> Identification | None:
@@ -220,18 +230,47 @@ class Commissioning:
         self.result = self.identifier.solve()
         return self.result
 
-    def apply(self, refs: Refs, i_s_ab: complex, u_s_ab: complex, estimator: Any
-              ) -> tuple[Identification, complex] | None:
-        """:meth:`step`, and at the sample that ends an accepted identification: the flux
-        ``estimator`` restarted from the identified voltage model (its ``identified``), and
-        (the identification, that rotor flux ψ_r_ab in Wb) returned, for the controller to
-        use the identified R_s and R_r from now on. None at every other sample."""
+    def apply(self, refs: Refs, i_s_ab: complex, u_s_ab: complex, estimator: Any,
+              psi_hat_ab: complex | None) -> tuple[Identification | None, complex | None]:
+        """:meth:`step`, and the rotor flux the laws take at this sample (Wb, (a, b)), with
+        the identification when it is accepted at this sample (else None):
+
+        * at standstill, while the identification is pending: the estimator's
+          ``psi_hat_ab`` while it agrees with the current model's flux within
+          :attr:`DISAGREE`, and from the first sample it does not, the current model's
+          (:meth:`standstill_flux`; R_s does not enter it);
+        * at the sample that ends an accepted identification: the flux ``estimator``
+          restarts from (its ``identified``), the voltage model with the identified R_s;
+          the controller uses the identified R_s and R_r from now on;
+        * at the sample that ends a refused one: the current model's flux, which the
+          ``estimator`` restarts from with the controller's R_s (not the flux it integrated
+          over the magnetisation with an R_s error);
+        * after: the estimator's ``psi_hat_ab`` (None: the laws take the true flux)."""
         found = self.step(refs, i_s_ab, u_s_ab)
-        if found is None or not found.accepted:
-            return None
+        if found is None:
+            if self.pending and psi_hat_ab is not None:
+                psi_cm = self.standstill_flux()
+                if self._disagreed or abs(psi_hat_ab - psi_cm) > self.DISAGREE:
+                    self._disagreed = True
+                    return None, psi_cm
+            return None, psi_hat_ab
+        if not found.accepted:
+            psi = self.standstill_flux()
+            estimator.identified(self.identifier.motor.R_s, psi, i_s_ab)
+            return None, psi if psi_hat_ab is not None else None
         psi = self.flux()
         estimator.identified(found.R_s, psi, i_s_ab)
         return found, psi
+
+    @property
+    def pending(self) -> bool:
+        """The standstill lasts and its identification is yet to come."""
+        return self.result is None
+
+    def standstill_flux(self) -> complex:
+        """While :attr:`pending`: the rotor flux of the current model (R_s-free; exact at
+        standstill for the controller's α), Wb (a, b)."""
+        return self.identifier.current_model_flux()
 
     def flux(self) -> complex:
         """The voltage-model rotor flux at the last sample with the identified R_s, Wb."""

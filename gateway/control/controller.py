@@ -239,10 +239,9 @@ class Controller:
                       self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, eps_0,
                                             refs.psi_ref))
         if self.commissioning is not None:
-            found = self.commissioning.apply(refs, sample.i_s_ab, sample.u_s_ab,
-                                             self.estimator)
-            if found is not None:
-                ident, psi_hat_ab = found
+            ident, psi_hat_ab = self.commissioning.apply(refs, sample.i_s_ab, sample.u_s_ab,
+                                                         self.estimator, psi_hat_ab)
+            if ident is not None:
                 self.motor = replace(self.motor, R_s=ident.R_s, R_r=ident.R_r)
         psi_r_ab = law_flux(self._true_flux, sample, psi_hat_ab)
         if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt

@@ -195,17 +195,17 @@ class SampledController:
         self.commissioning = (Commissioning(motor, self._T) if config.identify else None)
 
     def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
-        """The standstill identification (``config.identify``): at the sample that ends it,
-        the identified R_s and R_r from now on, and the flux the voltage model gives with
-        them (returned instead of the estimate ``psi_hat_ab``)."""
+        """The standstill identification (``config.identify``): the flux the laws take
+        (:meth:`Commissioning.apply`: the current model's while it is pending, the
+        identified voltage model's at the sample that ends it), and from that sample the
+        identified R_s and R_r."""
         c = self.commissioning
         if c is None:
             return psi_hat_ab
-        found = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator)
-        if found is None:
-            return psi_hat_ab
-        ident, psi = found
-        self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r))
+        ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab)
+        if ident is not None:
+            self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r))
+        assert psi is not None
         return psi
 
     def summary(self) -> dict[str, object] | None:
