@@ -99,33 +99,36 @@ class SensorCorrection:
     @property
     def offset_ab(self) -> complex:
         """The offsets' image in the (a, b) frame: (o_a, (o_a + 2·o_b)/√3), A."""
-        return complex(self.offset_a, (self.offset_a + 2.0 * self.offset_b) / SQRT3)
+        return _clarke(self.offset_a, self.offset_b)
 
     def true_current(self, i_read_ab: complex) -> complex:
         """The inverse of (C1): the true current (a, b) for the reading ``i_read_ab``, A."""
-        r_a = i_read_ab.real
-        r_b = -0.5 * r_a + 0.5 * SQRT3 * i_read_ab.imag
-        i_a = r_a - self.offset_a
-        i_b = (r_b - self.offset_b) / self.gain_b
-        return complex(i_a, (i_a + 2.0 * i_b) / SQRT3)
+        r_a, r_b = _phases(i_read_ab)
+        return _clarke(r_a - self.offset_a, (r_b - self.offset_b) / self.gain_b)
 
     def reading(self, i_ab: complex) -> complex:
         """(C1): what the sensors read for the true current ``i_ab`` (a, b), A."""
-        i_a = i_ab.real
-        i_b = -0.5 * i_a + 0.5 * SQRT3 * i_ab.imag
-        r_a = i_a + self.offset_a
-        r_b = self.gain_b * i_b + self.offset_b
-        return complex(r_a, (r_a + 2.0 * r_b) / SQRT3)
+        i_a, i_b = _phases(i_ab)
+        return _clarke(i_a + self.offset_a, self.gain_b * i_b + self.offset_b)
 
     def voltage_error(self, i_ab: complex) -> complex:
         """D·g(i) of (C2): what the inverter applies less than it reports at ``i_ab``, V."""
         if self.u_dead == 0.0:
             return 0j
-        i_a = i_ab.real
-        i_b = -0.5 * i_a + 0.5 * SQRT3 * i_ab.imag
+        i_a, i_b = _phases(i_ab)
         s_a, s_b = _sign(i_a), _sign(i_b)
         s_c = _sign(-i_a - i_b)
         return self.u_dead * (2.0 / 3.0) * (s_a + s_b * _A + s_c * _A.conjugate())
+
+
+def _phases(x_ab: complex) -> tuple[float, float]:
+    """Phases a and b of an (a, b) vector (the inverse amplitude-invariant Clarke transform)."""
+    return x_ab.real, -0.5 * x_ab.real + 0.5 * SQRT3 * x_ab.imag
+
+
+def _clarke(x_a: float, x_b: float) -> complex:
+    """The (a, b) vector of phases a and b (c = −a − b): (x_a, (x_a + 2·x_b)/√3)."""
+    return complex(x_a, (x_a + 2.0 * x_b) / SQRT3)
 
 
 def _sign(x: float) -> float:

@@ -48,7 +48,7 @@ import cmath
 import itertools
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -114,7 +114,7 @@ class StandstillFit:
                 "L_s": L_s, "L_r": L_r, "M": math.sqrt(v["L_mu"] * L_r)}
 
 
-def _verdict(rel: float, good: float = 0.01, fair: float = 0.05) -> str:
+def verdict(rel: float, good: float = 0.01, fair: float = 0.05) -> str:
     return "good" if rel < good else ("fair" if rel < fair else "poor")
 
 
@@ -284,17 +284,17 @@ def fit_standstill(i_s_ab: np.ndarray, u_s_ab: np.ndarray, period: float,
     g1 = float(coef[_GAIN])
     drift_std = float(std[_DRIFT]) / R_s
     values = {
-        "R_s": Estimate(R_s, float(std[_R_S]), "Ω", _verdict(std[_R_S] / R_s)),
-        "sigma": Estimate(sigma, sigma_std, "H", _verdict(sigma_std / sigma)),
-        "L_mu": Estimate(L_mu, float(std[_L_MU]), "H", _verdict(std[_L_MU] / L_mu)),
-        "alpha": Estimate(alpha, alpha_std, "1/s", _verdict(alpha_std / alpha)),
-        "u_dead": Estimate(D, float(std[_D]), "V", _verdict(std[_D], 0.05, 0.2)),
-        "offset_a": Estimate(o_a, o_std, "A", _verdict(o_std, 1e-3, 5e-3)),
-        "offset_b": Estimate(o_b, o_std, "A", _verdict(o_std, 1e-3, 5e-3)),
+        "R_s": Estimate(R_s, float(std[_R_S]), "Ω", verdict(std[_R_S] / R_s)),
+        "sigma": Estimate(sigma, sigma_std, "H", verdict(sigma_std / sigma)),
+        "L_mu": Estimate(L_mu, float(std[_L_MU]), "H", verdict(std[_L_MU] / L_mu)),
+        "alpha": Estimate(alpha, alpha_std, "1/s", verdict(alpha_std / alpha)),
+        "u_dead": Estimate(D, float(std[_D]), "V", verdict(std[_D], 0.05, 0.2)),
+        "offset_a": Estimate(o_a, o_std, "A", verdict(o_std, 1e-3, 5e-3)),
+        "offset_b": Estimate(o_b, o_std, "A", verdict(o_std, 1e-3, 5e-3)),
         "gain_b": Estimate(1.0 / (1.0 - g1), float(std[_GAIN]), "",
-                           _verdict(float(std[_GAIN]), 0.002, 0.01)),
+                           verdict(float(std[_GAIN]), 0.002, 0.01)),
         "R_s_drift": Estimate(float(coef[_DRIFT]) / R_s, drift_std, "1/s",
-                              _verdict(drift_std, 0.002, 0.01)),
+                              verdict(drift_std, 0.002, 0.01)),
     }
     rms = math.sqrt(rss_min / A.shape[0]) / T
     return StandstillFit(values, rms, len(i))
@@ -363,8 +363,7 @@ class StandstillTest:
             return {"test": "standstill", "ok": False, "reason": str(exc)}
         return {"test": "standstill", "ok": True, "samples": fit.samples,
                 "residual_rms_V": fit.rms, "current_A": self.current, "hold_s": self.hold,
-                "values": {k: {"value": e.value, "std": e.std, "unit": e.unit,
-                               "verdict": e.verdict} for k, e in fit.values.items()},
+                "values": {k: asdict(e) for k, e in fit.values.items()},
                 "motor": fit.motor(self.motor),
                 "not_measured": {"J": "needs a rotating test; the nameplate's is kept",
                                  "L_r/L_s": "not seen at standstill; the nameplate's ratio "

@@ -35,17 +35,13 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
+from gateway.control.controller import wrap_angle
 from gateway.control.interface import Command, ControllerContext, Sample, checked_params
 from gateway.control.laws import Refs
 
-TWO_PI = 2.0 * math.pi
 #: The parameters and their defaults.
 DEFAULTS: dict[str, Any] = {"speed_bandwidth": 60.0, "damping": 1.0, "i_max": 20.0,
                             "load_feedforward": False}
-
-
-def _wrap(x: float) -> float:
-    return (x + math.pi) % TWO_PI - math.pi
 
 
 class IndirectFieldOriented:
@@ -111,7 +107,7 @@ class IndirectFieldOriented:
             self.w_int += T * e  # anti-windup: no integration while clipped
         w_slip = self._alpha * m.M * i_sq / psi
         w_0 = w_m + w_slip
-        eps_app = _wrap(self.eps + self._delay * T * w_0)
+        eps_app = wrap_angle(self.eps + self._delay * T * w_0)
         dpsi = self._alpha * (m.M * i_sd - self.psi)
         sigma = m.sigma
         u_sd = m.R_s * i_sd - w_0 * sigma * i_sq + self._k_r * dpsi
@@ -129,7 +125,7 @@ class IndirectFieldOriented:
         else:
             acting = i_sd
         self.psi = self._flux(acting)
-        self.eps = _wrap(self.eps + T * w_0)
+        self.eps = wrap_angle(self.eps + T * w_0)
         self._last = (w_0, acting)
         return cmd
 
@@ -145,7 +141,7 @@ class IndirectFieldOriented:
             return
         w_0, i_sd = self._last
         self.psi = self._flux(i_sd)
-        self.eps = _wrap(self.eps + self._T * w_0)
+        self.eps = wrap_angle(self.eps + self._T * w_0)
         if self._delay and self._in_flight:
             self._in_flight.append(self._in_flight[-1])
             self._in_flight.popleft()

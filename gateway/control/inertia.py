@@ -42,16 +42,18 @@ import cmath
 import math
 from collections import deque
 from collections.abc import Mapping
+from dataclasses import asdict
 from enum import Enum
 from typing import Any
 
 import numpy as np
 
 from dbc.modes import DriveMode
+from gateway.control.controller import wrap_angle
+from gateway.control.identify import Estimate, verdict
 from gateway.control.interface import Command, ControllerContext, Sample, checked_params
 from gateway.control.laws import Refs
 
-TWO_PI = 2.0 * math.pi
 #: the controller's parameters and their defaults: speed limit W, rad/s; torque, N·m;
 #: rotor flux, Wb
 DEFAULTS: dict[str, Any] = {"speed": 50.0, "torque": 1.0, "flux": 1.0}
@@ -72,10 +74,6 @@ class Phase(Enum):
     BACK = 3  # +T until ω ≥ 0
     REST = 4  # the speed loop to rest
     STOPPED = 5  # overspeed: torque off
-
-
-def _wrap(x: float) -> float:
-    return (x + math.pi) % TWO_PI - math.pi
 
 
 def duration(motor: Any, params: Mapping[str, Any] | None = None) -> float:
@@ -144,7 +142,6 @@ class RotatingTest:
         m = context.motor
         self.motor = m
         self.speed = float(p["speed"])
-        self.speed_limit = self.speed  # the divergence guard's bound (Envelope.for_controller)
         self.torque = float(p["torque"])
         self.flux = float(p["flux"])
         self._T = context.sampling.period
@@ -169,6 +166,11 @@ class RotatingTest:
         self._w: list[float] = []
         self._T_e: list[float] = []
         self._why = ""
+
+    @property
+    def speed_limit(self) -> float:
+        """The divergence guard's bound (:meth:`gateway.guard.Envelope.for_controller`)."""
+        return self.speed
 
     def _next_phase(self, w_m: float) -> None:
         ph, W = self.phase, self.speed
@@ -238,7 +240,7 @@ class RotatingTest:
         """The flux model and the frame over the coming period, with the currents that act
         over it."""
         self.psi = self.psi * self._decay + self.motor.M * acting[0] * (1.0 - self._decay)
-        self.eps_next = _wrap(self.eps_next + self._T * w_0)
+        self.eps_next = wrap_angle(self.eps_next + self._T * w_0)
         self._w0s = (self._w0s[1], w_0)  # (the interval before's ω0, this one's)
         self._acting = acting
 
@@ -248,7 +250,7 @@ class RotatingTest:
         if self._delay and self._held is not None:
             self._in_flight[-1] = self._held
         before, sent = self._w0s
-        self.eps_next = _wrap(self.eps_next + self._T * (before - sent))
+        self.eps_next = wrap_angle(self.eps_next + self._T * (before - sent))
         self._w0s = (before, before)
 
     def coast(self) -> None:
@@ -274,16 +276,11 @@ class RotatingTest:
             return {**out, "ok": False, "reason": str(exc)}
         scale = self.torque / self.speed  # friction in units of the test's torque at W
         values = {
-            "J": _estimate(fit["J"], fit["J_std"], "kg·m²", fit["J_std"] / fit["J"]),
-            "friction_viscous": _estimate(fit["B"], fit["B_std"], "N·m·s",
-                                          fit["B_std"] / scale),
-            "friction_coulomb": _estimate(fit["c"], fit["c_std"], "N·m",
-                                          fit["c_std"] / self.torque),
+            "J": Estimate(fit["J"], fit["J_std"], "kg·m²", verdict(fit["J_std"] / fit["J"])),
+            "friction_viscous": Estimate(fit["B"], fit["B_std"], "N·m·s",
+                                         verdict(fit["B_std"] / scale)),
+            "friction_coulomb": Estimate(fit["c"], fit["c_std"], "N·m",
+                                         verdict(fit["c_std"] / self.torque)),
         }
         return {**out, "ok": True, "samples": fit["samples"], "residual_Nms": fit["rms_Nms"],
-                "values": values}
-
-
-def _estimate(value: float, std: float, unit: str, rel: float) -> dict[str, Any]:
-    verdict = "good" if rel < 0.01 else ("fair" if rel < 0.05 else "poor")
-    return {"value": value, "std": std, "unit": unit, "verdict": verdict}
+                "values": {k: asdict(e) for k, e in values.items()}}
