@@ -56,6 +56,15 @@ def sync_counter(k: int) -> int:
     return ((k - 1) % SYNC_OVERFLOW) + 1
 
 
+def sync_periods(last: int, counter: int, overflow: int = SYNC_OVERFLOW) -> int:
+    """The periods that passed from the SYNC with counter ``last`` to the one with
+    ``counter`` (both 1..``overflow``): 1 for the next SYNC, more where the counter skipped
+    values (a producer held up skips the SYNCs it could not send: the counter tells the
+    time, at most overflow − 1 periods; a counter equal to the last one counts as the
+    next)."""
+    return (counter - last - 1) % overflow + 1 if counter != last else 1
+
+
 class NmtCommand(IntEnum):
     """NMT command specifiers (first byte of COB-ID 0x000)."""
 

@@ -350,7 +350,8 @@ def _injected(s: Mapping[str, Any]) -> str | None:
     r = s.get("run") or {}
     reaction = [("stop", r.get("stop")), ("stop reason", r.get("stop_reason")),
                 ("exit status", r.get("exit_status"))]
-    reaction += [(k, r[k]) for k in ("tpdo_events", "max_consecutive_missed", "error_frames")
+    reaction += [(k, r[k]) for k in ("tpdo_events", "max_consecutive_missed", "skipped_syncs",
+                                         "error_frames")
                  if k in r]
     return _value(s["bus_faults"]) + "<h3>Reaction</h3>" + kv_table(reaction)
 

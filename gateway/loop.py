@@ -15,6 +15,11 @@ python-canopen), driven by frames:
   misses the loop stops. A cycle whose setpoints are ready only after the next SYNC was
   due is *late*: its RPDOs are withheld (:meth:`Controller.withhold`), because the drive
   would latch them a period late with a frame angle a period old; it holds its setpoints.
+  A SYNC thread held up for more than a period (a loaded host) does not send the SYNCs it
+  could not send on time: it skips their slots, and the SYNC counter (0x1019) skips with
+  them, so the drive and the controller both know how much time passed. Each skipped slot
+  is a cycle without a sample: the controller coasts through it (counted as missed, and as
+  ``skipped_syncs``; not as a sign of a lost drive).
 
 Per cycle the loop records the signals and its timing: SYNC period, SYNC → last TPDO, and
 the gateway's reaction time from the last TPDO's arrival to the RPDOs sent.
@@ -55,6 +60,14 @@ from gateway.report import Record
 from gateway.stop import StopReason
 
 log = logging.getLogger(__name__)
+
+
+def catch_up(k: int, t0: float, T: float, now: float) -> int:
+    """The slot of the next SYNC on the schedule t0 + (k − 1)·T: ``k``, or, when ``now`` is
+    more than a period past it (the sender was held up), the latest slot whose time has
+    come — the slots in between are skipped, never sent late in a burst."""
+    late = now - (t0 + (k - 1) * T)
+    return k + int(late / T) if late > T else k
 
 
 #: The missed-cycle rate limit looks at windows of this length, s.
@@ -143,6 +156,8 @@ class LoopStats:
     #: 'duplicate' (a second frame of it in one cycle: the first is used)
     tpdo_events: Counter[str] = field(default_factory=Counter)
     max_consecutive_missed: int = 0  #: the longest run of missed cycles (the worst gap)
+    #: SYNC slots the real-time SYNC thread skipped, held up past them (each also missed)
+    skipped_syncs: int = 0
     error_frames: int = 0  #: error frames received
     last_good_cycle: int = 0  #: the last cycle completed and sent
     wall_time: float = 0.0
@@ -181,6 +196,8 @@ class CycleLoop:
         self._misses: deque[int] = deque()  # cycles missed within the last window
         self._miss_window = max(5, round(MISS_WINDOW / cfg.sampling.period))
         self._syncs_sent = 0
+        #: the slots of the SYNCs the SYNC thread sent, not yet seen on the bus (own echo)
+        self._slots: deque[int] = deque()
         self._watch = (DivergenceWatch(cfg.envelope.for_controller(controller),
                                        cfg.envelope_cycles)
                        if cfg.envelope is not None else None)
@@ -203,7 +220,8 @@ class CycleLoop:
         self._tpdo_time = 0.0
         self._k = 0  # cycles opened (SYNCs seen)
         self._k_done = 0  # cycles completed
-        self._consecutive_missed = 0
+        self._consecutive_missed = 0  # cycles in a row without a sample (the gap)
+        self._consecutive_lost = 0  # of them, those the drive's TPDOs did not come for
         self._sync_time = math.nan
         self._sync_prev = math.nan
         self._progress_at = time.monotonic()
@@ -239,7 +257,7 @@ class CycleLoop:
             self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
             if self._done.is_set():
                 return
-            k = self._k + 1
+            k = self._slots.popleft() if self._slots else self._k + 1
             why = self._foreign_sync(k, bytes(data))
             if why:
                 self._finish(StopReason.FOREIGN_SYNC,
@@ -247,7 +265,7 @@ class CycleLoop:
                              f", expected the SYNC of cycle {k}; {why}): another SYNC "
                              "producer on the bus; there must be one")
                 return
-            self._open_locked(timestamp)
+            self._open_locked(timestamp, k)
 
     def _foreign_sync(self, k: int, data: bytes) -> str:
         """Why the SYNC received as the ``k``-th is not the gateway's, or '' when it is ours.
@@ -322,15 +340,17 @@ class CycleLoop:
             self._finish(StopReason.FOREIGN_SYNC, "a SYNC the gateway did not send: another "
                          "SYNC producer on the bus; there must be one")
 
-    def _open_cycle(self, timestamp: float) -> None:
+    def _open_cycle(self, timestamp: float, k: int | None = None) -> None:
         with self._lock:
-            self._open_locked(timestamp)
+            self._open_locked(timestamp, k)
 
-    def _open_locked(self, timestamp: float) -> None:
-        """A SYNC went out: cycle k begins; the previous one, if incomplete, is missed
-        (unless the master saw a fault, which is then the cause)."""
+    def _open_locked(self, timestamp: float, k: int | None = None) -> None:
+        """A SYNC went out: cycle ``k`` (default: the next) begins; the previous one, if
+        incomplete, is missed (unless the master saw a fault, which is then the cause), and
+        so is every slot between them the SYNC thread skipped."""
         if self._drive_faulted():
             return
+        skipped = 0 if k is None else k - self._k - 1
         if self._unechoed:
             # The last cycle's RPDOs were sent before this SYNC was due, but some reached the
             # bus after it: the drive latched the others alone, and latches these at the
@@ -343,6 +363,10 @@ class CycleLoop:
         if self._k > self._k_done and self._k_done < self.cfg.n_cycles:
             self._miss()
         late, self._missed_names = self._missed_names, set()
+        if skipped > 0 and not self._done.is_set():
+            self._skip(skipped)
+            if self._done.is_set():
+                return
         self._k += 1
         self._sync_prev, self._sync_time = self._sync_time, timestamp
         self._frames.clear()
@@ -354,24 +378,42 @@ class CycleLoop:
         self._echo_seen = False
         self._suspects.clear()
 
-    def _miss(self) -> None:
-        """Cycle self._k had no complete TPDO set: coast and count (lock held)."""
+    def _skip(self, n: int) -> None:
+        """The SYNC thread skipped ``n`` slots after cycle self._k (held up past them): each
+        is a cycle without a sample, which the controller coasts through (lock held)."""
+        self.stats.skipped_syncs += n
+        for _ in range(n):
+            if self._k >= self.cfg.n_cycles:
+                self._finish(StopReason.END_OF_PROFILE, "end of the profile")
+                return
+            self._k += 1
+            self._miss(skipped=True)
+            if self._done.is_set():
+                return
+
+    def _miss(self, skipped: bool = False) -> None:
+        """Cycle self._k had no complete TPDO set (``skipped``: no SYNC, the SYNC thread was
+        held up past its slot): coast and count (lock held)."""
         k = self._k
         self.stats.missed += 1
         self._consecutive_missed += 1
         self.stats.max_consecutive_missed = max(self.stats.max_consecutive_missed,
                                                 self._consecutive_missed)
-        self._missed_names = set(self._expected) - set(self._frames)
+        if not skipped:
+            self._consecutive_lost += 1
+        self._missed_names = (set() if skipped
+                              else set(self._expected) - set(self._frames))
         self._k_done = k
         self.ctl.coast()
         misses, window = self._misses, self._miss_window
         misses.append(k)
         while misses[0] <= k - window:
             misses.popleft()
-        missing = sorted(self._missed_names | self._suspects) or ["none (late)"]
-        if self._consecutive_missed >= self.cfg.max_missed:
+        missing = (["no SYNC (the gateway was held up past its slot)"] if skipped
+                   else sorted(self._missed_names | self._suspects) or ["none (late)"])
+        if self._consecutive_lost >= self.cfg.max_missed:
             self._finish(StopReason.DRIVE_LOST,
-                         f"{self._consecutive_missed} consecutive cycles without the drive's "
+                         f"{self._consecutive_lost} consecutive cycles without the drive's "
                          f"TPDOs (missing in cycle {k}: {', '.join(missing)}; drive lost or "
                          "bus overloaded)")
         elif len(misses) > self.cfg.max_miss_rate * window and self.cfg.max_miss_rate < 1:
@@ -492,7 +534,7 @@ class CycleLoop:
         t_sent = time.perf_counter()
         self._k_done = k
         self.stats.last_good_cycle = k
-        self._consecutive_missed = 0
+        self._consecutive_missed = self._consecutive_lost = 0
         self.stats.cycles += 1
         self.record.append(self._row(
             *row, float(sw), float(measured.get("sync_counter", 0)),
@@ -640,8 +682,10 @@ class CycleLoop:
 
     def _sync_thread_main(self) -> None:
         """SYNC on an absolute schedule: sleep until SPIN_MARGIN before, then spin. A thread
-        held up for more than a period (the host stalled) shifts its schedule: the SYNCs it
-        could not send are not sent later in a burst, which the drive could not follow.
+        held up for more than a period (the host stalled) skips the slots it missed
+        (:func:`catch_up`): the SYNCs it could not send are not sent later in a burst, which
+        the drive could not follow, and the next one carries its own slot's counter, which
+        tells the drive (and the loop) how many periods passed.
 
         The spin yields the interpreter lock every turn (``sleep(0)``): a plain busy loop
         would hold it for the whole switch interval and starve the receive threads.
@@ -650,12 +694,8 @@ class CycleLoop:
         t0 = time.perf_counter() + 0.01
         k = 0
         while not self._stop.is_set():
-            k += 1
+            k = catch_up(k + 1, t0, T, time.perf_counter())
             target = t0 + (k - 1) * T
-            late = time.perf_counter() - target
-            if late > T:  # the thread was held up: shift the schedule, never send a burst
-                t0 += late
-                target += late
             remaining = target - time.perf_counter()
             if remaining > SPIN_MARGIN:
                 time.sleep(remaining - SPIN_MARGIN)
@@ -664,8 +704,10 @@ class CycleLoop:
             if self._stop.is_set():
                 break
             self._syncs_sent = k
-            if not self.own_echo:
-                self._open_cycle(time.time())
+            if self.own_echo:
+                self._slots.append(k)
+            else:
+                self._open_cycle(time.time(), k)
             try:
                 self.bus.send(self._sync_message(k))
             except can.CanError as exc:

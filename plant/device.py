@@ -24,7 +24,9 @@ are plain storage. This module composes the parts and runs the cycle.
 
 * Sampled timing (docs/ARCHITECTURE.md): on each SYNC in OPERATIONAL the drive (1) with
   RPDO apply = on receipt (0x2203 = 1) makes the data received since the last SYNC active,
-  (2) advances the simulation by exactly the cycle period 0x1006, (3) samples and sends
+  (2) advances the simulation by the cycle period 0x1006 — by as many periods as the SYNC
+  counter says passed, when it skips values (a master held up skips the SYNCs it could not
+  send, and a SYNC the drive did not receive still took its period) —, (3) samples and sends
   TPDO1..3 (those valid, every n-th SYNC for transmission type n), (4) with RPDO apply = at
   the next SYNC (default, CiA 301 synchronous) makes the received data active. The
   simulation advances only on SYNC: lockstep, deterministic. A frame received (eps_0,
@@ -66,7 +68,7 @@ import can
 from canopen.objectdictionary import datatypes
 
 from dbc import scaling
-from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState
+from dbc.cia301 import NMT_ID, SDO_RX_BASE, Emcy, NmtState, sync_periods
 from dbc.cia402 import (
     CURRENT_ACTUAL,
     CW_HALT_BIT,
@@ -128,7 +130,9 @@ class DriveDevice:
     ``drive_options``: keyword arguments of every :class:`plant.drive.Drive` the device
     builds (the dynamometer ``load`` and ``motor_drift`` of a plant scenario).
     ``on_sample(cycle, measurement)``, optional: called in the receive thread after each
-    cycle's model step with the cycle number and the full-resolution :class:`Measurement`
+    cycle's model step with the cycle number (periods lived since the account was cleared:
+    SYNCs, and the periods a skipping SYNC counter told) and the full-resolution
+    :class:`Measurement`
     (for diagnostics in the same process, e.g. `hil-gateway sim`'s truth record).
 
     The parts ``nmt``, ``sdo``, ``pdo`` and ``emcy`` are for diagnostics: every frame and
@@ -191,6 +195,7 @@ class DriveDevice:
         self.idle_brake = IDLE_BRAKE
         self._idle_at: float | None = None
         self._cycles_total = 0
+        self._periods_total = 0  # the periods the model lived on SYNC (counter gaps too)
         self._sync_gaps = 0
         self._faults: deque[tuple[int, float]] = deque(maxlen=FAULT_LOG)
         self._fault_count = 0
@@ -401,6 +406,7 @@ class DriveDevice:
 
     def _clear_account(self) -> None:
         self._cycles_total = self._sync_gaps = self._fault_count = 0
+        self._periods_total = 0
         self._faults.clear()
 
     def _signal_written(self, index: int) -> None:
@@ -607,6 +613,7 @@ class DriveDevice:
         if n > 1:
             return  # not a SYNC (CiA 301: 0 or 1 data bytes)
         counter = data[0] if n else 0
+        periods = 1
         if n:
             pdo = self.pdo
             last = pdo.last_counter
@@ -614,30 +621,39 @@ class DriveDevice:
                 ov = self._values[(0x1019, 0)]
                 if ov >= 2:
                     gap = counter != (1 if last >= ov else last + 1)
+                    if gap and 1 <= counter <= ov and 1 <= last <= ov:
+                        periods = sync_periods(last, counter, ov)
                 else:  # overflow unknown here: accept a wrap to 1 (CiA 301) or to 0
                     gap = counter not in ((last + 1) & 0xFF, 1)
                 if gap:
                     self._sync_gaps += 1
             pdo.last_counter = counter
-        self._cycle(counter)
+        self._cycle(counter, periods)
 
     @property
     def _cycles(self) -> int:
         return self._cycles_total
 
-    def _cycle(self, counter: int) -> None:
-        """One SYNC: (latch) → advance T → sample → TPDOs → (latch)."""
+    def _cycle(self, counter: int, periods: int = 1) -> None:
+        """One SYNC: (latch) → advance ``periods``·T → sample → TPDOs → (latch)."""
         m = self._cycles_total + 1
         for _ in self.pdo.expired(m):
             self._fault(Emcy.RPDO_TIMEOUT)
-        sync_cycle(lambda: self._advance_and_transmit(m, counter), self._latch, self.pdo.apply)
+        sync_cycle(lambda: self._advance_and_transmit(m, counter, periods), self._latch,
+                   self.pdo.apply)
 
-    def _advance_and_transmit(self, m: int, counter: int) -> Measurement:
-        """Advance the model by T, sample, send the TPDOs of cycle ``m``."""
+    def _advance_and_transmit(self, m: int, counter: int, periods: int = 1) -> Measurement:
+        """Advance the model by ``periods``·T (the time the SYNC counter says passed since
+        the last SYNC; the setpoints held), sample, send the TPDOs of cycle ``m``. The
+        sample is the last period's (its average voltage too), as on time."""
         drive = self._drive
         was_on = drive.enabled
-        meas = drive.advance(self.pdo.period, self._T_L)
+        T = self.pdo.period
+        for _ in range(periods - 1):
+            drive.advance(T, self._T_L)
+        meas = drive.advance(T, self._T_L)
         self._cycles_total = m
+        self._periods_total += periods
         if not (self._model_finite() and _finite(meas)):
             # the model failed numerically: Fault, and back at rest so the device stays usable
             drive.reset(MotorState())
@@ -651,7 +667,7 @@ class DriveDevice:
             # the motor): once, as a real drive's speed monitor reports it
             self._fault(Emcy.OVERSPEED)
         if self.on_sample is not None:  # what the TPDOs carry: the at-rest sample after a
-            self.on_sample(m, meas)     # non-finite model, not its NaNs
+            self.on_sample(self._periods_total, meas)  # non-finite model, not its NaNs
         self._limit = meas.limit_active
         u = self._units  # the standard actual values, in the units of the dictionary
         self._put(VELOCITY_ACTUAL, meas.w_m / u.velocity)

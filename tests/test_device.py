@@ -435,6 +435,22 @@ def test_sync_counter_gaps_and_tpdo_transmission_type(rig):
     assert rig.read(0x2300, 2) == 2
 
 
+def test_the_emulator_lives_through_the_periods_a_skipped_counter_tells(rig):
+    """A SYNC whose counter skips values advances the model by as many periods (the drive
+    held its setpoints), and its sample is the last period's."""
+    rig.write(0x1019, None, 240)
+    rig.nmt("OPERATIONAL")
+    drive = rig.dev._drive
+    rig.sync(1)
+    t1 = drive.t
+    rig.sync(2)
+    T = drive.t - t1
+    assert T > 0
+    rig.sync(5)  # three periods: SYNCs 3 and 4 were never sent
+    assert drive.t == pytest.approx(t1 + 4 * T)
+    assert rig.dev.account()["sync_gaps"] == 1
+
+
 # ----------------------------------------------------------------------- safe reactions
 
 

@@ -118,10 +118,44 @@ class StandstillIdentifier:
         self._s_cc = np.zeros(self.POINTS)
         self._a = 0j
         self._b = 0j
+        self._gaps = 0
+        self._i_last = 0j
+        self.gaps = 0  #: periods without a sample since the start
+        self._offset = False  # a gap came: the voltage model is off by a constant since
+        self._n_h = 0
+        self._a_h = 0j
+        self._b_h = 0j
+        self._c_h = np.zeros(self.POINTS, dtype=complex)
+
+    def gap(self) -> None:
+        """A period without a sample (a missed cycle): the motor lived it, its voltage and
+        current were not reported. The next :meth:`add` stands in for it too, so that the
+        sums cover the whole time (left out, a period's R_s·i·T, about 0.02 Wb, would be
+        missing from the voltage model's flux for good)."""
+        self._gaps += 1
+        self.gaps += 1
 
     def add(self, i_s_ab: complex, u_s_ab: complex) -> None:
         """One sample: the measured current at t_k (A) and the average voltage the drive
-        applied over the period before it (V), (a, b) frame."""
+        applied over the period before it (V), (a, b) frame.
+
+        After a :meth:`gap`, each missing period takes this period's voltage and the
+        current halfway from the last sample's to this one's. Whether the drive changed its
+        current at the missing sample (a lost TPDO) or held it (a SYNC it did not receive)
+        cannot be told: the voltage model's flux is off by an unknown constant from the
+        first gap on (the missing period's σ·Δi and R_s·i·T), which the fit takes as one
+        more unknown (:meth:`solve`); the current model's flux is barely touched (its error
+        decays with the rotor time constant), so after a gap the identification hands over
+        that one (:meth:`current_model_flux_at`)."""
+        gaps, self._gaps = self._gaps, 0
+        if gaps:
+            self._offset = True
+            i_mid = 0.5 * (self._i_last + i_s_ab)
+            for _ in range(gaps):
+                self._add(i_mid, u_s_ab)
+        self._add(i_s_ab, u_s_ab)
+
+    def _add(self, i_s_ab: complex, u_s_ab: complex) -> None:
         m, T = self.motor, self._T
         self._n += 1
         self._sum_u += u_s_ab
@@ -138,6 +172,12 @@ class StandstillIdentifier:
         self._s_ac += a.real * c.real + a.imag * c.imag
         self._s_cc += c.real * c.real + c.imag * c.imag
         self._a, self._b = a, b
+        self._i_last = i_s_ab
+        if self._offset:  # the sums over the samples the voltage model's offset is in
+            self._n_h += 1
+            self._a_h += a
+            self._b_h += b
+            self._c_h += c
 
     @property
     def samples(self) -> int:
@@ -146,6 +186,14 @@ class StandstillIdentifier:
     def flux(self, R_s: float) -> complex:
         """The voltage-model rotor flux at the last sample with ``R_s``, Wb (a, b)."""
         return self._a - R_s * self._b
+
+    def current_model_flux_at(self, alpha: float) -> complex:
+        """The current-model rotor flux at the last sample for the rotor pole ``alpha``
+        (1/s), interpolated on the search grid in log α, Wb (a, b): R_s does not enter it."""
+        x = math.log(alpha / self._alpha0)
+        logf = np.log(self._f)
+        c = self._c
+        return complex(float(np.interp(x, logf, c.real)), float(np.interp(x, logf, c.imag)))
 
     def current_model_flux(self) -> complex:
         """The current-model rotor flux at the last sample with the controller's α (row 2–3
@@ -160,7 +208,13 @@ class StandstillIdentifier:
                                   "too few samples at standstill")
         cross = self._s_ab - self._s_bc  # Σ Re(b̄·(a − c)) per α
         dd = self._s_aa - 2.0 * self._s_ac + self._s_cc  # Σ|a − c|²
-        J = dd - cross * cross / self._s_bb
+        bb = self._s_bb
+        if self._n_h:  # and a constant δ added to a − c − R_s·b from the first gap on
+            n, d_h, b_h = self._n_h, self._a_h - self._c_h, self._b_h
+            dd = dd - (d_h.real ** 2 + d_h.imag ** 2) / n
+            cross = cross - (d_h.real * b_h.real + d_h.imag * b_h.imag) / n
+            bb = bb - (b_h.real ** 2 + b_h.imag ** 2) / n
+        J = dd - cross * cross / bb
         k = int(np.argmin(J))
         logf = np.log(self._f)
         x = logf[k]
@@ -170,7 +224,7 @@ class StandstillIdentifier:
             if den > 0.0:
                 x = logf[k] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
         f = math.exp(x)
-        R_s = float(np.interp(x, logf, cross)) / self._s_bb
+        R_s = float(np.interp(x, logf, cross)) / bb
         alpha = f * self._alpha0
         fit = float(max(J[k], 0.0) / self._s_aa) if self._s_aa > 0.0 else math.nan
         reason = ""
@@ -230,6 +284,12 @@ class Commissioning:
         self.result = self.identifier.solve()
         return self.result
 
+    def gap(self) -> None:
+        """A period without a sample (a missed cycle) while the identification is pending:
+        :meth:`StandstillIdentifier.gap`."""
+        if self.result is None:
+            self.identifier.gap()
+
     def apply(self, refs: Refs, i_s_ab: complex, u_s_ab: complex, estimator: Any,
               psi_hat_ab: complex | None) -> tuple[Identification | None, complex | None]:
         """:meth:`step`, and the rotor flux the laws take at this sample (Wb, (a, b)), with
@@ -273,9 +333,14 @@ class Commissioning:
         return self.identifier.current_model_flux()
 
     def flux(self) -> complex:
-        """The voltage-model rotor flux at the last sample with the identified R_s, Wb."""
+        """The voltage-model rotor flux at the last sample with the identified R_s, Wb; the
+        current model's with the identified α where samples were missing during the
+        standstill (:meth:`StandstillIdentifier.add`)."""
         assert self.result is not None
-        return self.identifier.flux(self.result.R_s)
+        ident = self.identifier
+        if ident.gaps:
+            return ident.current_model_flux_at(self.result.alpha)
+        return ident.flux(self.result.R_s)
 
     def describe(self) -> dict[str, object]:
         """For summary.json: the identification, or why there is none."""

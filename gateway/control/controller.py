@@ -313,6 +313,8 @@ class Controller:
         """
         w_0, dw_hat = self._last
         T = self._T
+        if self.commissioning is not None:
+            self.commissioning.gap()
         self.w_hat += T * dw_hat
         self.eps_0 = wrap_angle(self.eps_0 + T * w_0)
         self.estimator.coast(w_0, T)

@@ -533,6 +533,8 @@ class SampledController:
         """
         T = self._T
         self._k += 1
+        if self.commissioning is not None:
+            self.commissioning.gap()
         win = self._refs.starting(2 * self._k - 2)
         hist = self._hist
         prev = hist[0]
@@ -777,6 +779,8 @@ class FullOrderSampledController(SampledController):
         """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
         T = self._T
         self._k += 1
+        if self.commissioning is not None:
+            self.commissioning.gap()
         win = self._refs.starting(2 * self._k - 2)
         hist = self._hist
         prev = hist[0]
