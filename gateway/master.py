@@ -313,10 +313,11 @@ class DriveMaster:
             raise UserError(
                 f"no drive at node {self.node_id} on the bus: no SDO answer to a read of "
                 f"0x1000 (device type) within {self.profile.sdo_timeout_s:g} s ({exc}). "
-                "Nothing was sent to the node. Check the node id (--node), that the drive is "
-                "powered, connected and not in NMT STOPPED (which answers no SDO), the "
-                "bitrate, and for the emulator that `hil-plant run` is running on the same "
-                "channel (`hil-gateway scan` lists the nodes present).") from exc
+                "Nothing but that read was sent to the node: no write, no NMT command. "
+                "Check the node id (--node), that the drive is powered, connected and not in "
+                "NMT STOPPED (which answers no SDO), the bitrate, and for the emulator that "
+                "`hil-plant run` is running on the same channel (`hil-gateway scan` lists the "
+                "nodes present).") from exc
         ident = Identity(device_type,
                          *(self._read_identity(0x1018, sub) for sub in (1, 2, 3)))
         where = f"node {self.node_id} ({ident.describe()})"

@@ -14,6 +14,7 @@ python-canopen node, so CI covers the same refusals without it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -25,9 +26,11 @@ import pytest
 from conftest import require_vcan
 from twoproc_support import (
     PROBE_ID,
+    Candump,
     Proc,
     candump,
     candump_lines,
+    cansend,
     gateway_cmd,
     run,
     sdo_upload,
@@ -94,31 +97,39 @@ def _commands(ch: str, d: Path) -> dict[str, tuple[list[str], Path | None]]:
     }
 
 
+@contextlib.contextmanager
+def canopend(ch: str, d: Path, dump: Candump) -> Iterator[Proc]:
+    """canopend at node 5 until its boot-up is on the bus; SIGTERM when the block ends.
+    No -c: no command interface (no socket, no stdin); no -r: no reboot on NMT reset node;
+    its storage files under ``d`` (-s is a path prefix)."""
+    storage = d / "storage"
+    storage.mkdir(exist_ok=True)
+    co = Proc.start([str(canopend_binary()), ch, "-i", str(NODE), "-s", f"{storage}/"], d,
+                    "canopend")
+    try:
+        wait_for(lambda: any(cob == 0x700 + NODE for _, cob, _ in candump_lines(dump.text())),
+                 30, "canopend's boot-up", co)
+        yield co
+    finally:
+        co.signal(signal.SIGTERM)
+        co.wait(10)
+
+
+def _gateway(ch: str, d: Path, name: str, args: list[str], out_dir: Path | None) -> Outcome:
+    p = run([*gateway_cmd(), *args], d, name.replace(" ", "_"), 120)
+    return Outcome(p.popen.returncode, p.stdout(), p.stderr(), out_dir)
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Iterator[Session]:
-    binary = canopend_binary()
+    canopend_binary()
     ch = require_vcan("vcan0", need_candump=True)
     d = tmp_path_factory.mktemp("canopend")
-    storage = d / "storage"
-    storage.mkdir()
-    outcomes: dict[str, Outcome] = {}
-    with candump(ch, d) as dump:
-        # no -c: no command interface (no socket, no stdin); no -r: no reboot; its storage
-        # files under the temporary directory (-s is a path prefix)
-        co = Proc.start([str(binary), ch, "-i", str(NODE), "-s", f"{storage}/"], d,
-                        "canopend")
-        try:
-            wait_for(lambda: any(cob == 0x700 + NODE for _, cob, _ in
-                                 candump_lines(dump.text())),
-                     30, "canopend's boot-up", co)
-            for name, (args, out_dir) in _commands(ch, d).items():
-                p = run([*gateway_cmd(), *args], d, name.replace(" ", "_"), 120)
-                outcomes[name] = Outcome(p.popen.returncode, p.stdout(), p.stderr(), out_dir)
-            alive = co.popen.poll() is None
-            device_type = sdo_upload(ch, NODE, 0x1000) if alive else b""
-        finally:
-            co.signal(signal.SIGTERM)
-            co.wait(10)
+    with candump(ch, d) as dump, canopend(ch, d, dump) as co:
+        outcomes = {name: _gateway(ch, d, name, args, out_dir)
+                    for name, (args, out_dir) in _commands(ch, d).items()}
+        alive = co.popen.poll() is None
+        device_type = sdo_upload(ch, NODE, 0x1000) if alive else b""
     yield Session(outcomes, candump_lines(dump.text()), alive, co.stderr(), device_type,
                   d / "check.json")
 
@@ -190,3 +201,67 @@ def test_run_is_refused_with_exit_2_and_leaves_no_run_directory(session, name):
     assert "Nothing was written to it and no NMT command sent" in err, err
     assert "hil-gateway scan" in err and "--node" in err, err
     assert o.out_dir is not None and not o.out_dir.exists(), sorted(o.out_dir.iterdir())
+
+
+# ---------------------------------------------------------------- canopend in NMT STOPPED
+
+
+@pytest.fixture(scope="module")
+def stopped(tmp_path_factory) -> Iterator[tuple[dict[str, Outcome], list, bool]]:
+    """canopend put in NMT STOPPED by the test (which answers no SDO), then `run` and
+    `check`: (outcomes, the frames from then on, canopend alive at the end)."""
+    from canopen.sdo.exceptions import SdoCommunicationError
+
+    canopend_binary()
+    ch = require_vcan("vcan0", need_candump=True)
+    d = tmp_path_factory.mktemp("canopend-stopped")
+    bus = ["-i", "socketcan", "-c", ch, "--node", str(NODE)]
+    with candump(ch, d) as dump, canopend(ch, d, dump) as co:
+        cansend(ch, f"000#02{NODE:02X}")  # NMT stop, node 5
+
+        def no_answer() -> bool:
+            try:
+                sdo_upload(ch, NODE, 0x1000, timeout=0.3)
+            except SdoCommunicationError:
+                return True
+            return False
+
+        wait_for(no_answer, 10, "canopend in NMT STOPPED (no SDO answer)", co)
+        n0 = len(candump_lines(dump.text()))
+        outcomes = {
+            "run": _gateway(ch, d, "run", ["run", *bus, "--reference", "profiles/quick.toml",
+                                           "--out", str(d / "run")], d / "run"),
+            "check": _gateway(ch, d, "check", ["check", *bus, "--cycles", "10"], None),
+        }
+        alive = co.popen.poll() is None
+    yield outcomes, candump_lines(dump.text())[n0:], alive
+
+
+def test_a_stopped_canopend_gets_no_nmt_and_no_write(stopped):
+    """No answer: the gateway sends no NMT command to wake or reset it (nor to all nodes)
+    and no download; what it sent are its SDO reads of 0x1000 and the aborts that end them
+    unanswered (ccs 4). canopend is still running."""
+    _, frames, alive = stopped
+    assert [f for f in frames if f[1] == 0x000] == []
+    sent = _from_gateway(frames)
+    assert sent and all(f[1] == SDO_REQUEST for f in sent), sent
+    kinds = {f[2][0] >> 5 for f in sent}
+    assert kinds <= {2, 4}, sent  # upload request, abort; never a download (1)
+    assert alive
+
+
+@pytest.mark.parametrize("name, code", [("run", 2), ("check", 1)])
+def test_a_stopped_canopend_is_no_drive_at_the_node(stopped, name, code):
+    """`run` exit 2, `check` exit 1 (README: no drive at the node is a failed check): the
+    message says no SDO answer, names NMT STOPPED as a cause, and what was sent; nothing of
+    python-canopen's own log, no traceback, no run directory."""
+    outcomes, _, _ = stopped
+    o = outcomes[name]
+    assert o.exit == code, (o.stdout, o.stderr)
+    text = o.stdout + o.stderr
+    assert f"no drive at node {NODE} on the bus: no SDO answer to a read of 0x1000" in text
+    assert "not in NMT STOPPED (which answers no SDO)" in text, text
+    assert "Nothing but that read was sent to the node: no write, no NMT command" in text
+    assert "canopen.sdo" not in text and "Traceback" not in text, text
+    if o.out_dir is not None:
+        assert not o.out_dir.exists()

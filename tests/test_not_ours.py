@@ -8,6 +8,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
+from pathlib import Path
 
 import can
 import canopen
@@ -162,9 +163,29 @@ def test_an_empty_node_gets_no_nmt(device, tmp_path, capsys):
     dev = device(node=1, device_type=0x00010192, vendor=0, product=0x402)
     assert _run(dev, tmp_path, "--node", "5") == 2
     err = capsys.readouterr().err
-    assert "no drive at node 5" in err and "Nothing was sent" in err, err
+    assert "no drive at node 5" in err, err
+    assert "Nothing but that read was sent to the node: no write, no NMT command" in err, err
     nmt, downloads = dev.sent_to_it()
     assert nmt == [] and downloads == []
+
+
+def test_no_drive_is_said_once_on_stderr(tmp_path):
+    """The command line, as a user runs it, at a node nobody answers: stderr is the one
+    paragraph, not preceded by python-canopen's own ERROR log of the SDO transfer it aborts
+    (tests/test_canopend.py: canopend in NMT STOPPED)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "gateway", "run", "-i", "virtual", "-c",
+                        f"nobody-{time.monotonic_ns()}", "--node", "5", "--reference",
+                        "profiles/quick.toml", "--out", str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hil-gateway: error: no drive at node 5"), \
+        p.stderr
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_drive_that_answers_with_an_abort_is_not_reset(emulator, tmp_path, monkeypatch):
