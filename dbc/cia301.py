@@ -47,6 +47,30 @@ def is_service(cob_id: int) -> bool:
                 and node != 0))
 
 
+#: The device profile number (0x1000 bits 0..15) of a CiA 402 drive.
+DRIVE_PROFILE = 402
+#: CiA 402's drive types: 0x1000 bits 16..23 of a drive.
+_DRIVE_TYPES = {0x01: "frequency converter", 0x02: "servo drive", 0x03: "stepper motor",
+                0xFF: "multiple device module"}
+
+
+def is_drive(device_type: int) -> bool:
+    """Whether a device type (0x1000) names the CiA 402 drive profile."""
+    return device_type & 0xFFFF == DRIVE_PROFILE
+
+
+def describe_device_type(device_type: int) -> str:
+    """What a device type (0x1000) says of the device, for a message: its device profile
+    (bits 0..15; 0 is none) and, for a CiA 402 drive, its type (bits 16..23)."""
+    profile = device_type & 0xFFFF
+    if profile == 0:
+        return "no standard device profile: a CiA 301 device, not a CiA 402 drive"
+    if profile != DRIVE_PROFILE:
+        return f"a CiA {profile} device, not a CiA 402 drive"
+    kind = (device_type >> 16) & 0xFF
+    return f"a CiA 402 {_DRIVE_TYPES.get(kind, f'drive of type 0x{kind:02X}')}"
+
+
 #: SYNC counter overflow (0x1019) the gateway configures: the counter runs 1..240.
 SYNC_OVERFLOW = 240
 

@@ -20,7 +20,6 @@ import csv
 import functools
 import io
 import logging
-import os
 import signal
 import struct
 import sys
@@ -38,6 +37,7 @@ from dbc.bus import add_bus_options, bus_config, open_bus
 from gateway.drive_profile import DriveProfile
 from gateway.errors import UserError
 from gateway.logformat import LOG_SUFFIXES
+from gateway.outpath import check_writable
 
 log = logging.getLogger(__name__)
 
@@ -65,20 +65,8 @@ def check_log_path(path: str | Path, option: str = "-o") -> Path:
     if suffix not in LOG_SUFFIXES:
         raise UserError(f"{option} {str(path)!r}: unknown log format {suffix!r}; use one of "
                         f"{known}")
-    _check_writable(p, option)
+    check_writable(p, option)
     return p
-
-
-def _check_writable(p: Path, option: str) -> None:
-    parent = p.parent if str(p.parent) else Path(".")
-    if p.is_dir():
-        raise UserError(f"{option} {str(p)!r} is a directory; give a file name")
-    if not parent.is_dir():
-        raise UserError(f"{option} {str(p)!r}: the directory {str(parent)!r} does not exist; "
-                        "create it or choose another place")
-    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise UserError(f"{option} {str(p)!r} is not writable (permission denied); choose "
-                        "another place")
 
 
 def write_frame(writer: can.Listener, msg: can.Message) -> None:
@@ -770,7 +758,7 @@ def _log_paths(path: str | Path, csv_path: str | Path | None) -> tuple[Path, Pat
     if csv_path is None:
         return p, None
     cp = Path(csv_path)
-    _check_writable(cp, "--csv")
+    check_writable(cp, "--csv")
     if cp.resolve() == p.resolve():
         raise UserError(f"--csv {str(cp)!r} is the raw log file itself; give another name")
     return p, cp
@@ -880,7 +868,7 @@ def cmd_log(args: argparse.Namespace) -> int:
 
     path = check_log_path(args.output)
     if args.csv is not None:
-        _check_writable(Path(args.csv), "--csv")
+        check_writable(Path(args.csv), "--csv")
     duration = None if args.duration is None else parse_duration(args.duration, "--duration")
     drive = None
     if args.drive is not None:

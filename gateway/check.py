@@ -46,9 +46,11 @@ from dbc.cia301 import SYNC_OVERFLOW
 from dbc.cia402 import State
 from dbc.modes import DriveMode
 from dbc.timing import Sampling, internal_rate
+from gateway.atomicfile import write_text_atomic
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.errors import UserError
-from gateway.master import DriveMaster
+from gateway.master import DeviceRefusedError, DriveMaster
+from gateway.outpath import check_writable
 from gateway.process_data import ProcessData, process_data
 
 SYNC_ID = 0x080
@@ -398,8 +400,10 @@ def check_drive(bus: can.BusABC, profile: DriveProfile, node: int | None = None,
                        f"node {master.node_id} answered")
         except UserError as exc:
             if master.identity is None:  # refused before any NMT or write
+                fix = (exc.fix if isinstance(exc, DeviceRefusedError) else
+                       "check --node, power, wiring, bitrate (`hil-gateway scan`)")
                 report.add("the device at the node is the profile's (0x1000, 0x1018)", False,
-                           str(exc), "check --node, or use the drive's own profile (--drive)")
+                           str(exc), fix)
                 return report
             if not master._booted.is_set():
                 report.add("boot-up after NMT reset communication", False, str(exc),
@@ -458,6 +462,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         raise UserError(f"--cycles {args.cycles}: give at least 1 SYNC cycle")
     profile = load_drive_profile(args.drive)
     process_data(profile, args.node)  # bad profile → exit 2 before the bus is opened
+    if args.json:
+        check_writable(Path(args.json), "--json")
     cfg = bus_config(args)
     try:
         bus = open_bus(cfg, receive_own_messages=False)
@@ -469,7 +475,11 @@ def cmd_check(args: argparse.Namespace) -> int:
         bus.shutdown()
     print(report.text())
     if args.json:
-        Path(args.json).write_text(json.dumps(report.to_json(), indent=2) + "\n")
+        try:
+            write_text_atomic(Path(args.json), json.dumps(report.to_json(), indent=2) + "\n")
+        except OSError as exc:
+            raise UserError(f"--json {args.json!r}: the report above could not be written "
+                            f"({exc.strerror or exc}); choose another place") from None
     return 0 if report.ok else 1
 
 

@@ -1324,6 +1324,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    if not args.debug:
+        # python-canopen logs an ERROR for each SDO transfer it aborts (an unanswered read:
+        # "Transfer aborted by client with code 0x05040000"); every SDO failure reaches the
+        # user as the gateway's own message (what, where, what to do), so not twice
+        logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
     if func is None:
         parser.print_help(sys.stderr)

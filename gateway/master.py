@@ -55,6 +55,8 @@ from dbc.cia301 import (
     Emcy,
     NmtCommand,
     NmtState,
+    describe_device_type,
+    is_drive,
     pdo_of,
 )
 from dbc.cia402 import (
@@ -116,6 +118,16 @@ class Identity:
             return "none" if x is None else f"0x{x:08X}"
         return (f"device type {hx(self.device_type)}, vendor {hx(self.vendor)}, product "
                 f"{hx(self.product)}, revision {hx(self.revision)}")
+
+
+class DeviceRefusedError(UserError):
+    """The device at the node is not the one the drive profile describes (or answers no
+    identity): refused by SDO reads alone, before any NMT command or write. ``fix`` says
+    what to do, in a few words (a check's "fix" line)."""
+
+    def __init__(self, message: str, fix: str) -> None:
+        super().__init__(message)
+        self.fix = fix
 
 
 @dataclass
@@ -301,38 +313,52 @@ class DriveMaster:
             raise UserError(
                 f"no drive at node {self.node_id} on the bus: no SDO answer to a read of "
                 f"0x1000 (device type) within {self.profile.sdo_timeout_s:g} s ({exc}). "
-                "Nothing was sent to the node. Check the node id (--node), that the drive is "
-                "powered, connected and not in NMT STOPPED (which answers no SDO), the "
-                "bitrate, and for the emulator that `hil-plant run` is running on the same "
-                "channel (`hil-gateway scan` lists the nodes present).") from exc
+                "Nothing but that read was sent to the node: no write, no NMT command. "
+                "Check the node id (--node), that the drive is powered, connected and not in "
+                "NMT STOPPED (which answers no SDO), the bitrate, and for the emulator that "
+                "`hil-plant run` is running on the same channel (`hil-gateway scan` lists the "
+                "nodes present).") from exc
         ident = Identity(device_type,
                          *(self._read_identity(0x1018, sub) for sub in (1, 2, 3)))
         where = f"node {self.node_id} ({ident.describe()})"
-        fix = (f"Nothing was written to it and no NMT command sent. Check --node, or give its "
-               f"own drive profile with --drive (profile used: {self.profile.source}).")
+        nothing = "Nothing was written to it and no NMT command sent."
+        other_profile = (f"check --node, or give the drive's own profile with --drive "
+                         f"(profile used: {self.profile.source})")
+        fix = f"{nothing} Check --node, or give its own drive profile with --drive " \
+              f"(profile used: {self.profile.source})."
         expected = self.profile.device_type
         if device_type is None:
-            raise UserError(f"{where} aborted the read of its device type (0x1000): it is "
-                            f"not a CiA 301 device the profile describes. {fix}")
+            raise DeviceRefusedError(f"{where} aborted the read of its device type (0x1000): it "
+                                f"is not a CiA 301 device the profile describes. {fix}",
+                                other_profile)
         if expected is not None and device_type != expected:
-            raise UserError(
+            if is_drive(device_type):
+                what_to_do, short = fix, other_profile
+            else:  # not a drive at all: no drive profile fits it
+                short = ("check --node (`hil-gateway scan` lists each node with its device "
+                         "type; a drive's has the profile number 402, 0x192)")
+                what_to_do = (f"{nothing} No drive profile fits a device that is not a "
+                              f"CiA 402 drive: {short}.")
+            raise DeviceRefusedError(
                 f"{where} is not the drive the profile describes: device type "
-                f"0x{device_type:08X} (0x1000), expected 0x{expected:08X}. {fix}")
+                f"0x{device_type:08X} (0x1000: {describe_device_type(device_type)}), "
+                f"expected 0x{expected:08X} ({describe_device_type(expected)}). "
+                f"{what_to_do}", short)
         want = self._eds_identity()
         if self.profile.emulator:
             if (ident.vendor, ident.product) != want:
-                raise UserError(
+                raise DeviceRefusedError(
                     f"{where} is not the can-drive-hil emulator that the profile names "
                     f"(vendor 0x{want[0]:08X}, product 0x{want[1]:08X} in 0x1018): the "
                     f"emulator's own objects (model, RPDO apply, internal rate, time base) "
-                    f"exist on no other device. {fix}")
+                    f"exist on no other device. {fix}", other_profile)
         else:
             for what, got, exp in (("vendor", ident.vendor, want[0]),
                                    ("product", ident.product, want[1])):
                 if exp and got is not None and got != exp:
-                    raise UserError(f"{where} is not the drive the profile describes: "
-                                    f"{what} 0x{got:08X} (0x1018), its EDS states "
-                                    f"0x{exp:08X}. {fix}")
+                    raise DeviceRefusedError(f"{where} is not the drive the profile describes: "
+                                        f"{what} 0x{got:08X} (0x1018), its EDS states "
+                                        f"0x{exp:08X}. {fix}", other_profile)
             if not any(want) or ident.vendor is None:
                 self.notes.append(f"node {self.node_id} identified by its device type only "
                                   f"({ident.describe()}; the EDS states no vendor/product)")

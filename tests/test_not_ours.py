@@ -8,6 +8,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
+from pathlib import Path
 
 import can
 import canopen
@@ -22,7 +23,8 @@ _channels = itertools.count()
 class Device:
     """A CiA 301 node answering SDO from its dictionary, and the bus's frames, recorded."""
 
-    def __init__(self, node: int, device_type: int, vendor: int, product: int) -> None:
+    def __init__(self, node: int, device_type: int, vendor: int, product: int,
+                 revision: int | None = None) -> None:
         self.channel = f"not-ours-{next(_channels)}-{time.monotonic_ns()}"
         self.network = canopen.Network()
         self.network.connect(interface="virtual", channel=self.channel)
@@ -30,6 +32,8 @@ class Device:
         od[0x1000].default = device_type
         od[0x1018][1].default = vendor
         od[0x1018][2].default = product
+        if revision is not None:
+            od[0x1018][3].default = revision
         self.node = canopen.LocalNode(node, od)
         self.network.add_node(self.node)
         self.frames: list[can.Message] = []
@@ -97,14 +101,91 @@ def test_another_device_type_is_refused_before_any_nmt(device, tmp_path, capsys)
     assert nmt == [] and downloads == []
 
 
+def test_a_cia301_device_without_a_device_profile_is_told_apart(device, tmp_path, capsys):
+    """A device whose 0x1000 is 0 (no device profile) and whose 0x1018 is all zeros, as
+    CANopenNode's Linux device `canopend` answers (tests/test_canopend.py runs the real one):
+    refused, exit 2; the message names what answered, says it is no CiA 402 drive (so no
+    drive profile fits it) and what to do; nothing sent but SDO reads, no run directory."""
+    dev = device(node=5, device_type=0, vendor=0, product=0, revision=0)
+    assert _run(dev, tmp_path, "--node", "5") == 2
+    err = capsys.readouterr().err
+    assert ("node 5 (device type 0x00000000, vendor 0x00000000, product 0x00000000, "
+            "revision 0x00000000)") in err, err
+    assert "no standard device profile: a CiA 301 device, not a CiA 402 drive" in err, err
+    assert "expected 0x00010192 (a CiA 402 frequency converter)" in err, err
+    assert "Nothing was written to it and no NMT command sent" in err, err
+    assert "hil-gateway scan" in err and "--node" in err and "Traceback" not in err, err
+    assert "give its own drive profile" not in err, err  # it is no drive: no profile fits
+    nmt, downloads = dev.sent_to_it()
+    assert nmt == [] and downloads == [], (nmt, downloads)
+    assert not (tmp_path / "run").exists()
+
+
+def test_check_of_a_cia301_device_fails_with_its_identity_in_the_json(device, tmp_path,
+                                                                      capsys):
+    """`check --json` against the same device: exit 1 (a check failed), one failed check
+    naming what answered, with its fix, in the text and the JSON; nothing written."""
+    import json
+
+    dev = device(node=5, device_type=0, vendor=0, product=0, revision=0)
+    out = tmp_path / "check.json"
+    assert main(["check", "-i", "virtual", "-c", dev.channel, "--node", "5",
+                 "--json", str(out)]) == 1
+    text = capsys.readouterr().out
+    assert "[FAIL] the device at the node is the profile's (0x1000, 0x1018)" in text, text
+    assert "no standard device profile" in text and "result: FAIL" in text, text
+    report = json.loads(out.read_text())
+    assert report["ok"] is False and report["node"] == 5, report
+    assert [c["ok"] for c in report["checks"]] == [False], report
+    check = report["checks"][0]
+    assert "device type 0x00000000" in check["detail"] and "hil-gateway scan" in check["fix"]
+    assert report["power_stage_enabled"] is False and report["cycles"] == 0
+    nmt, downloads = dev.sent_to_it()
+    assert nmt == [] and downloads == [], (nmt, downloads)
+
+
+def test_check_json_into_a_missing_directory_is_refused_before_the_bus(device, tmp_path,
+                                                                       capsys):
+    """`--json` where it cannot be written: exit 2 at once, said so, no traceback, and not a
+    frame sent (it was written after the whole check, and failed with a traceback)."""
+    dev = device(node=5, device_type=0, vendor=0, product=0, revision=0)
+    assert main(["check", "-i", "virtual", "-c", dev.channel, "--node", "5",
+                 "--json", str(tmp_path / "no-such-dir" / "check.json")]) == 2
+    err = capsys.readouterr().err
+    assert "--json" in err and "does not exist" in err and "Traceback" not in err, err
+    time.sleep(0.2)
+    with dev._lock:
+        assert dev.frames == [], dev.frames
+
+
 def test_an_empty_node_gets_no_nmt(device, tmp_path, capsys):
     """Nothing at node 5: said so, and no NMT command went to node 5 (nor any write)."""
     dev = device(node=1, device_type=0x00010192, vendor=0, product=0x402)
     assert _run(dev, tmp_path, "--node", "5") == 2
     err = capsys.readouterr().err
-    assert "no drive at node 5" in err and "Nothing was sent" in err, err
+    assert "no drive at node 5" in err, err
+    assert "Nothing but that read was sent to the node: no write, no NMT command" in err, err
     nmt, downloads = dev.sent_to_it()
     assert nmt == [] and downloads == []
+
+
+def test_no_drive_is_said_once_on_stderr(tmp_path):
+    """The command line, as a user runs it, at a node nobody answers: stderr is the one
+    paragraph, not preceded by python-canopen's own ERROR log of the SDO transfer it aborts
+    (tests/test_canopend.py: canopend in NMT STOPPED)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "gateway", "run", "-i", "virtual", "-c",
+                        f"nobody-{time.monotonic_ns()}", "--node", "5", "--reference",
+                        "profiles/quick.toml", "--out", str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hil-gateway: error: no drive at node 5"), \
+        p.stderr
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_drive_that_answers_with_an_abort_is_not_reset(emulator, tmp_path, monkeypatch):
