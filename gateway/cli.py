@@ -350,13 +350,13 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     plant = plant if plant is not None else _load_scenario(args.plant)
-    if plant is not None and plant.bus_faults:
-        name = args.plant or plant.source
-        raise UserError(f"--plant {name} injects bus faults ([[bus.fault]]), which act "
-                        "on a CAN bus: run it over the bus with `hil-gateway sim --plant "
-                        f"{name}`")
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
+    if plant is not None and plant.bus_faults and period is None:
+        name = args.plant or plant.source
+        raise UserError(f"--plant {name} injects bus faults ([[bus.fault]]), which act on "
+                        "the PDOs of a sampled run: choose a --period such as 1ms (or run "
+                        f"it over the bus with `hil-gateway sim --plant {name}`)")
     duration = parse_duration(args.duration, "--duration") if args.duration else None
     load = _load_mode(args, plant)
     spec = RunSpec(

@@ -21,11 +21,12 @@ from typing import Any
 
 import numpy as np
 
+from dbc.busfaults import Frame
 from dbc.cia301 import sync_counter
 from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, OperationMode, State
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
-from dbc.timing import internal_rate
+from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
     PAPER_SIGNALS,
     FluxSource,
@@ -34,10 +35,11 @@ from gateway.control.controller import (
     paper_logged,
     untold,
 )
-from gateway.control.interface import ControllerContext, summary_of
+from gateway.control.interface import ControllerContext, DriveController, summary_of
 from gateway.control.laws import current_fed, full_order
 from gateway.cycle import ControlCycle, CycleRow, Truth
-from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, load_drive_profile
+from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, DriveProfile, load_drive_profile
+from gateway.errors import UserError
 from gateway.guard import DivergenceWatch
 from gateway.process_data import process_data
 from gateway.reference import Profile
@@ -108,14 +110,25 @@ class PdoLink:
 
     def tpdos(self, meas: Measurement, sync_counter: int = 0) -> dict[str, float]:
         """The drive's role values as the gateway decodes them, for one measurement."""
-        status = int(State.OPERATION_ENABLED) | SW_REMOTE | (
-            SW_INTERNAL_LIMIT if meas.limit_active else 0)
-        values = tpdo_signals(meas, status, sync_counter)
+        values = _sent(meas, sync_counter)
         return self.pd.quantize(values, tx=True) if self.pd else values
+
+    def tpdo_frames(self, meas: Measurement, sync_counter: int) -> list[Frame]:
+        """The drive's TPDO frames for one measurement, in the order it sends them."""
+        assert self.pd is not None
+        values = _sent(meas, sync_counter)
+        return [Frame(p.cob_id, p.codec.encode(values)) for p in self.pd.tpdos]
 
     def rpdos(self, values: dict[str, float]) -> dict[str, float]:
         """The gateway's role values as the drive decodes them."""
         return self.pd.quantize(values, tx=False) if self.pd else dict(values)
+
+
+def _sent(meas: Measurement, sync_counter: int) -> dict[str, float]:
+    """What the drive's TPDOs carry for one measurement, in Operation enabled."""
+    status = int(State.OPERATION_ENABLED) | SW_REMOTE | (
+        SW_INTERNAL_LIMIT if meas.limit_active else 0)
+    return tpdo_signals(meas, status, sync_counter)
 
 
 def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> DriveParams:
@@ -183,14 +196,12 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     (:class:`gateway.cycle.ControlCycle`), with the PDO codec between them."""
     sampling = spec.sampling
     assert sampling is not None
+    if _plant(spec).bus_faults:
+        return _run_linked(profile, motor, spec, progress, stop, watch, on_record)
     T = sampling.period
     n_cycles = round((spec.duration or profile.duration) / T)
     side = _sampled_drive(profile, motor, spec, T)
-    paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
-    ctl = spec.controller.make(ControllerContext(
-        motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
-        current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0,
-        correction=spec.correction))
+    ctl = _controller(profile, motor, spec)
     if watch is not None:
         watch.envelope = watch.envelope.for_controller(ctl)
     cycle = ControlCycle(ctl, profile, sampling)
@@ -213,6 +224,106 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
         if stop is not None and stop.is_set():  # every cycle: a stop acts within one
             break
     rec.identification = summary_of(ctl)
+    return rec
+
+
+def emulated_drive(spec: RunSpec) -> DriveProfile:
+    """The built-in drive profile whose process data a sampled run's PDO link carries: the
+    emulator's vector modes, or its standard modes."""
+    return load_drive_profile(None, EMULATOR_STANDARD if spec.drive_mode.standard
+                              else EMULATOR)
+
+
+def _controller(profile: Profile, motor: MotorParams, spec: RunSpec) -> DriveController:
+    """The spec's controller for a sampled run against the emulated drive."""
+    assert spec.sampling is not None
+    paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
+    return spec.controller.make(ControllerContext(
+        motor=motor, sampling=spec.sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
+        current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0,
+        correction=spec.correction))
+
+
+class _LinkedDrive:
+    """The sampled drive on frames (:mod:`gateway.faultlink`): an RPDO frame is decoded
+    into what the drive latches at its next SYNC (with the values of the RPDOs it lacks
+    from their last frames, as the device's dictionary keeps them), a SYNC runs one
+    :func:`plant.timing.sync_cycle` and its TPDOs are encoded; its full-resolution state is
+    recorded by its own cycle count, as the emulated device's ``on_sample`` does."""
+
+    def __init__(self, side: _SampledDrive, link: PdoLink, sampling: Sampling,
+                 heartbeat_every: int, truth: Callable[[int, Measurement], None]) -> None:
+        assert link.pd is not None
+        self.side, self.link, self.apply, self.truth = side, link, sampling.apply, truth
+        self.heartbeat_every = heartbeat_every
+        self._rpdos = {p.cob_id: p for p in link.pd.rpdos}
+        self._received: dict[str, float] = {}
+        self._m = 0
+
+    def sync(self, counter: int) -> list[Frame]:
+        meas = sync_cycle(self.side.advance, self.side.latch, self.apply)
+        self._m += 1
+        self.truth(self._m, meas)
+        return self.link.tpdo_frames(meas, counter)
+
+    def rpdo(self, frame: Frame) -> str:
+        pdo = self._rpdos[frame.can_id]
+        if len(frame.data) != pdo.length:
+            return (f"the drive received {pdo.name} (COB-ID 0x{frame.can_id:03X}) of "
+                    f"{len(frame.data)} bytes, expected {pdo.length}: it faults (EMCY 0x8210, "
+                    "PDO length)")
+        self._received.update(pdo.codec.decode(frame.data))
+        self.side.pending.update(self._received)
+        return ""
+
+
+def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
+                progress: Progress | None, stop: threading.Event | None,
+                watch: DivergenceWatch | None,
+                on_record: Callable[[Record], None] | None) -> Record:
+    """The sampled loop with the plant scenario's bus faults: the bus loop's cycle
+    (lockstep) and the sampled drive exchange frames over :mod:`gateway.faultlink`, where
+    the faults act as on a bus. The record has the bus loop's columns and
+    :attr:`Record.link` its account."""
+    from dbc.busfaults import FaultSchedule
+    from gateway.faultlink import check_link_faults, run_link
+    from gateway.loop import CycleLoop, LoopConfig
+    from gateway.runner import guards
+    from gateway.sim import TruthRecorder
+
+    sampling = spec.sampling
+    assert sampling is not None
+    plant = _plant(spec)
+    if not spec.quantize:
+        raise UserError(f"--plant {plant.name}: bus faults act on the PDOs' frames, which "
+                        "--no-quantize leaves out; drop --no-quantize")
+    T = sampling.period
+    schedule = FaultSchedule(plant.bus_faults, T)
+    check_link_faults(schedule, plant.name)
+    drive_profile = emulated_drive(spec)
+    link = PdoLink(True, sampling.setpoint_frame,
+                   EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
+    pd = link.pd
+    assert pd is not None
+    plausibility, envelope = guards(drive_profile, profile, motor, spec)
+    cfg = LoopConfig(n_cycles=round((spec.duration or profile.duration) / T),
+                     sampling=sampling, max_missed=spec.max_missed,
+                     max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
+                     envelope=envelope if watch is not None else None,
+                     envelope_cycles=watch.cycles if watch is not None else 3)
+    ctl = _controller(profile, motor, spec)
+
+    def make_loop(bus: Any, subscribe: Any) -> CycleLoop:
+        return CycleLoop(bus, subscribe, pd, ctl, profile, cfg, fault_marks=schedule.marks)
+
+    truth = TruthRecorder()
+    side = _LinkedDrive(_sampled_drive(profile, motor, spec, T), link, sampling,
+                        max(1, round(drive_profile.heartbeat_ms * 1e-3 / T)), truth)
+    loop, account = run_link(make_loop, pd, schedule, side, drive_profile.node, truth,
+                             progress, stop, on_record)
+    rec = loop.record
+    rec.identification = summary_of(ctl)
+    rec.link = account
     return rec
 
 
