@@ -35,7 +35,7 @@ from typing import Any, Protocol
 
 import can
 
-from dbc.busfaults import FaultKind, FaultSchedule, Frame, FrameFaults, FrameIds, Lane
+from dbc.busfaults import BusFault, FaultKind, FaultSchedule, Frame, FrameFaults, FrameIds, Lane
 from dbc.cia301 import HEARTBEAT_BASE, SYNC_ID, NmtState
 from gateway.errors import UserError
 from gateway.loop import CycleLoop, LoopStats
@@ -86,14 +86,14 @@ class LinkAccount:
     truth: TruthColumns
 
 
-def check_link_faults(schedule: FaultSchedule, source: str) -> None:
+def check_link_faults(faults: tuple[BusFault, ...], source: str) -> None:
     """A :class:`UserError` naming a fault the link cannot carry, and the command that
     runs it over a bus."""
-    for f in schedule.faults:
+    for f in faults:
         why = _NOT_ON_THE_LINK.get((f.kind, f.message or ""))
         if why:
-            raise UserError(f"{source}: bus fault {f.describe()}: {why}; run it over the bus "
-                            f"with `hil-gateway sim --plant {source}`")
+            raise UserError(f"--plant {source}: bus fault {f.describe()}: {why}; run it "
+                            f"over the bus with `hil-gateway sim --plant {source}`")
 
 
 class _Link:

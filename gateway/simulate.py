@@ -39,7 +39,6 @@ from gateway.control.interface import ControllerContext, DriveController, summar
 from gateway.control.laws import current_fed, full_order
 from gateway.cycle import ControlCycle, CycleRow, Truth
 from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, DriveProfile, load_drive_profile
-from gateway.errors import UserError
 from gateway.guard import DivergenceWatch
 from gateway.process_data import process_data
 from gateway.reference import Profile
@@ -295,11 +294,11 @@ def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
     assert sampling is not None
     plant = _plant(spec)
     if not spec.quantize:
-        raise UserError(f"--plant {plant.name}: bus faults act on the PDOs' frames, which "
-                        "--no-quantize leaves out; drop --no-quantize")
+        raise ValueError("bus faults act on the PDOs' frames, which an unquantised run "
+                         "has not")
     T = sampling.period
+    check_link_faults(plant.bus_faults, plant.name)
     schedule = FaultSchedule(plant.bus_faults, T)
-    check_link_faults(schedule, plant.name)
     drive_profile = emulated_drive(spec)
     link = PdoLink(True, sampling.setpoint_frame,
                    EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
