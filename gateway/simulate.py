@@ -7,7 +7,9 @@
   discrete controller exchange exactly what the CANopen PDOs carry, through the codec built
   from ``dbc/drive.dbc`` (INT16 quantisation), with zero-order hold and zero or one period
   of delay. The CANopen loop runs the same cycle code, so a lockstep run over the bus
-  equals this simulation to the last bit.
+  equals this simulation to the last bit. With a plant scenario's bus faults the PDOs go as
+  frames over :mod:`gateway.faultlink`, where the faults act and the bus loop's own cycle
+  (:class:`gateway.loop.CycleLoop`) reacts, as over the bus in lockstep.
 """
 
 from __future__ import annotations
@@ -91,6 +93,9 @@ def run(profile: Profile, motor: MotorParams, spec: RunSpec,
     ``on_record``: called with the record before its first row (a live scope reads it).
     """
     if spec.sampling is None:
+        if _plant(spec).bus_faults:
+            raise ValueError("bus faults act on the PDOs of a sampled run: choose a period "
+                             "such as 1ms")
         return run_continuous(profile, motor, spec, progress, stop, watch, on_record)
     return run_sampled(profile, motor, spec, progress, stop, watch, on_record)
 
