@@ -1,5 +1,8 @@
 """A python-can bus that injects a scenario's bus faults between the gateway and the drive
-(:mod:`dbc.busfaults`): the gateway's bus wrapped, so that neither side is modified.
+(:mod:`dbc.busfaults`): the gateway's bus wrapped, so that neither side is modified. What a
+fault does to a frame is :class:`dbc.busfaults.FrameFaults`' (`simulate`'s PDO link,
+:mod:`gateway.faultlink`, uses the same); this bus carries the frames, their echoes and the
+wall-clock parts.
 
 Direction is told by COB-ID: the gateway's frames (SYNC, its RPDOs, NMT, SDO requests, its
 heartbeat) are acted on when the gateway sends them; every other frame (the drive's TPDOs,

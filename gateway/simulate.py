@@ -24,10 +24,11 @@ from typing import Any
 import numpy as np
 
 from dbc.busfaults import Frame
-from dbc.cia301 import sync_counter
+from dbc.cia301 import Emcy, sync_counter
 from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, OperationMode, State
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
+from dbc.signals import SETPOINTS
 from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
     PAPER_SIGNALS,
@@ -141,6 +142,11 @@ def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> D
     return replace(params, mode=mode, f_pwm=internal_rate(params.f_pwm, T))
 
 
+#: The roles of the (d, q) frame, and of any setpoint (the frame's or a reference).
+_FRAME_ROLES = frozenset({"eps_0", "w_0"})
+_SETPOINT_ROLES = _FRAME_ROLES | {r for roles in SETPOINTS.values() for r in roles}
+
+
 class _SampledDrive:
     """The drive's side of the sampled loop, as the emulated device does it: the RPDO
     values received since the last latch become active at the latch (the vector setpoints,
@@ -156,17 +162,28 @@ class _SampledDrive:
         self.target_role = mode.target or ""
         self.target = 0.0
         self.pending: dict[str, float] = {}
+        #: the roles whose RPDOs came since the last latch (None: all of them, the PDO link
+        #: without faults): setpoints are applied when some came, and restart the (d, q)
+        #: frame when the frame's came, as the emulated device does
+        self.fresh: set[str] | None = None
         self.T_L = 0.0
 
     def latch(self) -> None:
-        pending, servo = self.pending, self.servo
+        pending, servo, fresh = self.pending, self.servo, self.fresh
         if pending:
             if servo is None:
-                self.drive.set_setpoints(setpoints_from_rpdos(pending, pending))
+                if fresh is None or fresh & _SETPOINT_ROLES:
+                    sp = setpoints_from_rpdos(pending, pending)
+                    if fresh is None or fresh & _FRAME_ROLES:
+                        self.drive.set_setpoints(sp)
+                    else:  # references alone: the frame runs on
+                        self.drive.set_references(sp)
             else:
                 self.target = pending.get(self.target_role, self.target)
             self.T_L = pending["T_L"]
             pending.clear()
+            if fresh is not None:
+                fresh.clear()
         if servo is not None:  # as the emulated device does at every SYNC
             self.drive.set_setpoints(servo.follow(self.op_mode, self.target))
 
@@ -263,6 +280,7 @@ class _LinkedDrive:
         self._rpdos = {p.cob_id: p for p in link.pd.rpdos}
         self._received: dict[str, float] = {}
         self._m = 0
+        side.fresh = set()
 
     def sync(self, counter: int) -> list[Frame]:
         meas = sync_cycle(self.side.advance, self.side.latch, self.apply)
@@ -272,12 +290,13 @@ class _LinkedDrive:
 
     def rpdo(self, frame: Frame) -> str:
         pdo = self._rpdos[frame.can_id]
-        if len(frame.data) != pdo.length:
-            return (f"the drive received {pdo.name} (COB-ID 0x{frame.can_id:03X}) of "
-                    f"{len(frame.data)} bytes, expected {pdo.length}: it faults (EMCY 0x8210, "
-                    "PDO length)")
-        self._received.update(pdo.codec.decode(frame.data))
+        if len(frame.data) != pdo.length:  # the device faults, and says so by EMCY
+            return f"EMCY 0x{Emcy.PDO_LENGTH:04X}: {Emcy.PDO_LENGTH.text}"
+        values = pdo.codec.decode(frame.data)
+        self._received.update(values)
         self.side.pending.update(self._received)
+        assert self.side.fresh is not None
+        self.side.fresh.update(values)
         return ""
 
 

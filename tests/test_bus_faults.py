@@ -238,6 +238,31 @@ def test_a_seeded_run_is_reproducible_bit_for_bit(tmp_path):
     assert marked.min() >= 0.1 - 1e-9 and marked.max() < 0.15 + 1e-9  # its window
 
 
+@pytest.mark.parametrize("fault, stop", [
+    ('kind = "drop"\nmessage = "RPDO1"\ncycle = 300\nduration = 0.002', "END_OF_PROFILE"),
+    ('kind = "drop"\nmessage = "RPDO3"\nstart = 0.3\nduration = 0.01', "END_OF_PROFILE"),
+    ('kind = "dlc"\nmessage = "RPDO2"\ncycle = 100\nduration = 0.001', "DRIVE_FAULT"),
+    ('kind = "corrupt"\nmessage = "TPDO1"\nstart = 0.3\nprobability = 0.1\nseed = 4',
+     "IMPLAUSIBLE"),
+], ids=["rpdo1-drop", "rpdo3-drop", "rpdo2-dlc", "tpdo1-corrupt"])
+def test_simulate_equals_sim_where_the_drive_takes_the_fault(tmp_path, fault, stop):
+    """The drive's side: the references without their frame (the frame runs on), the load
+    torque held, an RPDO of the wrong length (the drive faults), corrupted measurements
+    (the plausibility guard): the same as the emulated device on the bus."""
+    path = tmp_path / "fault.toml"
+    path.write_text(f"[[bus.fault]]\n{fault}\n")
+    rc_a, a, sa = _run(tmp_path / "a", "simulate", str(path), "--no-figures")
+    rc_b, b, sb = _run(tmp_path / "b", "sim", str(path), "--no-figures")
+    assert rc_a == rc_b == (0 if stop == "END_OF_PROFILE" else 1)
+    assert a["run"]["stop"] == b["run"]["stop"] == stop
+    assert {k: a["run"][k] for k in ACCOUNT} == {k: b["run"][k] for k in ACCOUNT}
+    assert a["run"]["stop_reason"] == b["run"]["stop_reason"]
+    assert a["bus_faults"] == b["bus_faults"]
+    for c in sb:
+        if c not in TIMING:
+            np.testing.assert_array_equal(sa[c], sb[c], err_msg=c)
+
+
 def test_a_seeded_simulation_is_reproducible_and_marks_each_fault(tmp_path):
     _, s1, a = _run(tmp_path / "1", "simulate", "bus-duplicate", "--no-figures")
     _, s2, b = _run(tmp_path / "2", "simulate", "bus-duplicate", "--no-figures")
