@@ -44,10 +44,7 @@ from gateway.report import Record
 from gateway.results import TruthColumns
 from gateway.stop import StopReason
 
-__all__ = ["GATEWAY_NODE", "LinkAccount", "LinkedDrive", "check_link_faults", "run_link"]
-
-#: The gateway's node on the link (as `sim` has it): its heartbeat's COB-ID.
-GATEWAY_NODE = 0x7F
+__all__ = ["LinkAccount", "LinkedDrive", "check_link_faults", "run_link"]
 
 #: Kinds the link cannot carry, and why (the drive's heartbeat watch of the gateway runs
 #: on a bus only).
@@ -115,6 +112,13 @@ class _Link:
         self._tx, self._rx = Lane(), Lane()
         self._drive_cycles = 0
         self._heartbeat = bytes([NmtState.OPERATIONAL.heartbeat])
+        #: the drive faulted (the master's fault event on a bus: the loop stops at its next
+        #: check, with :meth:`fault_cause`)
+        self.fault = threading.Event()
+        self._cause: tuple[StopReason, str] | None = None
+
+    def fault_cause(self) -> tuple[StopReason, str] | None:
+        return self._cause
 
     def subscribe(self, can_id: int, handler: Callable[[int, bytearray, float], None]
                   ) -> None:
@@ -189,24 +193,28 @@ class _Link:
             return
         if f.can_id in self.ids.rpdos:
             why = self.drive.rpdo(f)
-            if why and self.loop is not None:
-                self.loop.request_stop(why, StopReason.DRIVE_FAULT)
+            if why and not self.fault.is_set():
+                self._cause = (StopReason.DRIVE_FAULT, why)
+                self.fault.set()
 
 
-def run_link(loop_factory: Callable[[Any, Any], CycleLoop], pd: ProcessData,
-             schedule: FaultSchedule, drive: LinkedDrive, node: int, truth: TruthColumns,
+def run_link(loop_factory: Callable[[_Link], CycleLoop], pd: ProcessData,
+             schedule: FaultSchedule, drive: LinkedDrive, node: int, gateway_node: int,
+             truth: TruthColumns,
              progress: Callable[[float], None] | None = None,
              stop: threading.Event | None = None,
              on_record: Callable[[Record], None] | None = None
              ) -> tuple[CycleLoop, LinkAccount]:
     """Run the lockstep loop against ``drive`` over the link with ``schedule``'s faults.
 
-    ``loop_factory(bus, subscribe)``: the loop on the link's bus; ``on_record``: called
+    ``loop_factory(link)``: the loop on the link (its bus: ``subscribe``, ``fault``,
+    ``fault_cause`` as a master gives them); ``node``,
+    ``gateway_node``: the drive's and the gateway's (their COB-IDs); ``on_record``: called
     with its record before the first cycle. Returns the loop (its record) and the account
     of the run."""
-    ids = FrameIds.of(pd, node, GATEWAY_NODE)
+    ids = FrameIds.of(pd, node, gateway_node)
     link = _Link(FrameFaults(schedule, ids.messages), ids, drive)
-    loop = link.loop = loop_factory(link, link.subscribe)
+    loop = link.loop = loop_factory(link)
     if on_record is not None:
         on_record(loop.record)
     n = loop.cfg.n_cycles
@@ -215,8 +223,11 @@ def run_link(loop_factory: Callable[[Any, Any], CycleLoop], pd: ProcessData,
     loop.start_lockstep()
     shown = 0
     while not loop.done:
-        if not link.move():
-            loop.backstop()  # the cycle's TPDOs will not come
+        if not link.move():  # nothing more comes in this cycle
+            if link.fault.is_set():
+                loop.stop_on_fault()  # as the bus loop's watch does, before its backstop
+            else:
+                loop.backstop()  # the cycle's TPDOs will not come
         if stop is not None and stop.is_set() and not loop.done:
             loop.request_stop("stopped by a signal")
         if progress is not None and link.k >= shown + step:

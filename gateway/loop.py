@@ -584,8 +584,7 @@ class CycleLoop:
                     self._progress_at = max(self._progress_at, now)
                 last_wake = now
                 if self.fault.is_set():  # no cycle running to notice it (e.g. no TPDOs)
-                    with self._lock:
-                        self._drive_faulted()
+                    self.stop_on_fault()
                     break
                 if progress is not None:
                     progress(self._k_done / self.cfg.n_cycles)
@@ -621,6 +620,12 @@ class CycleLoop:
                                        < self.cfg.tpdo_timeout):
                 return
             self._backstop_locked()
+
+    def stop_on_fault(self) -> None:
+        """The master saw a fault and no cycle is running to notice it: stop with its
+        cause."""
+        with self._lock:
+            self._drive_faulted()
 
     def backstop(self) -> None:
         """Lockstep: the cycle open will get no more TPDOs: count it as missed (the

@@ -336,14 +336,15 @@ def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
                      envelope_cycles=watch.cycles if watch is not None else 3)
     ctl = _controller(profile, motor, spec)
 
-    def make_loop(bus: Any, subscribe: Any) -> CycleLoop:
-        return CycleLoop(bus, subscribe, pd, ctl, profile, cfg, fault_marks=schedule.marks)
+    def make_loop(link: Any) -> CycleLoop:
+        return CycleLoop(link, link.subscribe, pd, ctl, profile, cfg, fault=link.fault,
+                         fault_cause=link.fault_cause, fault_marks=schedule.marks)
 
     truth = TruthRecorder()
     side = _LinkedDrive(_sampled_drive(profile, motor, spec, T), link, sampling,
                         max(1, round(drive_profile.heartbeat_ms * 1e-3 / T)), truth)
-    loop, account = run_link(make_loop, pd, schedule, side, drive_profile.node, truth,
-                             progress, stop, on_record)
+    loop, account = run_link(make_loop, pd, schedule, side, drive_profile.node,
+                             drive_profile.gateway_node, truth, progress, stop, on_record)
     rec = loop.record
     rec.identification = summary_of(ctl)
     rec.link = account
