@@ -372,3 +372,53 @@ def test_a_fault_on_a_message_the_drive_has_not_is_named(tmp_path, capsys):
     path.write_text('[[bus.fault]]\nkind = "drop"\nmessage = "TPDO9"\n')
     assert main(["sim", "--plant", str(path), "--out", str(tmp_path / "o")]) == 2
     assert "TPDO9" in capsys.readouterr().err
+
+
+def test_the_bridge_acts_through_the_same_frame_faults():
+    """`hil-gateway bridge` (gateway/faultbus.py's bridge mode) between two virtual buses:
+    a TPDO delayed to the next cycle comes after that cycle's SYNC, a dropped one never."""
+    import threading
+
+    import can
+
+    from gateway.drive_profile import load_drive_profile
+    from gateway.faultbus import run_bridge
+    from gateway.process_data import process_data
+
+    def bus(channel: str) -> can.BusABC:
+        return can.Bus(interface="virtual", channel=channel)
+
+    gateway_side, gateway = bus("bridge-test-gw"), bus("bridge-test-gw")
+    drive_side, drive = bus("bridge-test-drive"), bus("bridge-test-drive")
+    faults = (BusFault(FaultKind.DELAY, "TPDO2", cycle=1, duration=1e-3, delay=1e-3),
+              BusFault(FaultKind.DROP, "TPDO1", cycle=2, duration=1e-3))
+    stop = threading.Event()
+    done: list = []
+    bridge = threading.Thread(target=lambda: done.append(run_bridge(
+        gateway_side, drive_side, faults, 1e-3, process_data(load_drive_profile(None)), 1,
+        0x7F, stop)), daemon=True)
+    bridge.start()
+
+    def received(b: can.BusABC) -> list[tuple[int, bytes]]:
+        out = []
+        while (m := b.recv(0.5)) is not None:
+            out.append((m.arbitration_id, bytes(m.data)))
+        return out
+
+    try:
+        for k in (1, 2):
+            gateway.send(can.Message(arbitration_id=0x080, data=[k], is_extended_id=False))
+            assert received(drive) == [(0x080, bytes([k]))]
+            for cob in (0x181, 0x281):
+                drive.send(can.Message(arbitration_id=cob, data=[k], is_extended_id=False))
+            got = received(gateway)
+            if k == 1:
+                assert got == [(0x181, b"\x01")]  # TPDO2 held for a cycle
+            else:
+                assert got == [(0x281, b"\x01"), (0x281, b"\x02")]  # TPDO1 dropped
+    finally:
+        stop.set()
+        bridge.join(5)
+        for b in (gateway_side, gateway, drive_side, drive):
+            b.shutdown()
+    assert [f["acted"] for f in done[0].schedule.account()] == [1, 1]
