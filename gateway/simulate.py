@@ -226,8 +226,7 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     if watch is not None:
         watch.envelope = watch.envelope.for_controller(ctl)
     cycle = ControlCycle(ctl, profile, sampling)
-    link = PdoLink(spec.quantize, sampling.setpoint_frame,
-                   EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
+    link = PdoLink(spec.quantize, sampling.setpoint_frame, _emulator(spec.drive_mode))
     rec = Record(cycle.row_type)
     if on_record is not None:
         on_record(rec)
@@ -248,11 +247,15 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     return rec
 
 
+def _emulator(mode: DriveMode) -> str:
+    """The built-in drive profile of the emulator in ``mode``: its vector modes, or its
+    standard modes."""
+    return EMULATOR_STANDARD if mode.standard else EMULATOR
+
+
 def emulated_drive(spec: RunSpec) -> DriveProfile:
-    """The built-in drive profile whose process data a sampled run's PDO link carries: the
-    emulator's vector modes, or its standard modes."""
-    return load_drive_profile(None, EMULATOR_STANDARD if spec.drive_mode.standard
-                              else EMULATOR)
+    """The built-in drive profile whose process data a sampled run's PDO link carries."""
+    return load_drive_profile(None, _emulator(spec.drive_mode))
 
 
 def _controller(profile: Profile, motor: MotorParams, spec: RunSpec) -> DriveController:
@@ -324,24 +327,26 @@ def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
     check_link_faults(plant.bus_faults, plant.name)
     schedule = FaultSchedule(plant.bus_faults, T)
     drive_profile = emulated_drive(spec)
-    link = PdoLink(True, sampling.setpoint_frame,
-                   EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
-    pd = link.pd
+    codec = PdoLink(True, sampling.setpoint_frame, _emulator(spec.drive_mode))
+    pd = codec.pd
     assert pd is not None
-    plausibility, envelope = guards(drive_profile, profile, motor, spec)
+    # the bus loop's guards, as `sim` has them: the drive's plausibility limits and the
+    # caller's divergence envelope (the loop watches it itself)
+    plausibility, _ = guards(drive_profile, profile, motor, spec)
     cfg = LoopConfig(n_cycles=round((spec.duration or profile.duration) / T),
                      sampling=sampling, max_missed=spec.max_missed,
                      max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
-                     envelope=envelope if watch is not None else None,
+                     envelope=watch.envelope if watch is not None else None,
                      envelope_cycles=watch.cycles if watch is not None else 3)
     ctl = _controller(profile, motor, spec)
 
-    def make_loop(link: Any) -> CycleLoop:
-        return CycleLoop(link, link.subscribe, pd, ctl, profile, cfg, fault=link.fault,
-                         fault_cause=link.fault_cause, fault_marks=schedule.marks)
+    def make_loop(carrier: Any) -> CycleLoop:
+        return CycleLoop(carrier, carrier.subscribe, pd, ctl, profile, cfg,
+                         fault=carrier.fault, fault_cause=carrier.fault_cause,
+                         fault_marks=schedule.marks)
 
     truth = TruthRecorder()
-    side = _LinkedDrive(_sampled_drive(profile, motor, spec, T), link, sampling,
+    side = _LinkedDrive(_sampled_drive(profile, motor, spec, T), codec, sampling,
                         max(1, round(drive_profile.heartbeat_ms * 1e-3 / T)), truth)
     loop, account = run_link(make_loop, pd, schedule, side, drive_profile.node,
                              drive_profile.gateway_node, truth, progress, stop, on_record)
