@@ -1,6 +1,8 @@
 """Bus faults injected on purpose between the gateway and the drive: what they are, when
-they act, and what each does to a frame — pure, with no I/O (the bus side is
-:mod:`gateway.faultbus`).
+they act, and what each does to a frame — pure, with no I/O. Two carriers use it: a bus
+(:mod:`gateway.faultbus`, `sim` and the two-process bridge) and `simulate`'s PDO link
+(:mod:`gateway.faultlink`); both act through :class:`FrameFaults`, so a fault does the
+same thing to the same frame in either.
 
 A fault is an entry of a plant scenario's ``[[bus.fault]]`` list::
 
@@ -22,11 +24,25 @@ from __future__ import annotations
 import math
 import random
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Any
 
-__all__ = ["BusFault", "BusFaultError", "FaultKind", "FaultSchedule", "parse_bus_faults"]
+from dbc.cia301 import HEARTBEAT_BASE, NMT_ID, SYNC_ID
+
+__all__ = [
+    "PER_MESSAGE",
+    "BusFault",
+    "BusFaultError",
+    "Fate",
+    "FaultKind",
+    "FaultSchedule",
+    "Frame",
+    "FrameFaults",
+    "FrameIds",
+    "Lane",
+    "parse_bus_faults",
+]
 
 
 class FaultKind(StrEnum):
@@ -50,7 +66,7 @@ class FaultKind(StrEnum):
     @property
     def needs_message(self) -> bool:
         """A DBC message (or the heartbeat's owner) the fault acts on."""
-        return self in _PER_MESSAGE or self is FaultKind.HEARTBEAT_STOP
+        return self in PER_MESSAGE or self is FaultKind.HEARTBEAT_STOP
 
     @property
     def bit(self) -> int:
@@ -58,7 +74,7 @@ class FaultKind(StrEnum):
         return 1 << list(FaultKind).index(self)
 
 
-_PER_MESSAGE = frozenset({FaultKind.DROP, FaultKind.DELAY, FaultKind.DUPLICATE,
+PER_MESSAGE = frozenset({FaultKind.DROP, FaultKind.DELAY, FaultKind.DUPLICATE,
                           FaultKind.REORDER, FaultKind.CORRUPT, FaultKind.DLC})
 _KEYS = {"kind": str, "message": str, "start": (int, float), "cycle": int,
          "duration": (int, float), "probability": (int, float), "seed": int,
@@ -212,3 +228,187 @@ class FaultSchedule:
         """Each fault and how many frames (or cycles) it acted on, for summary.json."""
         return [{"fault": f.describe(), "kind": f.kind.value, "acted": n}
                 for f, n in zip(self.faults, self.counts, strict=True)]
+
+
+# ------------------------------------------------------------------- frame by frame
+
+_SDO_RX = 0x600  #: SDO requests to the drive (client → server)
+
+
+@dataclass(frozen=True)
+class FrameIds:
+    """The COB-IDs of the run: message name → COB-ID (the drive profile's PDOs), the
+    drive's node, the gateway's node, the gateway's RPDOs."""
+
+    messages: dict[str, int]
+    node: int
+    gateway_node: int
+    rpdos: frozenset[int]
+
+    @classmethod
+    def of(cls, pd: object, node: int, gateway_node: int) -> FrameIds:
+        """The COB-IDs of a drive's process data (``gateway.process_data.ProcessData``)."""
+        pdos = getattr(pd, "pdos", ())
+        return cls({p.name: p.cob_id for p in pdos}, node, gateway_node,
+                   frozenset(p.cob_id for p in pdos if not p.tx))
+
+    def from_gateway(self, can_id: int) -> bool:
+        """A frame the gateway sends (SYNC, RPDOs, NMT, SDO requests, its heartbeat)."""
+        return (can_id in (SYNC_ID, NMT_ID, _SDO_RX + self.node,
+                           HEARTBEAT_BASE + self.gateway_node) or can_id in self.rpdos)
+
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """A CAN frame as the faults see it: COB-ID, data, an error frame or not, and the time
+    it was received (s; 0: none)."""
+
+    can_id: int
+    data: bytes = b""
+    error: bool = False
+    timestamp: float = 0.0
+
+    def with_data(self, data: bytes) -> Frame:
+        return replace(self, data=data)
+
+
+@dataclass(frozen=True)
+class Fate:
+    """What the per-message faults do to one frame: the frames that go on now (none when it
+    is lost, delayed or held back), the frame held back behind the next frame of its
+    direction (reorder), a frame delayed by ``later[0]`` cycles."""
+
+    now: tuple[Frame, ...]
+    held: Frame | None = None
+    later: tuple[int, Frame] | None = None
+
+
+class Lane:
+    """One direction of frames (the gateway's, or those to the gateway): the frames delayed
+    to a later cycle, and the one held back behind the next frame (reorder)."""
+
+    def __init__(self) -> None:
+        self._delayed: list[tuple[int, Frame]] = []
+        self._behind: Frame | None = None
+
+    def pass_on(self, fate: Fate, now: int) -> list[Frame]:
+        """The frames that go on now for ``fate`` (in cycle, or count, ``now``: a delayed
+        frame is released ``later[0]`` after it); the frame held back before goes after
+        them."""
+        if fate.later is not None:
+            n, frame = fate.later
+            self._delayed.append((now + n, frame))
+        frames = list(fate.now)
+        if self._behind is not None:
+            frames.append(self._behind)
+        self._behind = fate.held
+        return frames
+
+    def release(self, now: int) -> list[Frame]:
+        """The delayed frames due by ``now``, in the order they were delayed."""
+        due = [f for at, f in self._delayed if at <= now]
+        self._delayed = [(at, f) for at, f in self._delayed if at > now]
+        return due
+
+
+class FrameFaults:
+    """What the faults of ``schedule`` do, frame by frame and cycle by cycle, whatever
+    carries the frames. ``messages``: the drive's message names → COB-IDs (a per-message
+    fault names one, or SYNC)."""
+
+    def __init__(self, schedule: FaultSchedule, messages: Mapping[str, int]) -> None:
+        self.schedule = schedule
+        self._carry: dict[int, float] = {}  # fractional frames per cycle (rates)
+        self._by_id: dict[int, list[int]] = {}
+        for i, f in enumerate(schedule.faults):
+            if f.kind in PER_MESSAGE and f.message is not None:
+                cob = SYNC_ID if f.message == "SYNC" else messages.get(f.message)
+                if cob is None:
+                    raise ValueError(f"bus fault {f.describe()}: {f.message!r} is not a "
+                                     f"message of the drive's DBC ({', '.join(messages)})")
+                self._by_id.setdefault(cob, []).append(i)
+
+    def on_frame(self, frame: Frame, k: int) -> Fate:
+        """The per-message faults on one frame in cycle ``k``."""
+        s = self.schedule
+        now: tuple[Frame, ...] = (frame,)
+        for i in self._by_id.get(frame.can_id, ()):
+            f = s.faults[i]
+            if not now or not s.acts(i, max(1, k)):
+                continue
+            m = now[0]
+            if f.kind is FaultKind.DROP:
+                return Fate(())
+            if f.kind is FaultKind.DUPLICATE:
+                now = (m, m)
+            elif f.kind is FaultKind.DELAY:
+                return Fate((), later=(max(1, math.ceil(f.delay / s.period - 1e-9)), m))
+            elif f.kind is FaultKind.CORRUPT and m.data:
+                rng = s.rng(i)
+                data = bytearray(m.data)
+                data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+                now = (m.with_data(bytes(data)),)
+            elif f.kind is FaultKind.DLC:
+                n = f.dlc if f.dlc is not None else max(0, len(m.data) - 1)
+                now = (m.with_data((m.data + bytes(8))[:n]),)
+            elif f.kind is FaultKind.REORDER:
+                return Fate((), held=m)
+        return Fate(now)
+
+    def sync(self, k: int) -> tuple[float, bool]:
+        """SYNC ``k``: how late it leaves (s), and whether the drive misses it."""
+        s = self.schedule
+        delay, missing = 0.0, False
+        for i, f in enumerate(s.faults):
+            if f.kind is FaultKind.SYNC_MISSING and s.acts(i, k):
+                missing = True
+            elif f.kind is FaultKind.SYNC_LATE and s.acts(i, k):
+                delay += f.delay
+            elif f.kind is FaultKind.SYNC_JITTER and s.acts(i, k):
+                delay += s.rng(i).uniform(0.0, f.jitter)
+        return delay, missing
+
+    def others(self, k: int) -> list[Frame]:
+        """The frames other nodes send in cycle ``k``, before its SYNC: babble, error
+        frames, a second master's SYNC."""
+        s = self.schedule
+        out: list[Frame] = []
+        for i, f in enumerate(s.faults):
+            if not s.active(i, k):
+                continue
+            if f.kind is FaultKind.BABBLE:
+                for _ in range(self._count(i, f)):
+                    s.acts(i, k)
+                    assert f.id is not None
+                    out.append(Frame(f.id, bytes(s.rng(i).randrange(256) for _ in range(8))))
+            elif f.kind is FaultKind.ERROR_FRAMES:
+                out += [Frame(0, error=True) for _ in range(self._count(i, f))
+                        if s.acts(i, k)]
+            elif f.kind is FaultKind.SECOND_MASTER and s.acts(i, k):
+                out.append(Frame(SYNC_ID, bytes([(k + 100) % 240 + 1])))
+        return out
+
+    def _count(self, i: int, f: BusFault) -> int:
+        """Frames a rate gives this cycle (the fractions carried over)."""
+        want = self._carry.get(i, 0.0) + f.rate * self.schedule.period
+        n = math.floor(want)
+        self._carry[i] = want - n
+        return n
+
+    def heartbeat_stopped(self, whose: str, k: int) -> bool:
+        """The heartbeat of ``whose`` ("drive" or "gateway") is lost in cycle ``k``."""
+        s = self.schedule
+        return any(f.kind is FaultKind.HEARTBEAT_STOP and f.message == whose
+                   and s.acts(i, max(1, k)) for i, f in enumerate(s.faults))
+
+    def bus_off(self, k: int) -> BusFault | None:
+        """The bus-off that takes the gateway's controller off the bus at a send in cycle
+        ``k`` (counted once it acts), or None; the carrier keeps it off for its
+        ``duration``."""
+        s = self.schedule
+        for i, f in enumerate(s.faults):
+            if f.kind is FaultKind.BUS_OFF and s.active(i, max(1, k)):
+                s.acts(i, max(1, k))
+                return f
+        return None

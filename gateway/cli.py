@@ -350,11 +350,6 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
     plant = plant if plant is not None else _load_scenario(args.plant)
-    if plant is not None and plant.bus_faults:
-        name = args.plant or plant.source
-        raise UserError(f"--plant {name} injects bus faults ([[bus.fault]]), which act "
-                        "on a CAN bus: run it over the bus with `hil-gateway sim --plant "
-                        f"{name}`")
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
     duration = parse_duration(args.duration, "--duration") if args.duration else None
@@ -368,6 +363,8 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
         identify=args.identify, correction=_correction(args, period is not None),
         controller=_controller_choice(args, controller_params),
     )
+    if plant is not None and plant.bus_faults:
+        _check_simulated_faults(spec, args.plant or plant.source)
     label = "continuous" if period is None else format_duration(period)
     total = duration or profile.duration
     n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
@@ -375,6 +372,25 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
                              f"simulating {total:g} s at {label}")
     return RunInputs(spec, profile, motor, report.profile_windows(profile, args.windows),
                      label=label)
+
+
+def _check_simulated_faults(spec: Any, name: str) -> None:
+    """A plant scenario's bus faults act on the frames of a sampled, quantised run's PDO
+    link (:mod:`gateway.faultlink`): a UserError, naming what to change, otherwise."""
+    from gateway.faultbus import check_faults
+    from gateway.faultlink import check_link_faults
+    from gateway.process_data import process_data
+    from gateway.simulate import emulated_drive
+
+    if spec.sampling is None:
+        raise UserError(f"--plant {name} injects bus faults ([[bus.fault]]), which act on "
+                        "the PDOs of a sampled run: choose a --period such as 1ms (or run "
+                        f"it over the bus with `hil-gateway sim --plant {name}`)")
+    if not spec.quantize:
+        raise UserError(f"--plant {name} injects bus faults ([[bus.fault]]), which act on "
+                        "the PDOs' frames; --no-quantize has none: drop --no-quantize")
+    check_link_faults(spec.plant.bus_faults, name)
+    check_faults(spec.plant.bus_faults, process_data(emulated_drive(spec)), f"--plant {name}")
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -455,6 +471,12 @@ def _print_simulation(spec: Any, profile: Any, label: str, result: Any,
           f"wrote {result.out}/" + ", ".join(p.name for p in result.files)
           + ("" if drawn or result.write_errors or not figures
              else " (install matplotlib for the figures)"))
+    if "bus_faults" in summary:  # the loop's account, as a bus run prints it
+        from gateway.runner import timing_table
+
+        print(timing_table(summary))
+        for f in summary["bus_faults"]:
+            print(f"bus fault {f['fault']}: acted {f['acted']} time(s)")
     stop = summary["run"]["stop"]
     if stop == "DIVERGED":
         print(f"{PROG}: the loop diverged and the simulation stopped: "
@@ -464,6 +486,10 @@ def _print_simulation(spec: Any, profile: Any, label: str, result: Any,
     elif "stopped_early" in summary:
         print(f"{PROG}: stopped early ({summary['stopped_early']}); the files hold the run so "
               "far", file=sys.stderr)
+    elif stop != "END_OF_PROFILE":  # a bus fault's reaction
+        print(f"{PROG}: the run stopped early ({stop.lower().replace('_', ' ')}): "
+              f"{summary['run']['stop_reason']}; the files hold the run up to there",
+              file=sys.stderr)
 
 
 # ------------------------------------------------------------------------- run / sim
@@ -1071,8 +1097,10 @@ def _add_simulate(sub: Any) -> None:
                     "A loop that leaves the divergence envelope of the bus loop (speed, "
                     "current, flux, voltage or speed error beyond the profile's demand + "
                     "margin, or field orientation lost, 3 cycles in a row) is stopped there. "
-                    "Exit status: 0 at the "
-                    "profile's end, 1 diverged, 130 interrupted, 2 bad input.")
+                    "A sampled run injects the bus faults of a --plant scenario "
+                    "([[bus.fault]]) on its PDO frames, with the bus loop's reactions (as "
+                    "`sim` in lockstep). Exit status: 0 at the profile's end, 1 diverged or "
+                    "stopped by a bus fault, 130 interrupted, 2 bad input.")
     _add_control_options(p)
     from dbc.modes import DriveMode, SetpointFrame
 

@@ -137,10 +137,11 @@ def run_scenario(profile: str | Path = "quick", *, where: Where | str = Where.SI
     except ProfileError as exc:
         raise UserError(str(exc)) from exc
     scenario = load_scenario(plant) if plant is not None else None
-    if scenario is not None and scenario.bus_faults and where is not Where.SIM:
+    if scenario is not None and scenario.bus_faults and where is Where.VCAN:
         raise UserError(f"plant {plant!r} injects bus faults ([[bus.fault]]), which act on "
-                        "the bus between the gateway and the emulated drive in this process: "
-                        "run it with where='sim'")
+                        "the bus between the gateway and the emulated drive in this process, "
+                        "or on simulate's PDO link: run it with where='sim' or 'simulate' "
+                        "(over vcan: `hil-gateway bridge`)")
     spec = _spec(where, controller, controller_params, scenario, duration, drive_mode, period,
                  options)
     motor_params = _motor(motor)

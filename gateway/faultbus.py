@@ -1,5 +1,8 @@
 """A python-can bus that injects a scenario's bus faults between the gateway and the drive
-(:mod:`dbc.busfaults`): the gateway's bus wrapped, so that neither side is modified.
+(:mod:`dbc.busfaults`): the gateway's bus wrapped, so that neither side is modified. What a
+fault does to a frame is :class:`dbc.busfaults.FrameFaults`' (`simulate`'s PDO link,
+:mod:`gateway.faultlink`, uses the same); this bus carries the frames, their echoes and the
+wall-clock parts.
 
 Direction is told by COB-ID: the gateway's frames (SYNC, its RPDOs, NMT, SDO requests, its
 heartbeat) are acted on when the gateway sends them; every other frame (the drive's TPDOs,
@@ -17,50 +20,30 @@ medium.
 from __future__ import annotations
 
 import contextlib
-import math
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
 
 import can
 
-from dbc.busfaults import BusFault, FaultKind, FaultSchedule
-from dbc.cia301 import HEARTBEAT_BASE, NMT_ID, SYNC_ID
+from dbc.busfaults import (
+    PER_MESSAGE,
+    BusFault,
+    FaultSchedule,
+    Frame,
+    FrameFaults,
+    FrameIds,
+    Lane,
+)
+from dbc.cia301 import HEARTBEAT_BASE, SYNC_ID
 
-__all__ = ["FaultyBus", "FrameIds", "check_faults", "inject"]
-
-_SDO_RX = 0x600  #: SDO requests to the drive (client → server)
-_FRAME_KINDS = frozenset({FaultKind.DROP, FaultKind.DELAY, FaultKind.DUPLICATE,
-                          FaultKind.REORDER, FaultKind.CORRUPT, FaultKind.DLC})
-
-
-@dataclass(frozen=True)
-class FrameIds:
-    """The COB-IDs of the run: message name → COB-ID (the drive profile's PDOs), the
-    drive's node, the gateway's node."""
-
-    messages: dict[str, int]
-    node: int
-    gateway_node: int
-    rpdos: frozenset[int]
-
-    @classmethod
-    def of(cls, pd: object, node: int, gateway_node: int) -> FrameIds:
-        """The COB-IDs of a drive's process data (:class:`gateway.process_data.ProcessData`)."""
-        pdos = getattr(pd, "pdos", ())
-        return cls({p.name: p.cob_id for p in pdos}, node, gateway_node,
-                   frozenset(p.cob_id for p in pdos if not p.tx))
-
-    def from_gateway(self, can_id: int) -> bool:
-        """A frame the gateway sends (SYNC, RPDOs, NMT, SDO requests, its heartbeat)."""
-        return (can_id in (SYNC_ID, NMT_ID, _SDO_RX + self.node,
-                           HEARTBEAT_BASE + self.gateway_node) or can_id in self.rpdos)
-
+__all__ = ["FaultyBus", "check_faults", "inject"]
 
 class FaultyBus(can.BusABC):
     """``inner`` (the gateway's bus) with the faults of ``schedule`` injected (module
-    docstring). :attr:`schedule` holds what acted, cycle by cycle."""
+    docstring): what each does to a frame is :class:`dbc.busfaults.FrameFaults`'; this bus
+    carries the frames and keeps the wall-clock parts (a late SYNC's delay, a bus-off's
+    time to recovery, the echoes). :attr:`schedule` holds what acted, cycle by cycle."""
 
     def __init__(self, inner: can.BusABC, schedule: FaultSchedule, ids: FrameIds,
                  other: can.BusABC | None = None, bridge: bool = False) -> None:
@@ -68,15 +51,12 @@ class FaultyBus(can.BusABC):
         #: a bridge between two buses (:func:`run_bridge`): ``inner`` is the drive's side,
         #: which echoes nothing; the gateway gets its own echoes from its own bus
         self.bridge = bridge
+        self.faults = FrameFaults(schedule, ids.messages)
         self._lock = threading.Lock()
         self.k = 0  #: SYNCs the gateway sent (the current cycle)
         self._echoes = 0  # SYNC echoes received
         self._rx_ready: deque[can.Message] = deque()
-        self._held_tx: list[tuple[int, can.Message]] = []
-        self._held_rx: list[tuple[int, can.Message]] = []
-        self._reorder_tx: can.Message | None = None
-        self._reorder_rx: can.Message | None = None
-        self._carry: dict[int, float] = {}  # fractional frames per cycle (rates)
+        self._tx, self._rx = Lane(), Lane()
         self._off_until: float | None = None  # bus-off: wall-clock end
         self._off_done = False
         self._timers: list[threading.Timer] = []
@@ -85,14 +65,6 @@ class FaultyBus(can.BusABC):
         self._swallow: dict[tuple[int, bytes], int] = {}
         super().__init__(channel=getattr(inner, "channel_info", "faulty"))
         self.channel_info = f"fault-injecting {getattr(inner, 'channel_info', '')}"
-        self._by_id: dict[int, list[int]] = {}
-        for i, f in enumerate(schedule.faults):
-            if f.kind in _FRAME_KINDS and f.message is not None:
-                cob = SYNC_ID if f.message == "SYNC" else ids.messages.get(f.message)
-                if cob is None:
-                    raise ValueError(f"bus fault {f.describe()}: {f.message!r} is not a "
-                                     f"message of the drive's DBC ({', '.join(ids.messages)})")
-                self._by_id.setdefault(cob, []).append(i)
 
     # ---------------------------------------------------------------- sending
 
@@ -117,10 +89,9 @@ class FaultyBus(can.BusABC):
         """Raise while the controller is off the bus (bus-off)."""
         now = time.monotonic()
         if self._off_until is None and not self._off_done:
-            for i, f in enumerate(self.schedule.faults):
-                if f.kind is FaultKind.BUS_OFF and self.schedule.active(i, max(1, self.k)):
-                    self.schedule.acts(i, max(1, self.k))
-                    self._off_until = now + (f.duration or 0.0)
+            f = self.faults.bus_off(self.k)
+            if f is not None:
+                self._off_until = now + (f.duration or 0.0)
         if self._off_until is not None:
             if now < self._off_until:
                 raise can.CanOperationError("bus-off (injected): the controller left the bus")
@@ -132,17 +103,15 @@ class FaultyBus(can.BusABC):
         if msg.arbitration_id == SYNC_ID and not msg.is_error_frame:
             self.k += 1
             k = self.k
-            out += [(m, 0.0) for m in self._release(self._held_tx, k)]
+            out += [(_message(f), 0.0) for f in self._tx.release(k)]
             if self.bridge:  # no echo on the drive's side: received frames go by SYNCs sent
-                self._rx_ready.extend(self._release(self._held_rx, k))
+                self._rx_ready.extend(_message(f) for f in self._rx.release(k))
             return out + self._sync(msg, k)
         if msg.arbitration_id == HEARTBEAT_BASE + self.ids.gateway_node and \
-                self._heartbeat_stopped("gateway"):
+                self.faults.heartbeat_stopped("gateway", self.k):
             return out
-        frames, hold = self._frame_faults(msg, self.k, self._held_tx)
-        if self._reorder_tx is not None:  # the frame held back goes after this one
-            frames.append(self._reorder_tx)
-        self._reorder_tx = hold
+        frames = [_message(f) for f in
+                  self._tx.pass_on(self.faults.on_frame(_frame(msg), self.k), self.k)]
         for f in frames[1:]:
             if f.arbitration_id == msg.arbitration_id and bytes(f.data) == bytes(msg.data):
                 key = (f.arbitration_id, bytes(f.data))
@@ -159,51 +128,16 @@ class FaultyBus(can.BusABC):
 
     def _sync(self, msg: can.Message, k: int) -> list[tuple[can.Message, float]]:
         """SYNC ``k``: late, jittered or missing; the other nodes' frames of the cycle."""
-        delay, missing = 0.0, False
-        for i, f in enumerate(self.schedule.faults):
-            if f.kind is FaultKind.SYNC_MISSING and self.schedule.acts(i, k):
-                missing = True
-            elif f.kind is FaultKind.SYNC_LATE and self.schedule.acts(i, k):
-                delay += f.delay
-            elif f.kind is FaultKind.SYNC_JITTER and self.schedule.acts(i, k):
-                delay += self.schedule.rng(i).uniform(0.0, f.jitter)
-        self._others(k)
+        delay, missing = self.faults.sync(k)
+        others = self.faults.others(k)
+        if self.other is not None:
+            for f in others:
+                self.other.send(_message(f))
         if missing:  # the drive does not see it; the gateway's own echo it still gets
             if not self.bridge:
                 self._rx_ready.append(_copy(msg))
             return []
         return [(msg, delay)]
-
-    def _others(self, k: int) -> None:
-        """The frames other nodes send in cycle ``k``: babble, a second master's SYNC,
-        error frames."""
-        if self.other is None:
-            return
-        for i, f in enumerate(self.schedule.faults):
-            if not self.schedule.active(i, k):
-                continue
-            if f.kind is FaultKind.BABBLE:
-                for _ in range(self._count(i, f)):
-                    self.schedule.acts(i, k)
-                    data = bytes(self.schedule.rng(i).randrange(256) for _ in range(8))
-                    self.other.send(can.Message(arbitration_id=f.id, data=data,
-                                                is_extended_id=False))
-            elif f.kind is FaultKind.ERROR_FRAMES:
-                for _ in range(self._count(i, f)):
-                    if self.schedule.acts(i, k):
-                        self.other.send(can.Message(is_error_frame=True, arbitration_id=0,
-                                                    is_extended_id=False))
-            elif f.kind is FaultKind.SECOND_MASTER and self.schedule.acts(i, k):
-                self.other.send(can.Message(arbitration_id=SYNC_ID,
-                                            data=[(k + 100) % 240 + 1],
-                                            is_extended_id=False))
-
-    def _count(self, i: int, f: BusFault) -> int:
-        """Frames a rate gives this cycle (the fractions carried over)."""
-        want = self._carry.get(i, 0.0) + f.rate * self.schedule.period
-        n = math.floor(want)
-        self._carry[i] = want - n
-        return n
 
     # ---------------------------------------------------------------- receiving
 
@@ -232,62 +166,16 @@ class FaultyBus(can.BusABC):
         if msg.is_error_frame or self.ids.from_gateway(can_id):
             if can_id == SYNC_ID and not msg.is_error_frame:
                 self._echoes += 1
-                return [msg, *self._release(self._held_rx, self._echoes)]
+                return [msg, *(_message(f) for f in self._rx.release(self._echoes))]
             return [msg]
         if self._off_until is not None and time.monotonic() < self._off_until:
             return []  # off the bus: it hears nothing
-        if can_id == HEARTBEAT_BASE + self.ids.node and self._heartbeat_stopped("drive"):
+        if can_id == HEARTBEAT_BASE + self.ids.node and \
+                self.faults.heartbeat_stopped("drive", self.k):
             return []
-        frames, hold = self._frame_faults(msg, self.k, self._held_rx, rx=True)
-        if self._reorder_rx is not None:  # the frame held back goes after this one
-            frames.append(self._reorder_rx)
-        self._reorder_rx = hold
-        return frames
-
-    # ---------------------------------------------------------------- both ways
-
-    def _heartbeat_stopped(self, whose: str) -> bool:
-        k = max(1, self.k)
-        return any(f.kind is FaultKind.HEARTBEAT_STOP and f.message == whose
-                   and self.schedule.acts(i, k) for i, f in enumerate(self.schedule.faults))
-
-    def _frame_faults(self, msg: can.Message, k: int, held: list[tuple[int, can.Message]],
-                      rx: bool = False) -> tuple[list[can.Message], can.Message | None]:
-        """The per-message faults on one frame: the frames that go on (maybe none, two,
-        changed), and the one held back behind the next frame (reorder); delayed ones go
-        into ``held`` with their release cycle."""
-        frames = [msg]
-        hold = None
-        for i in self._by_id.get(msg.arbitration_id, ()):
-            f = self.schedule.faults[i]
-            if not frames or not self.schedule.acts(i, max(1, k)):
-                continue
-            m = frames[0]
-            if f.kind is FaultKind.DROP:
-                frames = []
-            elif f.kind is FaultKind.DUPLICATE:
-                frames = [m, _copy(m)]
-            elif f.kind is FaultKind.DELAY:
-                n = max(1, math.ceil(f.delay / self.schedule.period - 1e-9))
-                held.append(((self._echoes if rx and not self.bridge else k) + n, m))
-                frames = []
-            elif f.kind is FaultKind.CORRUPT and m.dlc:
-                rng = self.schedule.rng(i)
-                data = bytearray(m.data)
-                data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
-                frames = [_copy(m, bytes(data))]
-            elif f.kind is FaultKind.DLC:
-                n = f.dlc if f.dlc is not None else max(0, m.dlc - 1)
-                frames = [_copy(m, (bytes(m.data) + bytes(8))[:n])]
-            elif f.kind is FaultKind.REORDER:
-                hold, frames = m, []
-        return frames, hold
-
-    @staticmethod
-    def _release(held: list[tuple[int, can.Message]], k: int) -> list[can.Message]:
-        due = [m for at, m in held if at <= k]
-        held[:] = [(at, m) for at, m in held if at > k]
-        return due
+        base = self.k if self.bridge else self._echoes
+        return [_message(f) for f in
+                self._rx.pass_on(self.faults.on_frame(_frame(msg), self.k), base)]
 
     def shutdown(self) -> None:
         """Cancel the delayed frames; the buses it wraps are closed with it, except a
@@ -301,12 +189,20 @@ class FaultyBus(can.BusABC):
         super().shutdown()
 
 
-def _copy(m: can.Message, data: bytes | None = None) -> can.Message:
-    """A new frame like ``m`` (``data`` instead of its data)."""
-    d = bytes(m.data) if data is None else data
-    return can.Message(timestamp=m.timestamp or time.time(), arbitration_id=m.arbitration_id,
-                       is_extended_id=m.is_extended_id, is_error_frame=m.is_error_frame,
-                       dlc=len(d), data=d, channel=m.channel, check=False)
+def _frame(m: can.Message) -> Frame:
+    return Frame(m.arbitration_id, bytes(m.data), m.is_error_frame, m.timestamp)
+
+
+def _message(f: Frame) -> can.Message:
+    """The frame as python-can's message."""
+    return can.Message(timestamp=f.timestamp or time.time(), arbitration_id=f.can_id,
+                       is_extended_id=False, is_error_frame=f.error, dlc=len(f.data),
+                       data=f.data, check=False)
+
+
+def _copy(m: can.Message) -> can.Message:
+    """A new frame like ``m``."""
+    return _message(_frame(m))
 
 
 def check_faults(faults: tuple[BusFault, ...], pd: object, source: str = "") -> None:
@@ -316,7 +212,7 @@ def check_faults(faults: tuple[BusFault, ...], pd: object, source: str = "") -> 
 
     names = [p.name for p in getattr(pd, "pdos", ())]
     for f in faults:
-        if f.kind in _FRAME_KINDS and f.message not in (*names, "SYNC"):
+        if f.kind in PER_MESSAGE and f.message not in (*names, "SYNC"):
             raise UserError(f"{source}: bus fault {f.describe()}: {f.message!r} is not a "
                             f"message of the drive's DBC; its messages are "
                             f"{', '.join(names)} (and SYNC)")

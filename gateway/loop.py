@@ -614,8 +614,7 @@ class CycleLoop:
         switch_interval = sys.getswitchinterval()
         try:
             if self.cfg.timing is Timing.LOCKSTEP:
-                with self._lock:
-                    self._send_sync(1)
+                self.start_lockstep()
             else:
                 self._start_sync_producer()
             last_wake = time.monotonic()
@@ -627,8 +626,7 @@ class CycleLoop:
                     self._progress_at = max(self._progress_at, now)
                 last_wake = now
                 if self.fault.is_set():  # no cycle running to notice it (e.g. no TPDOs)
-                    with self._lock:
-                        self._drive_faulted()
+                    self.stop_on_fault()
                     break
                 if progress is not None:
                     progress(self._k_done / self.cfg.n_cycles)
@@ -646,16 +644,44 @@ class CycleLoop:
             progress(self._k_done / self.cfg.n_cycles)
         return self.stats
 
+    def start_lockstep(self) -> None:
+        """Lockstep: send SYNC 1 (:meth:`run` does; a caller that delivers the frames itself,
+        `simulate`'s PDO link, :mod:`gateway.faultlink`, too)."""
+        with self._lock:
+            self._send_sync(1)
+
+    @property
+    def done(self) -> bool:
+        """The loop has stopped (:attr:`stats` says why)."""
+        return self._done.is_set()
+
     def _lockstep_watchdog(self) -> None:
-        """No progress for tpdo_timeout: count the cycle as missed and send the next SYNC."""
+        """No progress for tpdo_timeout: the backstop."""
         with self._lock:
             if self._done.is_set() or (time.monotonic() - self._progress_at
                                        < self.cfg.tpdo_timeout):
                 return
-            self._miss()
-            self._progress_at = time.monotonic()
+            self._backstop_locked()
+
+    def stop_on_fault(self) -> None:
+        """The master saw a fault and no cycle is running to notice it: stop with its
+        cause."""
+        with self._lock:
+            self._drive_faulted()
+
+    def backstop(self) -> None:
+        """Lockstep: the cycle open will get no more TPDOs: count it as missed (the
+        controller coasts) and send the next SYNC. The watchdog does so after tpdo_timeout
+        of wall time; `simulate`'s PDO link, which knows no frame is coming, at once."""
+        with self._lock:
             if not self._done.is_set():
-                self._send_sync(self._k + 1)
+                self._backstop_locked()
+
+    def _backstop_locked(self) -> None:
+        self._miss()
+        self._progress_at = time.monotonic()
+        if not self._done.is_set():
+            self._send_sync(self._k + 1)
 
     # ---------------------------------------------------------- realtime SYNC producer
 

@@ -75,6 +75,9 @@ class Record:
         self._rows: list[tuple[float, ...]] = []
         #: what the controller identified during the run (``--identify``), for summary.json
         self.identification: dict[str, object] | None = None
+        #: a simulation with bus faults: the account of its PDO link
+        #: (:class:`gateway.faultlink.LinkAccount`)
+        self.link: Any = None
 
     def append(self, row: tuple) -> None:
         """Add one row; a row of another type (other columns) raises TypeError."""

@@ -328,7 +328,7 @@ def _final_stop(stats: Any, master: DriveMaster, interrupt_reason: str
     return stop, message
 
 
-def _run_account(stats: Any, stop: StopReason, message: str, exit_status: int,
+def run_account(stats: Any, stop: StopReason, message: str, exit_status: int,
                  t_start: float) -> dict[str, Any]:
     """summary["run"]: the cause of stopping and the loop's account of its cycles."""
     return {
@@ -364,7 +364,7 @@ def _summarise(loop: CycleLoop | None, stats: Any, master: DriveMaster,
         exit_status = 1
         if stop in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
             stop, message = StopReason.UNSAFE, f"{message}; then {StopReason.UNSAFE.value}"
-    summary["run"] = {**_run_account(stats, stop, message, exit_status, t_start),
+    summary["run"] = {**run_account(stats, stop, message, exit_status, t_start),
                       **recorder.account(),
                       "heartbeat_refused": master.state.heartbeat_send_errors}
     if loop is not None and stop not in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):

@@ -170,8 +170,12 @@ def _simulated(spec: RunSpec, profile: Profile, motor: MotorParams, out: Path | 
         raise UserError(f"the simulation stopped before its first period "
                         f"({signals.reason})", exit_code=130)
     sig = rec.arrays()
+    truth = _link_truth(spec, sig, rec.link) if rec.link is not None else None
     summary = _simulation_summary(spec, profile, sig, windows, watch,
                                   signals.reason if stop.is_set() else "", wall)
+    if rec.link is not None:
+        _link_summary(summary, rec.link, truth or report.TRUTH_MODEL,
+                      signals.reason if stop.is_set() else "")
     if rec.identification is not None:
         summary["identification"] = rec.identification
     _watched(summary, watcher)
@@ -226,6 +230,35 @@ def _simulation_summary(spec: RunSpec, profile: Profile, sig: dict[str, np.ndarr
                                 **spec.describe()}
     summary["wall_time_s"] = wall
     return summary
+
+
+def _link_truth(spec: RunSpec, sig: dict[str, np.ndarray], link: Any) -> str:
+    """A simulation with bus faults: its record's truth (TPDO3's) replaced by the drive
+    model's full resolution cycle by cycle, as `sim` does (:func:`merge_truth`); what the
+    truth rests on."""
+    from gateway.simulate import emulated_drive
+
+    assert spec.sampling is not None
+    _, lsb = _speed_signal(emulated_drive(spec))
+    merged = merge_truth(sig, link.truth, spec.sampling.period, lsb)
+    return report.TRUTH_MODEL if merged == report.TRUTH_FULL else merged
+
+
+def _link_summary(summary: dict[str, Any], link: Any, truth: str, stopped: str) -> None:
+    """A simulation with bus faults: its loop's account as a bus run has it (``run``), how
+    often each fault acted (``bus_faults``), and the frames before a stop."""
+    from gateway.runner import run_account
+
+    stats = link.stats
+    stop = stats.stop or StopReason.INTERRUPTED
+    message = stopped if stop is StopReason.INTERRUPTED and stopped else stats.stop_reason
+    summary["truth"] = truth
+    summary["run"] = run_account(stats, stop, message, stop.exit_status, 0.0)
+    if stop not in (StopReason.END_OF_PROFILE, StopReason.INTERRUPTED):
+        summary["run"]["frames_before_stop"] = [
+            {"time": t, "dir": d, "cob_id": f"0x{c:03X}", "data": data}
+            for t, d, c, data in link.recent]
+    summary["bus_faults"] = link.bus_faults
 
 
 def _delay_s(spec: RunSpec) -> float:

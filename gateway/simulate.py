@@ -7,7 +7,9 @@
   discrete controller exchange exactly what the CANopen PDOs carry, through the codec built
   from ``dbc/drive.dbc`` (INT16 quantisation), with zero-order hold and zero or one period
   of delay. The CANopen loop runs the same cycle code, so a lockstep run over the bus
-  equals this simulation to the last bit.
+  equals this simulation to the last bit. With a plant scenario's bus faults the PDOs go as
+  frames over :mod:`gateway.faultlink`, where the faults act and the bus loop's own cycle
+  (:class:`gateway.loop.CycleLoop`) reacts, as over the bus in lockstep.
 """
 
 from __future__ import annotations
@@ -21,11 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from dbc.cia301 import sync_counter
+from dbc.busfaults import Frame
+from dbc.cia301 import Emcy, sync_counter
 from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, OperationMode, State
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
-from dbc.timing import internal_rate
+from dbc.signals import SETPOINTS
+from dbc.timing import Sampling, internal_rate
 from gateway.control.controller import (
     PAPER_SIGNALS,
     FluxSource,
@@ -34,10 +38,10 @@ from gateway.control.controller import (
     paper_logged,
     untold,
 )
-from gateway.control.interface import ControllerContext, summary_of
+from gateway.control.interface import ControllerContext, DriveController, summary_of
 from gateway.control.laws import current_fed, full_order
 from gateway.cycle import ControlCycle, CycleRow, Truth
-from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, load_drive_profile
+from gateway.drive_profile import EMULATOR, EMULATOR_STANDARD, DriveProfile, load_drive_profile
 from gateway.guard import DivergenceWatch
 from gateway.process_data import process_data
 from gateway.reference import Profile
@@ -90,6 +94,9 @@ def run(profile: Profile, motor: MotorParams, spec: RunSpec,
     ``on_record``: called with the record before its first row (a live scope reads it).
     """
     if spec.sampling is None:
+        if _plant(spec).bus_faults:
+            raise ValueError("bus faults act on the PDOs of a sampled run: choose a period "
+                             "such as 1ms")
         return run_continuous(profile, motor, spec, progress, stop, watch, on_record)
     return run_sampled(profile, motor, spec, progress, stop, watch, on_record)
 
@@ -108,20 +115,36 @@ class PdoLink:
 
     def tpdos(self, meas: Measurement, sync_counter: int = 0) -> dict[str, float]:
         """The drive's role values as the gateway decodes them, for one measurement."""
-        status = int(State.OPERATION_ENABLED) | SW_REMOTE | (
-            SW_INTERNAL_LIMIT if meas.limit_active else 0)
-        values = tpdo_signals(meas, status, sync_counter)
+        values = _sent(meas, sync_counter)
         return self.pd.quantize(values, tx=True) if self.pd else values
+
+    def tpdo_frames(self, meas: Measurement, sync_counter: int) -> list[Frame]:
+        """The drive's TPDO frames for one measurement, in the order it sends them."""
+        assert self.pd is not None
+        values = _sent(meas, sync_counter)
+        return [Frame(p.cob_id, p.codec.encode(values)) for p in self.pd.tpdos]
 
     def rpdos(self, values: dict[str, float]) -> dict[str, float]:
         """The gateway's role values as the drive decodes them."""
         return self.pd.quantize(values, tx=False) if self.pd else dict(values)
 
 
+def _sent(meas: Measurement, sync_counter: int) -> dict[str, float]:
+    """What the drive's TPDOs carry for one measurement, in Operation enabled."""
+    status = int(State.OPERATION_ENABLED) | SW_REMOTE | (
+        SW_INTERNAL_LIMIT if meas.limit_active else 0)
+    return tpdo_signals(meas, status, sync_counter)
+
+
 def drive_params_for_period(params: DriveParams, T: float, mode: DriveMode) -> DriveParams:
     """The drive's parameters in ``mode`` with its internal rate raised, if needed, to a
     whole number of steps per period (:func:`dbc.timing.internal_rate`)."""
     return replace(params, mode=mode, f_pwm=internal_rate(params.f_pwm, T))
+
+
+#: The roles of the (d, q) frame, and of any setpoint (the frame's or a reference).
+_FRAME_ROLES = frozenset({"eps_0", "w_0"})
+_SETPOINT_ROLES = _FRAME_ROLES | {r for roles in SETPOINTS.values() for r in roles}
 
 
 class _SampledDrive:
@@ -139,17 +162,28 @@ class _SampledDrive:
         self.target_role = mode.target or ""
         self.target = 0.0
         self.pending: dict[str, float] = {}
+        #: the roles whose RPDOs came since the last latch (None: all of them, the PDO link
+        #: without faults): setpoints are applied when some came, and restart the (d, q)
+        #: frame when the frame's came, as the emulated device does
+        self.fresh: set[str] | None = None
         self.T_L = 0.0
 
     def latch(self) -> None:
-        pending, servo = self.pending, self.servo
+        pending, servo, fresh = self.pending, self.servo, self.fresh
         if pending:
             if servo is None:
-                self.drive.set_setpoints(setpoints_from_rpdos(pending, pending))
+                if fresh is None or fresh & _SETPOINT_ROLES:
+                    sp = setpoints_from_rpdos(pending, pending)
+                    if fresh is None or fresh & _FRAME_ROLES:
+                        self.drive.set_setpoints(sp)
+                    else:  # references alone: the frame runs on
+                        self.drive.set_references(sp)
             else:
                 self.target = pending.get(self.target_role, self.target)
             self.T_L = pending["T_L"]
             pending.clear()
+            if fresh is not None:
+                fresh.clear()
         if servo is not None:  # as the emulated device does at every SYNC
             self.drive.set_setpoints(servo.follow(self.op_mode, self.target))
 
@@ -183,19 +217,16 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     (:class:`gateway.cycle.ControlCycle`), with the PDO codec between them."""
     sampling = spec.sampling
     assert sampling is not None
+    if _plant(spec).bus_faults:
+        return _run_linked(profile, motor, spec, progress, stop, watch, on_record)
     T = sampling.period
     n_cycles = round((spec.duration or profile.duration) / T)
     side = _sampled_drive(profile, motor, spec, T)
-    paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
-    ctl = spec.controller.make(ControllerContext(
-        motor=motor, sampling=sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
-        current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0,
-        correction=spec.correction))
+    ctl = _controller(profile, motor, spec)
     if watch is not None:
         watch.envelope = watch.envelope.for_controller(ctl)
     cycle = ControlCycle(ctl, profile, sampling)
-    link = PdoLink(spec.quantize, sampling.setpoint_frame,
-                   EMULATOR_STANDARD if spec.drive_mode.standard else EMULATOR)
+    link = PdoLink(spec.quantize, sampling.setpoint_frame, _emulator(spec.drive_mode))
     rec = Record(cycle.row_type)
     if on_record is not None:
         on_record(rec)
@@ -213,6 +244,115 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
         if stop is not None and stop.is_set():  # every cycle: a stop acts within one
             break
     rec.identification = summary_of(ctl)
+    return rec
+
+
+def _emulator(mode: DriveMode) -> str:
+    """The built-in drive profile of the emulator in ``mode``: its vector modes, or its
+    standard modes."""
+    return EMULATOR_STANDARD if mode.standard else EMULATOR
+
+
+def emulated_drive(spec: RunSpec) -> DriveProfile:
+    """The built-in drive profile whose process data a sampled run's PDO link carries."""
+    return load_drive_profile(None, _emulator(spec.drive_mode))
+
+
+def _controller(profile: Profile, motor: MotorParams, spec: RunSpec) -> DriveController:
+    """The spec's controller for a sampled run against the emulated drive."""
+    assert spec.sampling is not None
+    paper = spec.controller_config(current_lag(spec.drive_mode, DriveParams()))
+    return spec.controller.make(ControllerContext(
+        motor=motor, sampling=spec.sampling, refs_at=profile.at, drive_mode=spec.drive_mode,
+        current_lag=paper.current_lag, paper=paper, eps_0=spec.eps_0, w_hat_0=spec.w_hat_0,
+        correction=spec.correction))
+
+
+class _LinkedDrive:
+    """The sampled drive on frames (:mod:`gateway.faultlink`): an RPDO frame is decoded
+    into what the drive latches at its next SYNC (with the values of the RPDOs it lacks
+    from their last frames, as the device's dictionary keeps them), a SYNC runs one
+    :func:`plant.timing.sync_cycle` and its TPDOs are encoded; its full-resolution state is
+    recorded by its own cycle count, as the emulated device's ``on_sample`` does."""
+
+    def __init__(self, side: _SampledDrive, link: PdoLink, sampling: Sampling,
+                 heartbeat_every: int, truth: Callable[[int, Measurement], None]) -> None:
+        assert link.pd is not None
+        self.side, self.link, self.apply, self.truth = side, link, sampling.apply, truth
+        self.heartbeat_every = heartbeat_every
+        self._rpdos = {p.cob_id: p for p in link.pd.rpdos}
+        self._received: dict[str, float] = {}
+        self._m = 0
+        side.fresh = set()
+
+    def sync(self, counter: int) -> list[Frame]:
+        meas = sync_cycle(self.side.advance, self.side.latch, self.apply)
+        self._m += 1
+        self.truth(self._m, meas)
+        return self.link.tpdo_frames(meas, counter)
+
+    def rpdo(self, frame: Frame) -> str:
+        pdo = self._rpdos[frame.can_id]
+        if len(frame.data) != pdo.length:  # the device faults, and says so by EMCY
+            return f"EMCY 0x{Emcy.PDO_LENGTH:04X}: {Emcy.PDO_LENGTH.text}"
+        values = pdo.codec.decode(frame.data)
+        self._received.update(values)
+        self.side.pending.update(self._received)
+        assert self.side.fresh is not None
+        self.side.fresh.update(values)
+        return ""
+
+
+def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
+                progress: Progress | None, stop: threading.Event | None,
+                watch: DivergenceWatch | None,
+                on_record: Callable[[Record], None] | None) -> Record:
+    """The sampled loop with the plant scenario's bus faults: the bus loop's cycle
+    (lockstep) and the sampled drive exchange frames over :mod:`gateway.faultlink`, where
+    the faults act as on a bus. The record has the bus loop's columns and
+    :attr:`Record.link` its account."""
+    from dbc.busfaults import FaultSchedule
+    from gateway.faultlink import check_link_faults, run_link
+    from gateway.loop import CycleLoop, LoopConfig
+    from gateway.runner import guards
+    from gateway.sim import TruthRecorder
+
+    sampling = spec.sampling
+    assert sampling is not None
+    plant = _plant(spec)
+    if not spec.quantize:
+        raise ValueError("bus faults act on the PDOs' frames, which an unquantised run "
+                         "has not")
+    T = sampling.period
+    check_link_faults(plant.bus_faults, plant.name)
+    schedule = FaultSchedule(plant.bus_faults, T)
+    drive_profile = emulated_drive(spec)
+    codec = PdoLink(True, sampling.setpoint_frame, _emulator(spec.drive_mode))
+    pd = codec.pd
+    assert pd is not None
+    # the bus loop's guards, as `sim` has them: the drive's plausibility limits and the
+    # caller's divergence envelope (the loop watches it itself)
+    plausibility, _ = guards(drive_profile, profile, motor, spec)
+    cfg = LoopConfig(n_cycles=round((spec.duration or profile.duration) / T),
+                     sampling=sampling, max_missed=spec.max_missed,
+                     max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
+                     envelope=watch.envelope if watch is not None else None,
+                     envelope_cycles=watch.cycles if watch is not None else 3)
+    ctl = _controller(profile, motor, spec)
+
+    def make_loop(carrier: Any) -> CycleLoop:
+        return CycleLoop(carrier, carrier.subscribe, pd, ctl, profile, cfg,
+                         fault=carrier.fault, fault_cause=carrier.fault_cause,
+                         fault_marks=schedule.marks)
+
+    truth = TruthRecorder()
+    side = _LinkedDrive(_sampled_drive(profile, motor, spec, T), codec, sampling,
+                        max(1, round(drive_profile.heartbeat_ms * 1e-3 / T)), truth)
+    loop, account = run_link(make_loop, pd, schedule, side, drive_profile.node,
+                             drive_profile.gateway_node, truth, progress, stop, on_record)
+    rec = loop.record
+    rec.identification = summary_of(ctl)
+    rec.link = account
     return rec
 
 

@@ -35,7 +35,7 @@ load the controller may or may not be told::
                                                       # controller
 
     [[bus.fault]]              # faults on the bus between gateway and drive (dbc/busfaults.py;
-    kind = "drop"              # a bus run: sim, run)
+    kind = "drop"              # sim, bridge, and a sampled simulate's PDO link)
     message = "TPDO1"
     start = 0.5                # s (or cycle = N)
     duration = 0.1             # s; omitted: to the end
@@ -146,7 +146,7 @@ class PlantScenario:
     load_initial: float = 0.0
     load_steps: tuple[TorqueStep, ...] = ()
     #: faults injected on the bus between gateway and drive ([[bus.fault]];
-    #: :mod:`dbc.busfaults`); a bus run only: simulate refuses them
+    #: :mod:`dbc.busfaults`); on a bus (sim, bridge) or a sampled simulation's PDO link
     bus_faults: tuple[BusFault, ...] = ()
 
     # ---- what the plant is --------------------------------------------------------------

@@ -194,6 +194,28 @@ def test_the_shipped_campaigns_load_and_plan():
 # ------------------------------------------------------------------- running here
 
 
+def test_a_simulate_campaign_of_bus_faults_runs_each_point_on_the_pdo_link(tmp_path, capsys):
+    """`bus.<key>` axes on `simulate`: each point injects its faults on the PDO link, the
+    table has the bus loop's account (missed cycles) and the stop of each."""
+    camp = write(tmp_path / "faults.toml", """
+[campaign]
+name = "faults"
+command = "simulate"
+[base]
+reference = "profiles/quick.toml"
+plant = "bus-delay"
+[grid]
+"bus.probability" = [0.1, 0.5]
+""")
+    out = tmp_path / "out"
+    assert main(["campaign", str(camp), "--out", str(out), "--in-process"]) == 0
+    rows = pq.read_table(out / "results.parquet").to_pylist()
+    assert [r["bus.probability"] for r in sorted(rows, key=lambda r: r["point"])] == [0.1, 0.5]
+    assert all(r["status"] == "ok" and r["stop"] == "END_OF_PROFILE" for r in rows)
+    missed = {r["bus.probability"]: r["missed_cycles"] for r in rows}
+    assert 0 < missed[0.1] < missed[0.5]  # more frames delayed, more cycles missed
+
+
 def test_in_process_campaign_table_summary_resume_and_reproduction(tmp_path, capsys):
     camp = write(tmp_path / "small.toml", SMALL)
     out = tmp_path / "out"

@@ -168,14 +168,15 @@ def test_bad_scenarios_are_named(tmp_path):
     with pytest.raises(UserError, match=r"nope: no controller of that name"):
         run_scenario("quick", controller="nope")
     with pytest.raises(UserError, match=r"plant 'bus-drop' injects bus faults .* run it with "
-                                        r"where='sim'"):
-        run_scenario("quick", plant="bus-drop")
+                                        r"where='sim' or 'simulate'"):
+        run_scenario("quick", where="vcan", plant="bus-drop")
 
 
-def test_a_bus_fault_scenario_runs_over_the_bus_and_the_run_says_what_was_injected(drive_run):
+@pytest.mark.parametrize("where", ["sim", "simulate"])
+def test_a_bus_fault_scenario_runs_and_the_run_says_what_was_injected(drive_run, where):
     from gateway.drivecheck import assert_no_fault
 
-    run = drive_run("quick", where="sim", plant="bus-babble")
+    run = drive_run("quick", where=where, plant="bus-babble")
     assert run.stop.name == "FOREIGN_WRITER" and run.exit_status == 1
     injected = run.summary["bus_faults"]
     assert [f["kind"] for f in injected] == ["babble"] and injected[0]["acted"] > 0

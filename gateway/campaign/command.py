@@ -57,7 +57,8 @@ campaign file:
   An axis is an option, a plant scenario key plant.<motor|sensors|inverter|load>.<key>
   (plant/scenario.py; set in the scenario the plant option names, or the nominal one), a
   controller parameter controller.<name>, a bus fault key bus.<key> (set in every
-  [[bus.fault]] of the point's scenario; sim), or a table of settings per value.
+  [[bus.fault]] of the point's scenario; simulate, sampled, or sim), or a table of settings
+  per value.
 
 examples:
   hil-gateway campaign campaigns/motor-population.toml          local cluster, all cores

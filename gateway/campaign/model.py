@@ -31,7 +31,8 @@ factors, sensors, inverter, load; merged into the ``plant`` option's scenario, o
 nominal one), a controller parameter ``controller.<name>`` (merged into
 ``controller-params``), a bus fault key ``bus.<key>`` (set in every ``[[bus.fault]]`` of
 the point's plant scenario, dbc/busfaults.py: ``bus.probability``, ``bus.start``; the
-scenario names the faults, e.g. ``plant = ["bus-drop", "bus-delay"]``; `sim` only), or a
+scenario names the faults, e.g. ``plant = ["bus-drop", "bus-delay"]``; `sim`, or a sampled
+`simulate`), or a
 table of such settings per value (its ``label`` names it in the table). An axis overrides
 [base]. Distributions: ``uniform`` and ``loguniform`` (low, high), ``normal`` (mean,
 std), ``integers`` (low, high, both included), ``choice`` (values).
