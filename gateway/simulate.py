@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from dbc.busfaults import Frame
-from dbc.cia301 import Emcy, sync_counter
+from dbc.cia301 import Emcy, sync_counter, sync_periods
 from dbc.cia402 import SW_INTERNAL_LIMIT, SW_REMOTE, OperationMode, State
 from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
@@ -283,11 +283,25 @@ class _LinkedDrive:
         self._rpdos = {p.cob_id: p for p in link.pd.rpdos}
         self._received: dict[str, float] = {}
         self._m = 0
+        self._last = 0  # the last SYNC counter received (0: none yet)
         side.fresh = set()
 
     def sync(self, counter: int) -> list[Frame]:
-        meas = sync_cycle(self.side.advance, self.side.latch, self.apply)
-        self._m += 1
+        """A SYNC received: as the emulated device, the periods its counter says passed
+        since the last one (a SYNC the drive did not receive still took its period), the
+        setpoints held through all but the last."""
+        periods = (sync_periods(self._last, counter)
+                   if counter and self._last else 1)
+        self._last = counter
+        side = self.side
+
+        def advance() -> Measurement:
+            for _ in range(periods - 1):
+                side.drive.advance(side.T, side.T_L)
+            return side.advance()
+
+        meas = sync_cycle(advance, side.latch, self.apply)
+        self._m += periods
         self.truth(self._m, meas)
         return self.link.tpdo_frames(meas, counter)
 
