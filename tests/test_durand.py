@@ -27,7 +27,9 @@ import pytest
 from durand_node import HEARTBEAT_MS, PRODUCT, VENDOR
 from peer_support import (
     NODE,
+    NODE_SENDS,
     PRE_OPERATIONAL,
+    SDO_REQUEST,
     Frame,
     Outcome,
     assert_check_json,
@@ -146,3 +148,66 @@ def test_each_refusal_is_quick(session):
     """Refused by a handful of SDO reads: no command waits out a timeout."""
     slow = {n: round(o.seconds, 2) for n, o in session.outcomes.items() if o.seconds > 10}
     assert slow == {}, slow
+
+
+# ------------------------------------------------------------------- durand in NMT STOPPED
+
+
+@pytest.fixture(scope="module")
+def stopped(tmp_path_factory) -> Iterator[tuple[dict[str, Outcome], list[Frame], int]]:
+    """durand put in NMT STOPPED by itself (no NMT frame on the bus; in STOPPED it answers
+    no SDO), then `run` and `check`: (outcomes, the frames from then on, its NMT state at the
+    end). The CI-runnable form of tests/test_canopend.py's canopend in NMT STOPPED."""
+    require_durand()
+    from durand.services.nmt import StateEnum
+    from durand_node import DurandNode
+
+    ch = f"durand-stopped-{next(_channels)}-{time.monotonic_ns()}"
+    d = tmp_path_factory.mktemp("durand-stopped")
+    recorder = can.Bus(interface="virtual", channel=ch)
+    node = DurandNode("virtual", ch, NODE)
+    try:
+        node.node.nmt.set_state(StateEnum.STOPPED)
+        bus = ["-i", "virtual", "-c", ch, "--node", str(NODE)]
+        cmds = commands(bus, d)
+        outcomes = {name: _gateway(*cmds[name]) for name in ("run", "check")}
+        time.sleep(0.1)
+        frames = _drain(recorder)
+        state = node.nmt_state()
+    finally:
+        node.close()
+        recorder.shutdown()
+    yield outcomes, frames, state
+
+
+def test_a_stopped_durand_gets_no_nmt_and_no_write(stopped):
+    """No answer: no NMT command to wake or reset it (nor to all nodes), no download; what
+    the gateway sent are its SDO reads of 0x1000 and the aborts that end them unanswered
+    (ccs 4). durand is still in STOPPED."""
+    _, frames, state = stopped
+    assert [f for f in frames if f[1] == 0x000] == []
+    sent = [f for f in frames if f[1] not in NODE_SENDS]
+    assert sent and all(f[1] == SDO_REQUEST for f in sent), sent
+    assert {f[2][0] >> 5 for f in sent} <= {2, 4}, sent  # upload request, abort; never 1
+    reads = {int.from_bytes(f[2][1:3], "little") for f in sent if f[2][0] >> 5 == 2}
+    assert reads == {0x1000}, sent  # (python-canopen's abort names index 0, not 0x1000)
+    boots = [f for f in frames if f[1] == 0x700 + NODE and f[2] == b"\x00"]
+    assert len(boots) == 1, boots  # when it was built: nothing made it boot again
+    assert state == 4  # STOPPED
+
+
+@pytest.mark.parametrize("name, code", [("run", 2), ("check", 1)])
+def test_a_stopped_durand_is_no_drive_at_the_node(stopped, name, code):
+    """`run` exit 2, `check` exit 1: the message says no SDO answer, names NMT STOPPED as a
+    cause and what was sent; nothing of python-canopen's own log, no traceback, no run
+    directory."""
+    outcomes, _, _ = stopped
+    o = outcomes[name]
+    assert o.exit == code, (o.stdout, o.stderr)
+    text = o.stdout + o.stderr
+    assert f"no drive at node {NODE} on the bus: no SDO answer to a read of 0x1000" in text
+    assert "not in NMT STOPPED (which answers no SDO)" in text, text
+    assert "Nothing but that read was sent to the node: no write, no NMT command" in text
+    assert "canopen.sdo" not in text and "Traceback" not in text, text
+    if o.out_dir is not None:
+        assert not o.out_dir.exists()
