@@ -322,12 +322,12 @@ def stretch_mismatch(whole: Sequence, part: Sequence) -> str:
 
 
 def sdo_upload(channel: str, node_id: int, index: int, sub: int = 0,
-               timeout: float = 1.0) -> bytes:
+               timeout: float = 1.0, interface: str = "socketcan") -> bytes:
     """One SDO upload by python-canopen, as a third-party master would do it."""
     import canopen
 
     network = canopen.Network()
-    network.connect(interface="socketcan", channel=channel)
+    network.connect(interface=interface, channel=channel)
     try:
         node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
         node.sdo.RESPONSE_TIMEOUT = timeout
