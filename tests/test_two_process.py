@@ -247,6 +247,9 @@ def test_sigkill_gateway_emcy_power_off_then_restart(candump_channel, tmp_path):
             t_kill = time.time()
             gw.signal(signal.SIGKILL)
             assert gw.wait(10) == -signal.SIGKILL
+            # the process is gone, its sockets (and their BCM tasks) closed: on a loaded
+            # host that can come well after the signal (once more than 50 ms under stress-ng)
+            t_dead = time.time()
         finally:
             gw.kill()
         n_before = len([f for f in candump_lines(dump.text()) if f[0] <= t_kill])
@@ -267,7 +270,7 @@ def test_sigkill_gateway_emcy_power_off_then_restart(candump_channel, tmp_path):
         backstop = max(HB_CONSUMER_TIMEOUT, LOCKSTEP_BACKSTOP_S)
         assert backstop - 0.005 <= silent <= backstop + 0.2, silent
         assert t_emcy - t_kill <= backstop + 0.2
-        assert not [f for f in after if f[1] in (SYNC, HB_GATEWAY) and f[0] > t_kill + 0.05]
+        assert not [f for f in after if f[1] in (SYNC, HB_GATEWAY) and f[0] > t_dead]
         assert 3000 <= n_sync_run1 < 20000  # killed mid-run
 
         # nothing lost: the killed run's bus log is readable up to the last flush (1 s), and
