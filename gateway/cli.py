@@ -508,6 +508,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--period", default="1ms",
                    help="cycle period (SYNC) with its unit, 100us … 100ms in whole µs, e.g. "
                         "1ms (default) or 250us")
+    p.add_argument("--allow-bus-overload", action="store_true",
+                   help="run a period whose cycle's frames take more than 85%% of it on a bus "
+                        "of the drive profile's bit rate (worst-case stuffing), which is "
+                        "refused otherwise: `sim`'s in-process bus has no bit rate; a real "
+                        "bus would miss cycles")
     p.add_argument("--timing", type=Timing, choices=list(Timing), default=Timing.LOCKSTEP,
                    help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
                         "faster than real time against the emulator); realtime: SYNC on an "
@@ -670,12 +675,15 @@ def bus_inputs(args: argparse.Namespace, target: Any, plant: Any = None,
     ``target``'s drive, its node ids, the duration and record size, all checked (UserError)
     before the run directory is made; ``controller_params`` as in :func:`simulate_inputs`."""
     from gateway import report
+    from gateway.bustime import check_bus_time
     from gateway.loop import LoopRow
 
     drive = target.drive
     profile = _load_profile(args.profile, drive)
     motor = _load_motor(args.motor)
     spec = _run_spec(args, drive, plant, controller_params)
+    if not args.allow_bus_overload:  # a cycle that cannot fit: refused before the bus
+        check_bus_time(drive, spec.period)
     node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -708,12 +716,15 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
 
 
 def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
+    from gateway.bustime import profile_load
     from gateway.session import Output, run
 
     kind = target.command
     inputs = bus_inputs(args, target, plant)
     spec, profile, target = inputs.spec, inputs.profile, inputs.target
     drive, node = target.drive, target.node
+    print(f"{PROG} {kind}: {drive.name}: {profile_load(drive).describe(spec.period)}",
+          flush=True)
     progress = Progress(kind, True if args.progress else None)
     try:
         with _live_scope(args, f"{kind} {profile.name}") as scope:
@@ -791,7 +802,7 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
 
     if is_drive_profile(args.file):  # a drive profile ([drive]): checked off line
         report = check_drive_profile(args.file)
-        print(render(report))
+        print(render(report, parse_period(args.period, "--period")))
         return 0 if report.ok else 1
     profile = _load_profile(args.file)
     motor = _load_motor(args.motor)
@@ -1287,10 +1298,13 @@ def _add_reference(sub: Any) -> None:
                                      "Given a drive profile (a TOML with [drive]), check it "
                                      "off line: every PDO signal against the EDS object it "
                                      "maps (exists, PDO-mappable, size, access) and which "
-                                     "drive modes it can run; exit 1 if a signal does not "
-                                     "fit.")
+                                     "drive modes it can run, and the bus time of its cycle "
+                                     "and the bus load at --period; exit 1 if a signal does "
+                                     "not fit.")
     pc.add_argument("file", metavar="FILE")
     pc.add_argument("--motor", metavar="FILE", help="motor parameters (TOML)")
+    pc.add_argument("--period", default="1ms", help="a drive profile: the cycle period its "
+                    "bus load is given for (default 1ms)")
     pc.set_defaults(func=cmd_profile_check)
     pp = psub.add_parser("plot", help="plot the references and their derivatives",
                          description="Plot ω*, ψ*, T_L and their time derivatives (each on "

@@ -10,6 +10,7 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     dbc = "builtin:drive.dbc"
     node = 1
     device_type = 0x00010192         # 0x1000 expected (CiA 402, frequency converter)
+    bitrate = 1000000                # the bus's bit rate, bit/s: the bus time of a cycle
 
     [modes]                          # 0x6060 values
     current = -1                     # current vector (current-fed law)
@@ -30,6 +31,8 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     voltages = "TPDO2"               # u_sa, u_sb, u_dc (optional)
     truth = "TPDO3"                  # w_m, psi_ra, psi_rb, T_e (emulator only)
     remap = true                     # write the PDO mappings by SDO from the DBC layout
+    transmission_type = 1            # synchronous, every n-th SYNC (CiA 301 1..240); the
+                                     # loop takes a cycle's TPDOs every SYNC: 1 to run
 
     [limits]                         # what the drive can report: beyond is a fault
     current_peak_a = 25.0            # largest |i_s| (default: 1.5 × the controller's limit)
@@ -66,11 +69,11 @@ from gateway.errors import UserError
 
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
-              "emulator": bool, "gateway_node": int, "dbc_node": int},
+              "emulator": bool, "gateway_node": int, "dbc_node": int, "bitrate": int},
     "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int,
               "default": str},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
-            "truth": str, "remap": bool},
+            "truth": str, "remap": bool, "transmission_type": int},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
                "drive_heartbeat_timeout_ms": int,
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
@@ -155,6 +158,8 @@ class DriveProfile:
     gateway_node: int = 0x7F
     dbc_node: int | None = None
     sdo: tuple[SdoWrite, ...] = ()
+    bitrate: int = 1_000_000
+    transmission_type: int = 1
 
     def mode_of(self, drive_mode: DriveMode) -> int:
         """The 0x6060 value of a drive mode on this drive ([modes])."""
@@ -240,6 +245,7 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
     _check_timing(t, source)
     _check_limits(lim, source)
     _check_nodes(d, source)
+    _check_bus(d, data.get("pdo", {}), source)
     prof = _build_profile(data, source, base)
     for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
         if not path.is_file():
@@ -342,6 +348,19 @@ def _check_limits(lim: dict[str, Any], source: str) -> None:
                         "0 <= low < high")
 
 
+def _check_bus(d: dict[str, Any], p: dict[str, Any], source: str) -> None:
+    """[drive].bitrate: a CAN bit rate (10 kbit/s .. 1 Mbit/s); [pdo].transmission_type:
+    synchronous, every n-th SYNC (CiA 301 types 1..240)."""
+    rate = d.get("bitrate", 1_000_000)
+    if not 10_000 <= rate <= 1_000_000:
+        raise UserError(f"{source}: [drive].bitrate = {rate}: a CAN bit rate is 10000 .. "
+                        "1000000 bit/s")
+    tt = p.get("transmission_type", 1)
+    if not 1 <= tt <= 240:
+        raise UserError(f"{source}: [pdo].transmission_type = {tt}: the gateway's PDOs are "
+                        "synchronous, every n-th SYNC (CiA 301 types 1..240)")
+
+
 def _check_nodes(d: dict[str, Any], source: str) -> None:
     """[drive] ``node``, ``gateway_node``, ``dbc_node``: CANopen node ids (1..127); the
     gateway's differs from the drive's."""
@@ -385,6 +404,7 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
         sdo=tuple(SdoWrite(e["index"], e["sub"], e["value"], e.get("note", ""))
                   for e in data.get("sdo", [])),
+        bitrate=d.get("bitrate", 1_000_000), transmission_type=p.get("transmission_type", 1),
     )
 
 
