@@ -508,6 +508,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--period", default="1ms",
                    help="cycle period (SYNC) with its unit, 100us … 100ms in whole µs, e.g. "
                         "1ms (default) or 250us")
+    from gateway.drive_profile import Mapping
+
+    p.add_argument("--mapping", type=Mapping, choices=list(Mapping), default=None,
+                   help="the emulator's process data: default (every signal, truth and load "
+                        "included: 765 us of bus time a cycle at 1 Mbit/s, periods from "
+                        "900 us) or lean (SYNC, 2 TPDOs, 1 RPDO: 410 us, periods from 483 us: "
+                        "2 kHz; gateway/drives/emulator-lean.toml). With --drive: the "
+                        "profile's [pdo].mapping must say the same")
     p.add_argument("--allow-bus-overload", action="store_true",
                    help="run a period whose cycle's frames take more than 85%% of it on a bus "
                         "of the drive profile's bit rate (worst-case stuffing), which is "
@@ -585,10 +593,18 @@ def _drive_mode(args: argparse.Namespace) -> Any:
 
 
 def _emulator_profile(args: argparse.Namespace) -> str:
-    """The built-in emulator profile for the run's drive mode."""
+    """The built-in emulator profile for the run's drive mode and --mapping."""
     from gateway.drive_profile import emulator_profile
 
-    return emulator_profile(_drive_mode(args))
+    return emulator_profile(_drive_mode(args), args.mapping)
+
+
+def _check_mapping(args: argparse.Namespace, drive: Any) -> None:
+    """--mapping with --drive: the profile's [pdo].mapping must be the one asked for."""
+    if args.mapping is not None and drive.mapping is not args.mapping:
+        raise UserError(f"--mapping {args.mapping.value}: the drive profile {drive.source} "
+                        f"has the {drive.mapping.value} mapping ([pdo].mapping); drop "
+                        "--mapping, or give a profile with that mapping")
 
 
 def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
@@ -707,10 +723,9 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     ready for them first, at a lower priority than the loop
     (:class:`gateway.drawing.FigureWorker`)."""
     from gateway.drawing import FigureWorker
-    from gateway.session import maps_speed
+    from gateway.session import has_truth
 
-    worker = (FigureWorker.start(nice=10) if args.figures and maps_speed(target.drive)
-              else None)
+    worker = FigureWorker.start(nice=10) if args.figures and has_truth(target) else None
     with worker or contextlib.nullcontext():
         return _on_the_bus(args, target, plant, worker)
 
@@ -753,6 +768,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from gateway.runner import BusTarget
 
     drive = load_drive_profile(args.drive, _emulator_profile(args))
+    _check_mapping(args, drive)
     _drive_defaults(args, drive)
     bus_cfg = bus_config(args)
 
@@ -769,7 +785,7 @@ def _sim_target(args: argparse.Namespace, plant: Any) -> Any:
 
     return sim_target(_drive_mode(args), plant, _load_profile(args.profile).load,
                       args.transport, args.gateway_node,
-                      f"--plant {args.plant or getattr(plant, 'source', '')}")
+                      f"--plant {args.plant or getattr(plant, 'source', '')}", args.mapping)
 
 
 def sim_inputs(args: argparse.Namespace, plant: Any = None,

@@ -31,6 +31,8 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     voltages = "TPDO2"               # u_sa, u_sb, u_dc (optional)
     truth = "TPDO3"                  # w_m, psi_ra, psi_rb, T_e (emulator only)
     remap = true                     # write the PDO mappings by SDO from the DBC layout
+                                     # (and disable the drive's PDOs the profile does not use)
+    mapping = "default"              # or "lean": what `--mapping` names (emulator-lean.toml)
     transmission_type = 1            # synchronous, every n-th SYNC (CiA 301 1..240); the
                                      # loop takes a cycle's TPDOs every SYNC: 1 to run
 
@@ -58,6 +60,7 @@ from __future__ import annotations
 import re
 import tomllib
 from dataclasses import dataclass, field
+from enum import StrEnum
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -73,7 +76,7 @@ _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int,
               "default": str},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
-            "truth": str, "remap": bool, "transmission_type": int},
+            "truth": str, "remap": bool, "transmission_type": int, "mapping": str},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
                "drive_heartbeat_timeout_ms": int,
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
@@ -103,6 +106,15 @@ REQUIRED_OBJECTS: dict[int, str] = {
     0x6041: "statusword", 0x6060: "modes of operation",
 }
 _REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "currents"))
+
+
+class Mapping(StrEnum):
+    """Which process data a profile's PDOs are ([pdo].mapping, `--mapping`): DEFAULT every
+    signal of the emulator every cycle; LEAN a cycle that fits 500 us on 1 Mbit/s
+    (``gateway/drives/emulator-lean.toml``)."""
+
+    DEFAULT = "default"
+    LEAN = "lean"
 
 
 @dataclass(frozen=True)
@@ -160,6 +172,7 @@ class DriveProfile:
     sdo: tuple[SdoWrite, ...] = ()
     bitrate: int = 1_000_000
     transmission_type: int = 1
+    mapping: Mapping = Mapping.DEFAULT
 
     def mode_of(self, drive_mode: DriveMode) -> int:
         """The 0x6060 value of a drive mode on this drive ([modes])."""
@@ -191,14 +204,23 @@ def _resolve(value: str, base: Path) -> Path:
     return p if p.is_absolute() else base / p
 
 
-#: The built-in emulator profiles: its vector modes, and its CiA 402 standard modes.
+#: The built-in emulator profiles: its vector modes, its CiA 402 standard modes, and its
+#: vector modes with lean process data (a cycle that fits 500 us on 1 Mbit/s).
 EMULATOR = "emulator"
 EMULATOR_STANDARD = "emulator-standard"
+EMULATOR_LEAN = "emulator-lean"
 
 
-def emulator_profile(mode: DriveMode) -> str:
-    """The built-in emulator profile for a drive mode: its CiA 402 standard modes (CST,
-    CSV, CSP, …) or its vector modes."""
+def emulator_profile(mode: DriveMode, mapping: Mapping | None = None) -> str:
+    """The built-in emulator profile for a drive mode and ``--mapping``: its CiA 402
+    standard modes (CST, CSV, CSP, …), or its vector modes with the default or the lean
+    process data (:class:`Mapping`; the lean one has no standard-mode variant)."""
+    if mapping is Mapping.LEAN:
+        if mode.standard:
+            raise UserError(f"--mapping lean is the emulator's lean process data for its "
+                            f"vector modes; --drive-mode {mode.value} runs the drive's own "
+                            "control with the standard CiA 402 mapping: drop --mapping lean")
+        return EMULATOR_LEAN
     return EMULATOR_STANDARD if mode.standard else EMULATOR
 
 
@@ -355,6 +377,10 @@ def _check_bus(d: dict[str, Any], p: dict[str, Any], source: str) -> None:
     if not 10_000 <= rate <= 1_000_000:
         raise UserError(f"{source}: [drive].bitrate = {rate}: a CAN bit rate is 10000 .. "
                         "1000000 bit/s")
+    mapping = p.get("mapping", "default")
+    if mapping not in set(Mapping):
+        raise UserError(f"{source}: [pdo].mapping = {mapping!r}: the mappings are "
+                        f"{', '.join(m.value for m in Mapping)}")
     tt = p.get("transmission_type", 1)
     if not 1 <= tt <= 240:
         raise UserError(f"{source}: [pdo].transmission_type = {tt}: the gateway's PDOs are "
@@ -405,6 +431,7 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         sdo=tuple(SdoWrite(e["index"], e["sub"], e["value"], e.get("note", ""))
                   for e in data.get("sdo", [])),
         bitrate=d.get("bitrate", 1_000_000), transmission_type=p.get("transmission_type", 1),
+        mapping=Mapping(p.get("mapping", "default")),
     )
 
 
