@@ -220,6 +220,11 @@ def emulator_profile(mode: DriveMode, mapping: Mapping | None = None) -> str:
             raise UserError(f"--mapping lean is the emulator's lean process data for its "
                             f"vector modes; --drive-mode {mode.value} runs the drive's own "
                             "control with the standard CiA 402 mapping: drop --mapping lean")
+        if mode is DriveMode.VOLTAGE:
+            raise UserError("--mapping lean carries current setpoints only (one 8-byte RPDO: "
+                            "eps_0, w_0, i_sd*, i_sq*); --drive-mode voltage needs the voltage "
+                            "setpoints of the default mapping: drop --mapping lean, or use "
+                            "--drive-mode ideal or current-loop")
         return EMULATOR_LEAN
     return EMULATOR_STANDARD if mode.standard else EMULATOR
 

@@ -74,6 +74,8 @@ def test_mapping_chooses_the_builtin_profile() -> None:
     assert load_drive_profile(None).mapping is Mapping.DEFAULT
     with pytest.raises(UserError, match="--mapping lean"):
         emulator_profile(DriveMode.VELOCITY, Mapping.LEAN)
+    with pytest.raises(UserError, match="current setpoints only"):
+        emulator_profile(DriveMode.VOLTAGE, Mapping.LEAN)
 
 
 def test_run_refuses_a_profile_of_another_mapping(tmp_path, capsys) -> None:
