@@ -10,6 +10,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from gw_support import _patient_drive_profile, assert_disabled, gateway_run
 
 from dbc.busload import LOAD_LIMIT
 from dbc.modes import DriveMode
@@ -138,3 +139,23 @@ def test_sim_lean_equals_simulate_bit_for_bit(tmp_path) -> None:
     for col in ("t", "i_sa", "i_sb", "u_sa", "u_sb", "i_sd_ref", "i_sq_ref", "eps_0", "w_0",
                 "w_hat", "w_m", "psi_r_mod", "T_e", "T_L"):
         np.testing.assert_array_equal(sa[col], sb[col], err_msg=col)
+
+
+def test_run_lean_against_the_emulator_on_a_virtual_bus(emulator, tmp_path) -> None:
+    """`run --mapping lean` configures a drive of the default dictionary by SDO from the
+    lean profile (its unused PDOs disabled), runs 500 us and leaves the drive safe."""
+    emu = emulator()
+    out = tmp_path / "run"
+    rc = gateway_run(emu, out, "--drive", str(_patient_drive_profile("emulator-lean")),
+                     "--mapping", "lean", "--period", "500us", "--duration", "0.4s",
+                     "--no-figures")
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["run"]["cycles"] == 800 and s["run"]["missed_cycles"] == 0
+    assert_disabled(emu)
+    # the emulator's dictionary: RPDO2, RPDO3, TPDO3 not valid; TPDO1, TPDO2 synchronous (1)
+    values = emu.device._store.values
+    for index in (0x1401, 0x1402, 0x1802):
+        assert values[(index, 1)] & (1 << 31), hex(index)
+    for index in (0x1400, 0x1800, 0x1801):
+        assert not values[(index, 1)] & (1 << 31) and values[(index, 2)] == 1, hex(index)
