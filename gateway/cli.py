@@ -508,6 +508,19 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--period", default="1ms",
                    help="cycle period (SYNC) with its unit, 100us … 100ms in whole µs, e.g. "
                         "1ms (default) or 250us")
+    from gateway.drive_profile import Mapping
+
+    p.add_argument("--mapping", type=Mapping, choices=list(Mapping), default=None,
+                   help="the emulator's process data: default (every signal, truth and load "
+                        "included: 765 us of bus time a cycle at 1 Mbit/s, periods from "
+                        "900 us) or lean (SYNC, 2 TPDOs, 1 RPDO: 410 us, periods from 483 us: "
+                        "2 kHz; gateway/drives/emulator-lean.toml). With --drive: the "
+                        "profile's [pdo].mapping must say the same")
+    p.add_argument("--allow-bus-overload", action="store_true",
+                   help="run a period whose cycle's frames take more than 85%% of it on a bus "
+                        "of the drive profile's bit rate (worst-case stuffing), which is "
+                        "refused otherwise: `sim`'s in-process bus has no bit rate; a real "
+                        "bus would miss cycles")
     p.add_argument("--timing", type=Timing, choices=list(Timing), default=Timing.LOCKSTEP,
                    help="lockstep: next SYNC as soon as the RPDOs are out (deterministic, "
                         "faster than real time against the emulator); realtime: SYNC on an "
@@ -580,10 +593,18 @@ def _drive_mode(args: argparse.Namespace) -> Any:
 
 
 def _emulator_profile(args: argparse.Namespace) -> str:
-    """The built-in emulator profile for the run's drive mode."""
+    """The built-in emulator profile for the run's drive mode and --mapping."""
     from gateway.drive_profile import emulator_profile
 
-    return emulator_profile(_drive_mode(args))
+    return emulator_profile(_drive_mode(args), args.mapping)
+
+
+def _check_mapping(args: argparse.Namespace, drive: Any) -> None:
+    """--mapping with --drive: the profile's [pdo].mapping must be the one asked for."""
+    if args.mapping is not None and drive.mapping is not args.mapping:
+        raise UserError(f"--mapping {args.mapping.value}: the drive profile {drive.source} "
+                        f"has the {drive.mapping.value} mapping ([pdo].mapping); drop "
+                        "--mapping, or give a profile with that mapping")
 
 
 def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
@@ -670,12 +691,15 @@ def bus_inputs(args: argparse.Namespace, target: Any, plant: Any = None,
     ``target``'s drive, its node ids, the duration and record size, all checked (UserError)
     before the run directory is made; ``controller_params`` as in :func:`simulate_inputs`."""
     from gateway import report
+    from gateway.bustime import check_bus_time
     from gateway.loop import LoopRow
 
     drive = target.drive
     profile = _load_profile(args.profile, drive)
     motor = _load_motor(args.motor)
     spec = _run_spec(args, drive, plant, controller_params)
+    if not args.allow_bus_overload:  # a cycle that cannot fit: refused before the bus
+        check_bus_time(drive, spec.period)
     node = args.node if args.node is not None else drive.node
     if not 1 <= node <= 127:
         raise UserError(f"--node {node}: a CANopen node id is 1..127")
@@ -699,21 +723,23 @@ def _gateway_session(args: argparse.Namespace, target: Any, plant: Any = None) -
     ready for them first, at a lower priority than the loop
     (:class:`gateway.drawing.FigureWorker`)."""
     from gateway.drawing import FigureWorker
-    from gateway.session import maps_speed
+    from gateway.session import has_truth
 
-    worker = (FigureWorker.start(nice=10) if args.figures and maps_speed(target.drive)
-              else None)
+    worker = FigureWorker.start(nice=10) if args.figures and has_truth(target) else None
     with worker or contextlib.nullcontext():
         return _on_the_bus(args, target, plant, worker)
 
 
 def _on_the_bus(args: argparse.Namespace, target: Any, plant: Any, worker: Any) -> int:
+    from gateway.bustime import profile_load
     from gateway.session import Output, run
 
     kind = target.command
     inputs = bus_inputs(args, target, plant)
     spec, profile, target = inputs.spec, inputs.profile, inputs.target
     drive, node = target.drive, target.node
+    print(f"{PROG} {kind}: {drive.name}: {profile_load(drive).describe(spec.period)}",
+          flush=True)
     progress = Progress(kind, True if args.progress else None)
     try:
         with _live_scope(args, f"{kind} {profile.name}") as scope:
@@ -742,6 +768,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from gateway.runner import BusTarget
 
     drive = load_drive_profile(args.drive, _emulator_profile(args))
+    _check_mapping(args, drive)
     _drive_defaults(args, drive)
     bus_cfg = bus_config(args)
 
@@ -758,7 +785,7 @@ def _sim_target(args: argparse.Namespace, plant: Any) -> Any:
 
     return sim_target(_drive_mode(args), plant, _load_profile(args.profile).load,
                       args.transport, args.gateway_node,
-                      f"--plant {args.plant or getattr(plant, 'source', '')}")
+                      f"--plant {args.plant or getattr(plant, 'source', '')}", args.mapping)
 
 
 def sim_inputs(args: argparse.Namespace, plant: Any = None,
@@ -791,7 +818,7 @@ def cmd_profile_check(args: argparse.Namespace) -> int:
 
     if is_drive_profile(args.file):  # a drive profile ([drive]): checked off line
         report = check_drive_profile(args.file)
-        print(render(report))
+        print(render(report, parse_period(args.period, "--period")))
         return 0 if report.ok else 1
     profile = _load_profile(args.file)
     motor = _load_motor(args.motor)
@@ -1287,10 +1314,13 @@ def _add_reference(sub: Any) -> None:
                                      "Given a drive profile (a TOML with [drive]), check it "
                                      "off line: every PDO signal against the EDS object it "
                                      "maps (exists, PDO-mappable, size, access) and which "
-                                     "drive modes it can run; exit 1 if a signal does not "
-                                     "fit.")
+                                     "drive modes it can run, and the bus time of its cycle "
+                                     "and the bus load at --period; exit 1 if a signal does "
+                                     "not fit.")
     pc.add_argument("file", metavar="FILE")
     pc.add_argument("--motor", metavar="FILE", help="motor parameters (TOML)")
+    pc.add_argument("--period", default="1ms", help="a drive profile: the cycle period its "
+                    "bus load is given for (default 1ms)")
     pc.set_defaults(func=cmd_profile_check)
     pp = psub.add_parser("plot", help="plot the references and their derivatives",
                          description="Plot ω*, ψ*, T_L and their time derivatives (each on "

@@ -10,6 +10,7 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     dbc = "builtin:drive.dbc"
     node = 1
     device_type = 0x00010192         # 0x1000 expected (CiA 402, frequency converter)
+    bitrate = 1000000                # the bus's bit rate, bit/s: the bus time of a cycle
 
     [modes]                          # 0x6060 values
     current = -1                     # current vector (current-fed law)
@@ -30,6 +31,10 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     voltages = "TPDO2"               # u_sa, u_sb, u_dc (optional)
     truth = "TPDO3"                  # w_m, psi_ra, psi_rb, T_e (emulator only)
     remap = true                     # write the PDO mappings by SDO from the DBC layout
+                                     # (and disable the drive's PDOs the profile does not use)
+    mapping = "default"              # or "lean": what `--mapping` names (emulator-lean.toml)
+    transmission_type = 1            # synchronous, every n-th SYNC (CiA 301 1..240); the
+                                     # loop takes a cycle's TPDOs every SYNC: 1 to run
 
     [limits]                         # what the drive can report: beyond is a fault
     current_peak_a = 25.0            # largest |i_s| (default: 1.5 × the controller's limit)
@@ -55,6 +60,7 @@ from __future__ import annotations
 import re
 import tomllib
 from dataclasses import dataclass, field
+from enum import StrEnum
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -66,11 +72,11 @@ from gateway.errors import UserError
 
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
-              "emulator": bool, "gateway_node": int, "dbc_node": int},
+              "emulator": bool, "gateway_node": int, "dbc_node": int, "bitrate": int},
     "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int,
               "default": str},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
-            "truth": str, "remap": bool},
+            "truth": str, "remap": bool, "transmission_type": int, "mapping": str},
     "timing": {"heartbeat_ms": int, "heartbeat_timeout_ms": int, "rpdo_timeout_ms": int,
                "drive_heartbeat_timeout_ms": int,
                "boot_timeout_s": (int, float), "sdo_timeout_s": (int, float)},
@@ -100,6 +106,15 @@ REQUIRED_OBJECTS: dict[int, str] = {
     0x6041: "statusword", 0x6060: "modes of operation",
 }
 _REQUIRED = (("drive", "eds"), ("drive", "dbc"), ("pdo", "control"), ("pdo", "currents"))
+
+
+class Mapping(StrEnum):
+    """Which process data a profile's PDOs are ([pdo].mapping, `--mapping`): DEFAULT every
+    signal of the emulator every cycle; LEAN a cycle that fits 500 us on 1 Mbit/s
+    (``gateway/drives/emulator-lean.toml``)."""
+
+    DEFAULT = "default"
+    LEAN = "lean"
 
 
 @dataclass(frozen=True)
@@ -155,6 +170,9 @@ class DriveProfile:
     gateway_node: int = 0x7F
     dbc_node: int | None = None
     sdo: tuple[SdoWrite, ...] = ()
+    bitrate: int = 1_000_000
+    transmission_type: int = 1
+    mapping: Mapping = Mapping.DEFAULT
 
     def mode_of(self, drive_mode: DriveMode) -> int:
         """The 0x6060 value of a drive mode on this drive ([modes])."""
@@ -186,14 +204,28 @@ def _resolve(value: str, base: Path) -> Path:
     return p if p.is_absolute() else base / p
 
 
-#: The built-in emulator profiles: its vector modes, and its CiA 402 standard modes.
+#: The built-in emulator profiles: its vector modes, its CiA 402 standard modes, and its
+#: vector modes with lean process data (a cycle that fits 500 us on 1 Mbit/s).
 EMULATOR = "emulator"
 EMULATOR_STANDARD = "emulator-standard"
+EMULATOR_LEAN = "emulator-lean"
 
 
-def emulator_profile(mode: DriveMode) -> str:
-    """The built-in emulator profile for a drive mode: its CiA 402 standard modes (CST,
-    CSV, CSP, …) or its vector modes."""
+def emulator_profile(mode: DriveMode, mapping: Mapping | None = None) -> str:
+    """The built-in emulator profile for a drive mode and ``--mapping``: its CiA 402
+    standard modes (CST, CSV, CSP, …), or its vector modes with the default or the lean
+    process data (:class:`Mapping`; the lean one has no standard-mode variant)."""
+    if mapping is Mapping.LEAN:
+        if mode.standard:
+            raise UserError(f"--mapping lean is the emulator's lean process data for its "
+                            f"vector modes; --drive-mode {mode.value} runs the drive's own "
+                            "control with the standard CiA 402 mapping: drop --mapping lean")
+        if mode is DriveMode.VOLTAGE:
+            raise UserError("--mapping lean carries current setpoints only (one 8-byte RPDO: "
+                            "eps_0, w_0, i_sd*, i_sq*); --drive-mode voltage needs the voltage "
+                            "setpoints of the default mapping: drop --mapping lean, or use "
+                            "--drive-mode ideal or current-loop")
+        return EMULATOR_LEAN
     return EMULATOR_STANDARD if mode.standard else EMULATOR
 
 
@@ -240,6 +272,7 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
     _check_timing(t, source)
     _check_limits(lim, source)
     _check_nodes(d, source)
+    _check_bus(d, data.get("pdo", {}), source)
     prof = _build_profile(data, source, base)
     for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
         if not path.is_file():
@@ -342,6 +375,23 @@ def _check_limits(lim: dict[str, Any], source: str) -> None:
                         "0 <= low < high")
 
 
+def _check_bus(d: dict[str, Any], p: dict[str, Any], source: str) -> None:
+    """[drive].bitrate: a CAN bit rate (10 kbit/s .. 1 Mbit/s); [pdo].transmission_type:
+    synchronous, every n-th SYNC (CiA 301 types 1..240)."""
+    rate = d.get("bitrate", 1_000_000)
+    if not 10_000 <= rate <= 1_000_000:
+        raise UserError(f"{source}: [drive].bitrate = {rate}: a CAN bit rate is 10000 .. "
+                        "1000000 bit/s")
+    mapping = p.get("mapping", "default")
+    if mapping not in set(Mapping):
+        raise UserError(f"{source}: [pdo].mapping = {mapping!r}: the mappings are "
+                        f"{', '.join(m.value for m in Mapping)}")
+    tt = p.get("transmission_type", 1)
+    if not 1 <= tt <= 240:
+        raise UserError(f"{source}: [pdo].transmission_type = {tt}: the gateway's PDOs are "
+                        "synchronous, every n-th SYNC (CiA 301 types 1..240)")
+
+
 def _check_nodes(d: dict[str, Any], source: str) -> None:
     """[drive] ``node``, ``gateway_node``, ``dbc_node``: CANopen node ids (1..127); the
     gateway's differs from the drive's."""
@@ -385,6 +435,8 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),
         sdo=tuple(SdoWrite(e["index"], e["sub"], e["value"], e.get("note", ""))
                   for e in data.get("sdo", [])),
+        bitrate=d.get("bitrate", 1_000_000), transmission_type=p.get("transmission_type", 1),
+        mapping=Mapping(p.get("mapping", "default")),
     )
 
 

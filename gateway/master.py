@@ -80,8 +80,10 @@ from gateway.errors import UserError
 from gateway.process_data import Pdo, ProcessData
 from gateway.stop import StopReason
 
-log = logging.getLogger(__name__)
+#: CiA 301: bit 31 of a PDO's COB-ID (sub-index 1): the PDO is not valid (not sent).
+PDO_NOT_VALID = 1 << 31
 
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -485,6 +487,8 @@ class DriveMaster:
                 self._map_pdo(pdo)
             else:
                 self._check_mapping(pdo)
+        if remap:
+            self._disable_unused(pd)
         self.sdo_write(MODES_OF_OPERATION, 0, mode, "modes of operation")
         return counter
 
@@ -578,7 +582,7 @@ class DriveMaster:
             for index, sub, bits in entries:
                 m.add_variable(index, sub, bits)
             m.cob_id = pdo.cob_id
-            m.trans_type = 1
+            m.trans_type = self.profile.transmission_type  # synchronous, every n-th SYNC
             m.rtr_allowed = True  # leave bit 30 clear, as the EDS defaults have it
             if not pdo.tx and 5 in m.com_record.od:
                 m.event_timer = self.profile.rpdo_timeout_ms
@@ -601,6 +605,22 @@ class DriveMaster:
         finally:  # the loop decodes PDOs itself: no python-canopen PDO callbacks
             with contextlib.suppress(KeyError, ValueError):  # not subscribed if it failed
                 self.network.unsubscribe(pdo.cob_id, m.on_message)
+
+    def _disable_unused(self, pd: ProcessData) -> None:
+        """Set the not-valid bit (31 of sub-index 1) of every PDO of the pre-defined
+        connection set (RPDO/TPDO 1..4) the EDS has and the profile does not use, where the
+        drive has it valid: its frames would take bus time every cycle for nothing (a lean
+        mapping). A profile using them all writes nothing."""
+        used = {pdo_of(p.cob_id) for p in pd.pdos}
+        for rx, base in ((True, 0x1400), (False, 0x1800)):
+            for n in range(1, 5):
+                index = base + n - 1
+                if (rx, n) in used or not self.has(index):
+                    continue
+                what = f"{'R' if rx else 'T'}PDO{n} not used by the profile: disabled"
+                cob_id = int(self.sdo_read(index, 1))
+                if not cob_id & PDO_NOT_VALID:
+                    self.sdo_write(index, 1, cob_id | PDO_NOT_VALID, what)
 
     def _check_records(self, pdo: Pdo, m: PdoMap, n_objects: int) -> None:
         """The EDS's communication record has sub-indices 1 and 2 and its mapping record

@@ -17,10 +17,12 @@ from typing import Any
 import canopen
 from canopen.objectdictionary import ODVariable
 
+from dbc.busload import CycleLoad
 from dbc.cia402 import SUPPORTED_DRIVE_MODES_OBJECT, describe_mode, mode_bit
 from dbc.edsfile import configured, read_eds
 from dbc.modes import DriveMode
 from dbc.timing import Sampling
+from gateway.bustime import profile_load
 from gateway.control.interface import ControllerChoice
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.eds import object_for
@@ -59,6 +61,8 @@ class ProfileReport:
     modes: dict[DriveMode, list[str]] = field(default_factory=dict)
     #: drive mode → why the drive does not offer its 0x6060 value (0x6502 of the EDS)
     not_offered: dict[DriveMode, str] = field(default_factory=dict)
+    #: the bus time of one cycle of its mapping (:func:`gateway.bustime.profile_load`)
+    bus: CycleLoad | None = None
 
     @property
     def ok(self) -> bool:
@@ -90,7 +94,7 @@ def check_drive_profile(path: str | Path) -> ProfileReport:
     except UserError as exc:  # checked by the loader already; a node id can still fail
         raise UserError(f"{prof.source}: {exc} (node {prof.node})") from None
     pd = process_data(prof)
-    report = ProfileReport(prof, _signals(od, pd, prof.objects))
+    report = ProfileReport(prof, _signals(od, pd, prof.objects), bus=profile_load(prof, pd))
     mapped = {s.role for s in report.signals if not s.problem}
     for mode in MODE_CONTROLLERS:
         report.modes[mode] = [r for r in roles_needed(mode, pd) if r not in mapped]
@@ -157,8 +161,9 @@ def roles_needed(mode: DriveMode, pd: ProcessData) -> list[str]:
     return list(required_roles(spec, pd, requires))
 
 
-def render(report: ProfileReport) -> str:
-    """The report as text: one line per signal, one per drive mode, the verdict."""
+def render(report: ProfileReport, period: float = 1e-3) -> str:
+    """The report as text: one line per signal, one per drive mode, the bus time of a cycle
+    and its load at ``period`` (s), the verdict."""
     prof = report.profile
     lines = [f"{prof.source}: drive profile {prof.name!r}, node {prof.node}, EDS "
              f"{prof.eds.name}, DBC {prof.dbc.name}",
@@ -173,6 +178,12 @@ def render(report: ProfileReport) -> str:
         default = " (the profile's default)" if mode is prof.default_mode else ""
         lines.append(f"  --drive-mode {mode:<13}" + (
             f"runs {ctl}{default}" if not why else f"cannot run {ctl}{default}: {why}"))
+    if report.bus is not None:
+        bus = report.bus
+        lines.append(f"  {bus.describe(period)}")
+        verdict = ("fits" if bus.fits(period) else "does NOT fit: `sim` and `run` refuse it")
+        lines.append(f"  at {period * 1e6:g} us the cycle {verdict}; shortest period it fits: "
+                     f"{bus.min_period() * 1e6:.0f} us")
     lines.append("ok: the profile loads, every signal fits its object" if report.ok else
                  "not ok: fix the errors above (or map the roles a drive mode needs, or "
                  "choose a [modes] value the drive offers)")

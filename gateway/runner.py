@@ -57,7 +57,8 @@ def _eds_default(master: DriveMaster, name: str) -> float:
 
 def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = ()
                    ) -> tuple[str, ...]:
-    """The roles a run needs of the drive: CiA 402 words, the measured currents and applied
+    """The roles a run needs of the drive: the statusword (the controlword too for a
+    standard drive), the measured currents and applied
     voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, the true
     flux only for ``--flux true``, and what the controller ``requires`` (its optional
     attribute, e.g. ``("w_m",)``: a speed sensor). A standard drive (CST, CSV): the CiA 402
@@ -68,7 +69,9 @@ def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = (
         return tuple(roles + [r for r in requires if r not in roles])
     frame = pd.setpoint_frame
     i1, i2, u1, u2 = SETPOINTS[frame]
-    roles = ["controlword", "statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
+    # the controlword may be left to SDO, written when it changes (enable, shutdown) and
+    # held by the drive between: a lean mapping (gateway/drives/emulator-lean.toml)
+    roles = ["statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
     if frame is SetpointFrame.DQ:
         roles += ["eps_0", "w_0"]
     roles += [u1, u2] if spec.drive_mode is DriveMode.VOLTAGE else [i1, i2]

@@ -298,6 +298,10 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
                 summary["truth"] = (f"{where}, the drive's measured speed, ω to {lsb:.3g} "
                                     "rad/s; no rotor flux")
             summary.update(report.metrics(done.sig, windows))
+        elif done.sig is not None and _in_process_truth(done.sig, target, spec.period):
+            speed = True  # a drive that sends no truth (a lean mapping), `sim`'s own record
+            summary["truth"] = report.TRUTH_FULL
+            summary.update(report.metrics(done.sig, windows))
         _watched(summary, watcher)
         files = write_results(out, done.sig, summary, figures=figures and speed,
                               limits=_figure_limits(spec, drive.emulator),
@@ -306,6 +310,26 @@ def _on_bus(spec: RunSpec, profile: Profile, motor: MotorParams, target: Any, ou
         if out / "summary.json" in files:
             (out / RUNNING_MARKER).unlink(missing_ok=True)
     return RunResult(done.sig, summary, out, files)
+
+
+def _in_process_truth(sig: dict[str, np.ndarray], target: Any, period: float) -> bool:
+    """`sim` against a drive profile that sends no truth (no ``w_m``): the emulator's
+    full-resolution state of every cycle, recorded in process, put into ``sig``; False
+    when there is none (a real drive) or a cycle lacks it."""
+    truth = getattr(target, "truth", None)
+    if truth is None or not len(sig["t"]):
+        return False
+    full = truth.columns(np.rint(sig["t"] / period))
+    if full is None:
+        return False
+    sig.update(full)
+    return True
+
+
+def has_truth(target: Any) -> bool:
+    """The run will have the speed its figures and metrics need: the drive maps it
+    (:func:`maps_speed`), or `sim` records the emulator's truth in process."""
+    return maps_speed(target.drive) or getattr(target, "truth", None) is not None
 
 
 def maps_speed(drive: Any) -> bool:

@@ -32,6 +32,7 @@ from plant.scenario import (
 if TYPE_CHECKING:
     import can
 
+    from gateway.drive_profile import Mapping
     from gateway.runner import BusTarget
 
 
@@ -146,7 +147,8 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
 
 def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_load: Any = None,
                transport: str = "inprocess", gateway_node: int | None = None,
-               plant_label: str = "the plant scenario") -> BusTarget:
+               plant_label: str = "the plant scenario", mapping: Mapping | None = None
+               ) -> BusTarget:
     """`sim`'s target: the emulated drive in ``mode`` started in this process on a new bus
     (``transport``: "inprocess" or python-can's "virtual") for each run, with its built-in
     drive profile (the standard one for a standard ``mode``), whose watch of the gateway's
@@ -154,12 +156,13 @@ def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_lo
     ``reference_load`` as for :func:`open_emulator`, the scenario's bus faults injected
     between the gateway (``gateway_node``; None: the profile's) and the drive, a fault on
     a message the drive has not named with ``plant_label`` before the bus opens. The
-    emulator's full-resolution truth is recorded for the summary."""
+    emulator's full-resolution truth is recorded for the summary. ``mapping``: its
+    process data (:class:`gateway.drive_profile.Mapping`; None: the default)."""
     from gateway.drive_profile import emulator_profile, load_drive_profile
     from gateway.runner import BusTarget
 
     truth = TruthRecorder()
-    drive = load_drive_profile(None, emulator_profile(mode))
+    drive = load_drive_profile(None, emulator_profile(mode, mapping))
     drive = replace(drive, heartbeat_timeout_ms=max(drive.heartbeat_timeout_ms,
                                                     SIM_HEARTBEAT_TIMEOUT_MS))
 
