@@ -1,8 +1,8 @@
 """What the gateway must do against a CiA 301 device that is not its drive, at node 5: the
 commands run against it and the assertions on the bus and on their messages, shared by
-tests/test_durand.py (in-process, virtual bus) and tests/test_durand_vcan.py (processes,
-vcan0, candump). Frames are (time, COB-ID, data) as :func:`twoproc_support.candump_lines`
-gives them."""
+tests/test_durand.py (in-process, virtual bus), tests/test_durand_vcan.py (processes,
+vcan0, candump) and tests/test_canopend.py (canopend, by hand). Frames are (time, COB-ID,
+data) as :func:`twoproc_support.candump_lines` gives them."""
 
 from __future__ import annotations
 
@@ -137,3 +137,24 @@ def assert_run_refused(o: Outcome, who: str) -> None:
     assert "hil-gateway scan" in err and "check --node" in err, err
     assert "give its own drive profile" not in err, err  # it is no drive: no profile fits
     assert o.out_dir is not None and not o.out_dir.exists(), sorted(o.out_dir.iterdir())
+
+
+def assert_dictionary_unchanged(before: dict, after: dict) -> None:
+    """Every writable entry of the node's dictionary as it was before the commands."""
+    changed = {k: (v, after.get(k)) for k, v in before.items() if after.get(k) != v}
+    assert changed == {} and after.keys() == before.keys(), changed
+
+
+def assert_no_drive_at_the_node(o: Outcome, code: int) -> None:
+    """A node in NMT STOPPED (which answers no SDO): `run` exit 2, `check` exit 1 (README:
+    no drive at the node is a failed check); the message says no SDO answer, names NMT
+    STOPPED as a cause and what was sent; nothing of python-canopen's own log, no
+    traceback, no run directory."""
+    assert o.exit == code, (o.stdout, o.stderr)
+    text = o.stdout + o.stderr
+    assert f"no drive at node {NODE} on the bus: no SDO answer to a read of 0x1000" in text
+    assert "not in NMT STOPPED (which answers no SDO)" in text, text
+    assert "Nothing but that read was sent to the node: no write, no NMT command" in text
+    assert "canopen.sdo" not in text and "Traceback" not in text, text
+    if o.out_dir is not None:
+        assert not o.out_dir.exists()

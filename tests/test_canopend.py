@@ -15,7 +15,6 @@ python-canopen node, so CI covers the same refusals without it.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 from collections.abc import Iterator
@@ -24,6 +23,19 @@ from pathlib import Path
 
 import pytest
 from conftest import require_vcan
+from peer_support import (
+    NODE,
+    NODE_SENDS,
+    SDO_REQUEST,
+    UPLOAD_REQUEST,
+    Outcome,
+    assert_check_json,
+    assert_check_refused,
+    assert_no_drive_at_the_node,
+    assert_run_refused,
+    commands,
+    identity,
+)
 from twoproc_support import (
     PROBE_ID,
     Candump,
@@ -39,13 +51,8 @@ from twoproc_support import (
 
 pytestmark = [pytest.mark.vcan]
 
-NODE = 5
-SDO_REQUEST = 0x600 + NODE
-#: What node 5 itself sends (EMCY, TPDOs, SDO answers, boot-up/heartbeat): not the gateway.
-NODE_SENDS = {0x080 + NODE, 0x180 + NODE, 0x280 + NODE, 0x380 + NODE, 0x480 + NODE,
-              0x580 + NODE, 0x700 + NODE}
-UPLOAD_REQUEST = 0x40  #: SDO initiate upload request (ccs 2), no data
-STANDARD = "gateway/drives/emulator-standard.toml"  # the shipped standard CiA 402 profile
+#: canopend's identity: device type 0, vendor, product and revision 0
+WHO = identity(0, 0)
 
 
 def canopend_binary() -> Path:
@@ -62,14 +69,6 @@ def canopend_binary() -> Path:
 
 
 @dataclass
-class Outcome:
-    exit: int
-    stdout: str
-    stderr: str
-    out_dir: Path | None = None
-
-
-@dataclass
 class Session:
     """What each command did, and the bus and canopend around them."""
 
@@ -79,22 +78,6 @@ class Session:
     canopend_log: str
     device_type_after: bytes
     check_json: Path
-
-
-def _commands(ch: str, d: Path) -> dict[str, tuple[list[str], Path | None]]:
-    bus = ["-i", "socketcan", "-c", ch, "--node", str(NODE)]
-    run_args = ["--reference", "profiles/quick.toml", "--out"]
-    return {
-        "check": (["check", *bus, "--cycles", "10"], None),
-        "check --json": (["check", *bus, "--cycles", "10", "--json",
-                          str(d / "check.json")], None),
-        "check --drive standard": (["check", *bus, "--drive", STANDARD, "--cycles", "10"],
-                                   None),
-        "run": (["run", *bus, *run_args, str(d / "run")], d / "run"),
-        "run --drive standard": (["run", *bus, "--drive", STANDARD, "--drive-mode", "velocity",
-                                  "--controller", "stream", *run_args, str(d / "run-std")],
-                                 d / "run-std"),
-    }
 
 
 @contextlib.contextmanager
@@ -115,6 +98,10 @@ def canopend(ch: str, d: Path, dump: Candump) -> Iterator[Proc]:
         co.wait(10)
 
 
+def _bus(ch: str) -> list[str]:
+    return ["-i", "socketcan", "-c", ch, "--node", str(NODE)]
+
+
 def _gateway(ch: str, d: Path, name: str, args: list[str], out_dir: Path | None) -> Outcome:
     p = run([*gateway_cmd(), *args], d, name.replace(" ", "_"), 120)
     return Outcome(p.popen.returncode, p.stdout(), p.stderr(), out_dir)
@@ -127,7 +114,7 @@ def session(tmp_path_factory) -> Iterator[Session]:
     d = tmp_path_factory.mktemp("canopend")
     with candump(ch, d) as dump, canopend(ch, d, dump) as co:
         outcomes = {name: _gateway(ch, d, name, args, out_dir)
-                    for name, (args, out_dir) in _commands(ch, d).items()}
+                    for name, (args, out_dir) in commands(_bus(ch), d).items()}
         alive = co.popen.poll() is None
         device_type = sdo_upload(ch, NODE, 0x1000) if alive else b""
     yield Session(outcomes, candump_lines(dump.text()), alive, co.stderr(), device_type,
@@ -165,42 +152,18 @@ def test_canopend_is_still_running_and_answering(session):
 @pytest.mark.parametrize("name", ["check", "check --json", "check --drive standard"])
 def test_check_fails_and_says_what_answered(session, name):
     """`check`: exit 1 (a check failed: README), one FAIL naming the device and the fix."""
-    o = session.outcomes[name]
-    assert o.exit == 1, (o.stdout, o.stderr)
-    assert "Traceback" not in o.stdout + o.stderr
-    assert "[FAIL] the device at the node is the profile's (0x1000, 0x1018)" in o.stdout
-    assert (f"node {NODE} (device type 0x00000000, vendor 0x00000000, product 0x00000000, "
-            "revision 0x00000000)") in o.stdout, o.stdout
-    assert "no standard device profile: a CiA 301 device, not a CiA 402 drive" in o.stdout
-    assert "Nothing was written to it and no NMT command sent" in o.stdout, o.stdout
-    assert "fix: check --node (`hil-gateway scan` lists each node" in o.stdout, o.stdout
-    assert o.stdout.rstrip().endswith("result: FAIL"), o.stdout
+    assert_check_refused(session.outcomes[name], WHO)
 
 
 def test_check_json_is_the_failed_list(session):
-    report = json.loads(session.check_json.read_text())
-    assert report["ok"] is False and report["node"] == NODE
-    assert [c["ok"] for c in report["checks"]] == [False], report["checks"]
-    check = report["checks"][0]
-    assert "device type 0x00000000" in check["detail"] and "hil-gateway scan" in check["fix"]
-    assert report["cycles"] == 0 and report["power_stage_enabled"] is False
+    assert_check_json(session.check_json, 0)
 
 
 @pytest.mark.parametrize("name", ["run", "run --drive standard"])
 def test_run_is_refused_with_exit_2_and_leaves_no_run_directory(session, name):
     """`run`: refused, exit 2 (README: "the run is refused, exit 2"), one paragraph on
     stderr, no traceback, and no run directory."""
-    o = session.outcomes[name]
-    assert o.exit == 2, (o.stdout, o.stderr)
-    assert "Traceback" not in o.stdout + o.stderr
-    err = o.stderr
-    assert err.startswith(f"hil-gateway: error: node {NODE} (device type 0x00000000, "
-                          "vendor 0x00000000"), err
-    assert "(0x1000: no standard device profile: a CiA 301 device, not a CiA 402 drive)" in err
-    assert "expected 0x00010192 (a CiA 402 frequency converter)" in err, err
-    assert "Nothing was written to it and no NMT command sent" in err, err
-    assert "hil-gateway scan" in err and "--node" in err, err
-    assert o.out_dir is not None and not o.out_dir.exists(), sorted(o.out_dir.iterdir())
+    assert_run_refused(session.outcomes[name], WHO)
 
 
 # ---------------------------------------------------------------- canopend in NMT STOPPED
@@ -215,7 +178,7 @@ def stopped(tmp_path_factory) -> Iterator[tuple[dict[str, Outcome], list, bool]]
     canopend_binary()
     ch = require_vcan("vcan0", need_candump=True)
     d = tmp_path_factory.mktemp("canopend-stopped")
-    bus = ["-i", "socketcan", "-c", ch, "--node", str(NODE)]
+    cmds = commands(_bus(ch), d)
     with candump(ch, d) as dump, canopend(ch, d, dump) as co:
         cansend(ch, f"000#02{NODE:02X}")  # NMT stop, node 5
 
@@ -228,11 +191,7 @@ def stopped(tmp_path_factory) -> Iterator[tuple[dict[str, Outcome], list, bool]]
 
         wait_for(no_answer, 10, "canopend in NMT STOPPED (no SDO answer)", co)
         n0 = len(candump_lines(dump.text()))
-        outcomes = {
-            "run": _gateway(ch, d, "run", ["run", *bus, "--reference", "profiles/quick.toml",
-                                           "--out", str(d / "run")], d / "run"),
-            "check": _gateway(ch, d, "check", ["check", *bus, "--cycles", "10"], None),
-        }
+        outcomes = {name: _gateway(ch, d, name, *cmds[name]) for name in ("run", "check")}
         alive = co.popen.poll() is None
     yield outcomes, candump_lines(dump.text())[n0:], alive
 
@@ -252,16 +211,6 @@ def test_a_stopped_canopend_gets_no_nmt_and_no_write(stopped):
 
 @pytest.mark.parametrize("name, code", [("run", 2), ("check", 1)])
 def test_a_stopped_canopend_is_no_drive_at_the_node(stopped, name, code):
-    """`run` exit 2, `check` exit 1 (README: no drive at the node is a failed check): the
-    message says no SDO answer, names NMT STOPPED as a cause, and what was sent; nothing of
-    python-canopen's own log, no traceback, no run directory."""
+    """`run` exit 2, `check` exit 1 (README: no drive at the node is a failed check)."""
     outcomes, _, _ = stopped
-    o = outcomes[name]
-    assert o.exit == code, (o.stdout, o.stderr)
-    text = o.stdout + o.stderr
-    assert f"no drive at node {NODE} on the bus: no SDO answer to a read of 0x1000" in text
-    assert "not in NMT STOPPED (which answers no SDO)" in text, text
-    assert "Nothing but that read was sent to the node: no write, no NMT command" in text
-    assert "canopen.sdo" not in text and "Traceback" not in text, text
-    if o.out_dir is not None:
-        assert not o.out_dir.exists()
+    assert_no_drive_at_the_node(outcomes[name], code)

@@ -34,6 +34,8 @@ from peer_support import (
     Outcome,
     assert_check_json,
     assert_check_refused,
+    assert_dictionary_unchanged,
+    assert_no_drive_at_the_node,
     assert_only_identity_reads,
     assert_run_refused,
     commands,
@@ -122,9 +124,7 @@ def test_nothing_is_written_to_durand_and_nothing_reset(session):
 def test_durands_dictionary_and_state_are_unchanged(session):
     """Every writable entry of durand's dictionary as before the commands; still
     pre-operational (as it booted); still answering an SDO upload, with what it said."""
-    changed = {k: (v, session.after.get(k)) for k, v in session.before.items()
-               if session.after.get(k) != v}
-    assert changed == {} and session.after.keys() == session.before.keys(), changed
+    assert_dictionary_unchanged(session.before, session.after)
     assert session.nmt_state == PRE_OPERATIONAL
     assert session.device_type_after == bytes(4)
     assert session.vendor_after == VENDOR.to_bytes(4, "little")
@@ -202,12 +202,4 @@ def test_a_stopped_durand_is_no_drive_at_the_node(stopped, name, code):
     cause and what was sent; nothing of python-canopen's own log, no traceback, no run
     directory."""
     outcomes, _, _ = stopped
-    o = outcomes[name]
-    assert o.exit == code, (o.stdout, o.stderr)
-    text = o.stdout + o.stderr
-    assert f"no drive at node {NODE} on the bus: no SDO answer to a read of 0x1000" in text
-    assert "not in NMT STOPPED (which answers no SDO)" in text, text
-    assert "Nothing but that read was sent to the node: no write, no NMT command" in text
-    assert "canopen.sdo" not in text and "Traceback" not in text, text
-    if o.out_dir is not None:
-        assert not o.out_dir.exists()
+    assert_no_drive_at_the_node(outcomes[name], code)

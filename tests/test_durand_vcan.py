@@ -25,6 +25,7 @@ from peer_support import (
     Outcome,
     assert_check_json,
     assert_check_refused,
+    assert_dictionary_unchanged,
     assert_only_identity_reads,
     assert_run_refused,
     commands,
@@ -117,8 +118,7 @@ def test_durand_is_unchanged_and_still_answering(session):
     answering SDO after all the commands, and it ended as told (exit 0 on SIGTERM)."""
     before, after = session.state["before"], session.state["after"]
     assert len(before) > 1000, len(before)
-    changed = {k: (v, after.get(k)) for k, v in before.items() if after.get(k) != v}
-    assert changed == {} and after.keys() == before.keys(), changed
+    assert_dictionary_unchanged(before, after)
     assert session.state["nmt_state"] == PRE_OPERATIONAL
     assert session.device_type_after == bytes(4)
     assert session.vendor_after == VENDOR.to_bytes(4, "little")
