@@ -187,8 +187,10 @@ class _SampledDrive:
         if servo is not None:  # as the emulated device does at every SYNC
             self.drive.set_setpoints(servo.follow(self.op_mode, self.target))
 
-    def advance(self) -> Measurement:
-        meas = self.drive.advance(self.T, self.T_L)
+    def advance(self, periods: int = 1) -> Measurement:
+        """The model over ``periods`` periods (more where the SYNC counter skipped: the
+        setpoints held), the last one's sample."""
+        meas = self.drive.advance_held(periods, self.T, self.T_L)
         if self.servo is not None:
             self.servo.sample(meas.w_m)  # its encoder, as the emulated device counts it
         return meas
@@ -294,13 +296,7 @@ class _LinkedDrive:
                    if counter and self._last else 1)
         self._last = counter
         side = self.side
-
-        def advance() -> Measurement:
-            for _ in range(periods - 1):
-                side.drive.advance(side.T, side.T_L)
-            return side.advance()
-
-        meas = sync_cycle(advance, side.latch, self.apply)
+        meas = sync_cycle(lambda: side.advance(periods), side.latch, self.apply)
         self._m += periods
         self.truth(self._m, meas)
         return self.link.tpdo_frames(meas, counter)

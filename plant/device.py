@@ -648,10 +648,7 @@ class DriveDevice:
         sample is the last period's (its average voltage too), as on time."""
         drive = self._drive
         was_on = drive.enabled
-        T = self.pdo.period
-        for _ in range(periods - 1):
-            drive.advance(T, self._T_L)
-        meas = drive.advance(T, self._T_L)
+        meas = drive.advance_held(periods, self.pdo.period, self._T_L)
         self._cycles_total = m
         self._periods_total += periods
         if not (self._model_finite() and _finite(meas)):

@@ -364,6 +364,14 @@ class Drive:
         self._n += n
         return self._measure(u_avg, limited)
 
+    def advance_held(self, periods: int, T: float, T_L: float) -> Measurement:
+        """:meth:`advance` ``periods`` times with the setpoints held (a drive that saw no SYNC
+        in between: the SYNC counter told it that many periods passed); the measurement of
+        the last period (its average voltage too), as on time."""
+        for _ in range(periods - 1):
+            self.advance(T, T_L)
+        return self.advance(T, T_L)
+
     def _torque(self, k: float, T_L: float) -> float:
         """The load torque over internal step k of this period (dynamometer, N·m)."""
         if self.load is None:

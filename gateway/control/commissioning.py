@@ -121,7 +121,6 @@ class StandstillIdentifier:
         self._gaps = 0
         self._i_last = 0j
         self.gaps = 0  #: periods without a sample since the start
-        self._offset = False  # a gap came: the voltage model is off by a constant since
         self._n_h = 0
         self._a_h = 0j
         self._b_h = 0j
@@ -149,7 +148,6 @@ class StandstillIdentifier:
         that one (:meth:`current_model_flux_at`)."""
         gaps, self._gaps = self._gaps, 0
         if gaps:
-            self._offset = True
             i_mid = 0.5 * (self._i_last + i_s_ab)
             for _ in range(gaps):
                 self._add(i_mid, u_s_ab)
@@ -173,7 +171,7 @@ class StandstillIdentifier:
         self._s_cc += c.real * c.real + c.imag * c.imag
         self._a, self._b = a, b
         self._i_last = i_s_ab
-        if self._offset:  # the sums over the samples the voltage model's offset is in
+        if self.gaps:  # the sums over the samples the voltage model's offset is in
             self._n_h += 1
             self._a_h += a
             self._b_h += b
