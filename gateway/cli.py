@@ -335,12 +335,30 @@ class RunInputs:
     label: str = ""
 
 
-def simulate_inputs(args: argparse.Namespace, plant: Any = None,
-                    controller_params: dict[str, Any] | None = None) -> RunInputs:
-    """`simulate`'s options → what its run needs, every input checked (UserError) before
-    anything runs. ``plant``: the plant scenario itself, in place of ``--plant``;
-    ``controller_params``: the controller's parameters, in place of the
-    ``--controller-params`` file's."""
+@dataclass(frozen=True)
+class SimulateOptions:
+    """`simulate`'s options that do not depend on the plant scenario, each checked: the
+    reference ``profile``, the controller's ``motor``, the ``sampling`` (None:
+    continuous), the ``duration``, the ``drive_mode``, the ``gains``, the sensor
+    ``correction``, the ``controller``, the metric ``windows`` and the period's words
+    (``label``). Made by :func:`simulate_options`; a campaign's points that differ only
+    in their plant share one (:mod:`gateway.campaign.runpoint`)."""
+
+    profile: Any
+    motor: Any
+    sampling: Any
+    duration: float | None
+    drive_mode: Any
+    gains: Any
+    correction: Any
+    controller: Any
+    windows: tuple
+    label: str
+
+
+def simulate_options(args: argparse.Namespace,
+                     controller_params: dict[str, Any] | None = None) -> SimulateOptions:
+    """The plant-independent part of :func:`simulate_inputs` (UserError on a bad option)."""
     from dbc.timing import Sampling
     from gateway import report
     from gateway.cycle import CycleRow
@@ -349,29 +367,46 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
 
     profile = _load_profile(args.profile)
     motor = _load_motor(args.motor)
-    plant = plant if plant is not None else _load_scenario(args.plant)
     period = (None if args.period == "continuous"
               else parse_period(args.period, "--period", emulator_rate()))
     duration = parse_duration(args.duration, "--duration") if args.duration else None
+    sampling = None if period is None else Sampling(period, args.delay, args.setpoint_frame)
+    label = "continuous" if period is None else format_duration(period)
+    total = duration or profile.duration
+    step = sampling.period if sampling is not None else RunSpec.record_step
+    n_rows = _check_duration(total, step, _duration_words(args, profile))
+    report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
+                             f"simulating {total:g} s at {label}")
+    return SimulateOptions(
+        profile=profile, motor=motor, sampling=sampling, duration=duration,
+        drive_mode=_drive_mode(args), gains=_gains(args),
+        correction=_correction(args, period is not None),
+        controller=_controller_choice(args, controller_params),
+        windows=report.profile_windows(profile, args.windows), label=label)
+
+
+def simulate_inputs(args: argparse.Namespace, plant: Any = None,
+                    controller_params: dict[str, Any] | None = None,
+                    options: SimulateOptions | None = None) -> RunInputs:
+    """`simulate`'s options → what its run needs, every input checked (UserError) before
+    anything runs. ``plant``: the plant scenario itself, in place of ``--plant``;
+    ``controller_params``: the controller's parameters, in place of the
+    ``--controller-params`` file's; ``options``: :func:`simulate_options` of the same
+    ``args`` and ``controller_params``, made before."""
+    from gateway.spec import RunSpec
+
+    o = options if options is not None else simulate_options(args, controller_params)
+    plant = plant if plant is not None else _load_scenario(args.plant)
     load = _load_mode(args, plant)
     spec = RunSpec(
-        law=args.law, flux=args.flux, estimator=args.estimator,
-        drive_mode=_drive_mode(args),
-        sampling=None if period is None else Sampling(period, args.delay, args.setpoint_frame),
-        quantize=not args.no_quantize, gains=_gains(args), duration=duration,
-        discretisation=_design(args, load), plant=plant, load=load,
-        identify=args.identify, correction=_correction(args, period is not None),
-        controller=_controller_choice(args, controller_params),
+        law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=o.drive_mode,
+        sampling=o.sampling, quantize=not args.no_quantize, gains=o.gains,
+        duration=o.duration, discretisation=_design(args, load), plant=plant, load=load,
+        identify=args.identify, correction=o.correction, controller=o.controller,
     )
     if plant is not None and plant.bus_faults:
         _check_simulated_faults(spec, args.plant or plant.source)
-    label = "continuous" if period is None else format_duration(period)
-    total = duration or profile.duration
-    n_rows = _check_duration(total, spec.period, _duration_words(args, profile))
-    report.check_record_size(n_rows, len(CycleRow._fields), args.allow_long,
-                             f"simulating {total:g} s at {label}")
-    return RunInputs(spec, profile, motor, report.profile_windows(profile, args.windows),
-                     label=label)
+    return RunInputs(spec, o.profile, o.motor, o.windows, label=o.label)
 
 
 def _check_simulated_faults(spec: Any, name: str) -> None:

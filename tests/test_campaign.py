@@ -335,6 +335,87 @@ controller = ["stuck_ctl:Stuck", "paper"]
     assert rows["paper"]["status"] == "ok"
 
 
+def test_batch_sizes_balance_the_tail_only_when_several_points_run_at_once():
+    """One point at a time: every batch is sized to about a second (small tail batches
+    only add their table writes); several at once: the tail is spread over them."""
+    from gateway.campaign.runner import BATCH_MAX, BatchSizer
+
+    sizer = BatchSizer()
+    assert sizer.size(100, 1) == 1  # nothing measured yet: one point first
+    sizer.observe([0.01])
+    assert sizer.size(10, 1) == min(BATCH_MAX, 100)
+    assert sizer.size(10, 2) == 3  # ceil(10 / (2 batches in flight × 2))
+
+
+def _points(n: int, plant: bool = False):
+    from gateway.campaign.points import PointConfig
+
+    return [PointConfig(i, f"h{i}", Command.SIMULATE,
+                        ("--reference=profiles/quick.toml", "--duration=20ms"),
+                        (f"[motor]\nRs = {1 + i / 100!r}\n", f"<p{i}>") if plant else None)
+            for i in range(n)]
+
+
+def test_a_batch_runs_in_one_thread_and_each_point_has_its_own_time_limit(monkeypatch):
+    """The runner thread goes from point to point by itself; a point past its limit that
+    stops is a 'timeout' row and the next points run with their own limits; a point that
+    ignores the stop request is left behind and no later point of the batch starts."""
+    import threading
+    import time
+
+    from gateway.campaign import runpoint
+
+    plan_ = {0: 0.05, 1: 5.0, 2: 0.05, 3: 0.05, 4: None, 5: 0.05}
+    threads, ran = set(), []
+
+    def fake(point, limits, options, signals, t0):
+        threads.add(threading.get_ident())
+        ran.append(point.index)
+        wait = plan_[point.index]
+        if wait is None:  # ignores the stop request
+            time.sleep(2.0)
+        else:
+            signals.requested.wait(wait)
+        return runpoint.outcome(runpoint.PointStatus.OK, "fine", 0,
+                                time.perf_counter() - t0, "END_OF_PROFILE")
+
+    monkeypatch.setattr(runpoint, "_run_checked", fake)
+    limits = runpoint.Limits(timeout=0.6, grace=0.3)
+    t0 = time.perf_counter()
+    result = runpoint.run_batch(_points(6), limits)
+    took = time.perf_counter() - t0
+    rows = result.outcomes
+    assert [rows[f"h{i}"]["status"] for i in range(4)] == ["ok", "timeout", "ok", "ok"]
+    assert "stopped (fine)" in rows["h1"]["stop_reason"]
+    assert rows["h4"]["status"] == "timeout" and "left behind" in rows["h4"]["stop_reason"]
+    assert result.abandoned and "h5" not in rows
+    assert len(threads) == 1 and threading.get_ident() not in threads
+    assert took < 0.6 + 0.3 + 0.6 + 0.3 + 1.0  # two time limits and graces, no more
+    time.sleep(2.0)  # the left-behind point returns: the thread starts nothing after it
+    assert ran == [0, 1, 2, 3, 4]
+
+
+def test_points_that_differ_only_in_their_plant_share_their_checked_options():
+    """A batch parses and checks a command line once for the points that share it; the
+    run's inputs are those the command line makes, and each point has its own copy of
+    the parsed options."""
+    from gateway.campaign.options import shared_parser
+    from gateway.campaign.runpoint import _Options
+    from gateway.cli import simulate_inputs
+    from gateway.sim import scenario_from_text
+
+    options = _Options(shared_parser())
+    a, b = _points(2, plant=True)
+    args_a, checked_a = options.of(a)
+    args_b, checked_b = options.of(b)
+    assert checked_a is checked_b and args_a is not args_b and vars(args_a) == vars(args_b)
+    plant = scenario_from_text(*b.plant)
+    shared = simulate_inputs(args_b, plant, None, checked_b)
+    alone = simulate_inputs(args_b, plant)
+    assert shared.spec == alone.spec and shared.windows == alone.windows
+    assert list(shared.spec.plant.motor_factors.values()) == [pytest.approx(1.01)]
+
+
 STUCK_CONTROLLER = '''
 import threading
 

@@ -130,7 +130,8 @@ def interrupts() -> Iterator[None]:
 
 class BatchSizer:
     """Batch sizes that take about :data:`BATCH_SECONDS` each, from the wall times of the
-    points so far (a running mean), balanced over the workers for the tail."""
+    points so far (a running mean), balanced over the workers for the tail (with more
+    than one point running at once)."""
 
     def __init__(self) -> None:
         self.mean: float | None = None
@@ -144,6 +145,8 @@ class BatchSizer:
         if self.mean is None:
             return 1
         ideal = max(1, min(BATCH_MAX, round(BATCH_SECONDS / max(self.mean, 1e-4))))
+        if capacity <= 1:  # one point at a time: nothing to balance, small batches cost
+            return ideal
         balanced = max(1, math.ceil(remaining / (IN_FLIGHT * capacity)))
         return min(ideal, balanced)
 
