@@ -180,3 +180,22 @@ duration = ["10ms", "20ms", "30ms"]
         else:
             assert r["status"] == "worker-died" and r["exit_status"] == 137
             assert "died" in r["stop_reason"]
+
+
+def test_the_local_clusters_workers_run_one_thread_without_the_stack_profiler():
+    """The local cluster's workers: one thread each, and Dask's statistical profiler off
+    (it samples every thread's stack every 10 ms: a tenth of a worker's time on short
+    points)."""
+    import dask
+
+    from gateway.campaign.engine import DaskEngine
+    from gateway.campaign.options import Command
+
+    engine = DaskEngine(Command.SIMULATE, workers=1)
+    try:
+        assert list(engine.client.nthreads().values()) == [1]
+        seen = engine.client.run(
+            lambda: dask.config.get("distributed.worker.profile.enabled"))
+        assert list(seen.values()) == [False]
+    finally:
+        engine.close()

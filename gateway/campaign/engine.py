@@ -159,7 +159,11 @@ class DaskEngine:
             config = {"distributed.scheduler.allowed-failures": 0,
                       "distributed.scheduler.worker-saturation": 1.0,
                       "distributed.worker.memory.target": False,
-                      "distributed.worker.memory.spill": False}
+                      "distributed.worker.memory.spill": False,
+                      # the workers' statistical profiler samples every thread's stack
+                      # every 10 ms for the dashboard's Profile page: 10 % of a worker's
+                      # time on short points (bench/bench_campaign.py, 1 worker)
+                      "distributed.worker.profile.enabled": False}
             with dask.config.set(config):
                 self.cluster = distributed.LocalCluster(
                     n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
