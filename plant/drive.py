@@ -13,7 +13,7 @@ Modes (:class:`plant.params.DriveParams`):
 * ``ideal``: i_s equals the setpoint, turning continuously with ε(t); rows 1–3 of (1) are
   integrated with RK4, which samples i_s(t) exactly at each stage (chosen over the exact
   discretisation with ω frozen: the same fourth-order integrator as the other modes, no
-  error from ω changing within a step, and ~1.5 µs per step). The reported voltage is
+  error from ω changing within a step, and ~1 µs per step). The reported voltage is
   the exact period average u = Δψ_s/T + R_s·mean(i_s), with ψ_s = σi_s + (M/L_r)ψ_r (§E1)
   and the analytic mean of the turning current vector. A setpoint change makes i_s jump at
   the start of the period: the jump is counted in Δψ_s (ψ_s at the start is taken before
@@ -82,10 +82,13 @@ import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
-from dbc.modes import SetpointFrame
+from dbc.modes import DriveMode, SetpointFrame
 from dbc.motor import MotorParams
-from plant.motor import coeffs, rk4_step_current_fed, rk4_step_full
+from plant.motor import Coeffs, coeffs, rk4_step_full
 from plant.params import DriveParams
+
+_FRAMES = {f.value: f for f in SetpointFrame}
+_isfinite = cmath.isfinite
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,9 +111,17 @@ class Setpoints:
 
     def __post_init__(self) -> None:
         try:
-            object.__setattr__(self, "frame", SetpointFrame(self.frame))
-        except ValueError:
+            frame = _FRAMES[self.frame]  # SetpointFrame(self.frame), without Enum's call
+        except (KeyError, TypeError):
             raise ValueError(f"Setpoints.frame = {self.frame!r}: use 'dq' or 'ab'") from None
+        if frame is not self.frame:
+            object.__setattr__(self, "frame", frame)
+        try:  # the usual case (numbers), checked without the loop below
+            if (_isfinite(self.i_s_ref) and _isfinite(self.u_s_ref) and _isfinite(self.eps_0)
+                    and _isfinite(self.w_0)):
+                return
+        except TypeError:
+            pass
         for name in ("i_s_ref", "u_s_ref", "eps_0", "w_0"):
             if not cmath.isfinite(complex(getattr(self, name))):
                 raise ValueError(f"Setpoints.{name} = {getattr(self, name)!r} is not finite")
@@ -136,6 +147,22 @@ class Measurement:
     limit_active: bool
 
 
+_SET_MEASUREMENT = tuple(Measurement.__dict__[f].__set__ for f in (
+    "i_s_ab", "u_s_ab", "u_dc", "w_m", "psi_r_ab", "T_e", "limit_active"))
+
+
+def _measurement(i_s_ab: complex, u_s_ab: complex, u_dc: float, w_m: float,
+                 psi_r_ab: complex, T_e: float, limit_active: bool,
+                 _new: Callable = object.__new__, _cls: type = Measurement,
+                 _s: tuple = _SET_MEASUREMENT) -> Measurement:
+    """``Measurement(i_s_ab, u_s_ab, u_dc, w_m, psi_r_ab, T_e, limit_active)``, built
+    faster (through its slots): every period's sample."""
+    m = _new(_cls)
+    _s[0](m, i_s_ab); _s[1](m, u_s_ab); _s[2](m, u_dc); _s[3](m, w_m)  # noqa: E702
+    _s[4](m, psi_r_ab); _s[5](m, T_e); _s[6](m, limit_active)  # noqa: E702
+    return m
+
+
 @dataclass(frozen=True, slots=True)
 class MotorState:
     """The state of model (1): ω (rad/s), ψ_r (Wb), i_s (A), fixed frame."""
@@ -154,6 +181,9 @@ def pi_gains(motor: MotorParams, params: DriveParams) -> tuple[float, float]:
 
 SQRT3 = math.sqrt(3.0)
 LoadFunction = Callable[[float, float], float]
+
+
+_NO_TURN = (1.0, 0.0, 1.0, 0.0)  # e^{j0}, e^{j0}: (a, b) setpoints are held
 
 
 def _mean_turning(w_0_T: float) -> complex:
@@ -187,9 +217,9 @@ class Drive:
             raise ValueError(f"Drive: mode {self.params.mode} is the drive's own control "
                              "(plant.servo) over a current source: give the model 'ideal' or "
                              "'current-loop'")
-        self._c = coeffs(self.motor)
-        self._h = self.params.h
-        self._K_p, self._K_i = pi_gains(self.motor, self.params)
+        self._h = h = self.params.h
+        self._set_coeffs(coeffs(self.motor))
+        self._K_p, self._K_i = K_p, K_i = pi_gains(self.motor, self.params)
         self.load = load
         self.motor_drift = {k: float(v) for k, v in (motor_drift or {}).items() if v}
         p = self.params
@@ -203,6 +233,18 @@ class Drive:
                                and p.i_noise_rms == 0.0)
         self._du_dead = p.dead_time * p.f_pwm * p.u_dc
         self._u_errors = self._du_dead > 0.0 or p.u_dc_ripple > 0.0
+        # read once, not every period
+        self._ideal = p.mode is DriveMode.IDEAL
+        self._loop = p.mode is DriveMode.CURRENT_LOOP
+        self._u_lim = u_lim = p.u_lim
+        self._trip2 = p.i_trip**2
+        # the current loop's constants: K_p, K_i·h, h/T_i = K_i·h/K_p, u_lim, u_lim²
+        self._pi = (K_p, K_i * h, K_i * h / K_p, u_lim, u_lim * u_lim)
+        self._u_dc = p.u_dc
+        self._i_offset = p.i_offset_ab
+        self._T_n: tuple[float, int] | None = None  # (T, its whole steps) of the last period
+        self._w_0h: float | None = None  # ω0·h of the cached e^{jω0·h} and e^{jω0·h/2}
+        self._turn = _NO_TURN
         self.reset(state)
 
     # ---- sensors and inverter errors ----------------------------------------------------------
@@ -247,9 +289,18 @@ class Drive:
         m = self.motor
         values = {k: getattr(m, k) * (1.0 + d * t_mid) for k, d in self.motor_drift.items()}
         try:
-            self._c = coeffs(replace(m, **values))
+            c = coeffs(replace(m, **values))
         except ValueError as exc:
             raise ValueError(f"motor drift at t = {t_mid:.3f} s: {exc}") from exc
+        self._set_coeffs(c)
+
+    def _set_coeffs(self, c: Coeffs) -> None:
+        """The coefficients of (1) now, and as the internal steps read them: −α, αM, β, μ,
+        R_s/σ, 1/σ, 1/J, h/2, h/6."""
+        self._c = c
+        h = self._h
+        self._k = (-c.alpha, c.alpha_M, c.beta, c.mu, c.R_s_over_sigma, c.inv_sigma, c.inv_J,
+                   0.5 * h, h / 6.0)
 
     # ---- commands ---------------------------------------------------------------------------
     def reset(self, state: MotorState | None = None) -> None:
@@ -333,16 +384,21 @@ class Drive:
             )
         return n
 
-    def _frame(self, n: int) -> tuple[complex, complex, complex]:
-        """(e^{jε} at the present step, e^{jω0·h}, e^{jω0·h/2}) for the active setpoints."""
+    def _frame(self, n: int) -> tuple[complex, tuple[float, float, float, float]]:
+        """(e^{jε} at the present step, (e^{jω0·h} and e^{jω0·h/2} as their real and
+        imaginary parts)) for the active setpoints."""
         sp = self._sp
         if sp.frame is SetpointFrame.AB:
-            return 1 + 0j, 1 + 0j, 1 + 0j
+            return 1 + 0j, _NO_TURN
         if self._n_app is None:
             self._n_app = self._n
         w_0h = sp.w_0 * self._h
         rot = cmath.exp(1j * (sp.eps_0 + w_0h * (self._n - self._n_app)))
-        return rot, cmath.exp(1j * w_0h), cmath.exp(0.5j * w_0h)
+        if w_0h != self._w_0h:  # the same frame speed as the last period's: kept
+            self._w_0h = w_0h
+            step, half = cmath.exp(1j * w_0h), cmath.exp(0.5j * w_0h)
+            self._turn = (step.real, step.imag, half.real, half.imag)
+        return rot, self._turn
 
     def advance(self, T: float, T_L: float) -> Measurement:
         """Simulate the period (t, t + T] with the active setpoints and load torque T_L (N·m).
@@ -351,13 +407,18 @@ class Drive:
         measurement at t + T: currents (with sensor errors), the period's average voltage
         and the truth.
         """
-        n = self._whole_steps(T)
+        T_n = self._T_n
+        if T_n is not None and T_n[0] == T:
+            n = T_n[1]
+        else:
+            n = self._whole_steps(T)
+            self._T_n = (T, n)
         T_L = float(T_L)
         if self.motor_drift:
             self._drift((self._n + 0.5 * n) * self._h)
         if self._sp.frame is SetpointFrame.DQ and self._n_app is None:
             self._n_app = self._n
-        if self.params.mode == "ideal":
+        if self._ideal:
             u_avg, limited = self._advance_ideal(n, T_L), False
         else:
             u_avg, limited = self._advance_inverter(n, T_L)
@@ -384,7 +445,12 @@ class Drive:
         self._x_ab = 0j
 
     def _advance_ideal(self, n: int, T_L: float) -> complex:
-        """Current-fed model; returns the exact average voltage Δψ_s/T + R_s·mean(i_s)."""
+        """Current-fed model; returns the exact average voltage Δψ_s/T + R_s·mean(i_s).
+
+        The n RK4 steps of rows 1–3 of (1) run on float locals, as in
+        :meth:`_run_current_loop` (the same operations as :func:`plant.motor.
+        rk4_step_current_fed`).
+        """
         c = self._c
         h = self._h
         psi_s_start = c.sigma * self._i + c.M_over_L_r * self._psi
@@ -392,27 +458,68 @@ class Drive:
         if self._enabled and abs(sp.i_s_ref) > self.params.i_trip:
             self._trip()
         if self._enabled:
-            rot, step, half = self._frame(n)
+            rot, (sa, sb, ha, hb) = self._frame(n)
             i_ref = sp.i_s_ref
             turning = _mean_turning(sp.w_0 * n * h) if sp.frame is SetpointFrame.DQ else 1.0
             mean_i = i_ref * rot * turning
-            w, psi = self._w, self._psi
-            i0 = i_ref * rot
-            if self._exact_sensors and self.load is None:
-                for _ in range(n):
-                    i1 = i0 * step
-                    w, psi = rk4_step_current_fed(c, w, psi, i0, i0 * half, i1, T_L, h)
-                    i0 = i1
-                self._w, self._psi, self._i = w, psi, i0
-            else:  # the measured current follows the setpoint; the load may vary
-                un = self._unsense
+            i0 = i_ref * rot  # the measured current at the step start: the setpoint
+            ca, cb = i0.real, i0.imag
+            # the measured current follows the setpoint; the true one is its sensor
+            # model inverted (or the same with exact sensors)
+            un = None if self._exact_sensors and self.load is None else self._unsense
+            if un is not None:
                 mean_i = un(mean_i)
-                for k in range(n):
-                    i1 = i0 * step
-                    w, psi = rk4_step_current_fed(c, w, psi, un(i0), un(i0 * half), un(i1),
-                                                  self._torque(k, T_L), h)
-                    i0 = i1
-                self._w, self._psi, self._i = w, psi, un(i0)
+            varying = self.load is not None
+            na, aM, _, mu, _, _, inv_J, hh, h6 = self._k
+            load = T_L * inv_J
+            w, psi = self._w, self._psi
+            pa, pb = psi.real, psi.imag
+            for k in range(n):
+                # the setpoint at the step's midpoint and end: i0·e^{jω0·h/2}, i0·e^{jω0·h}
+                ma = ca * ha - cb * hb
+                mb = ca * hb + cb * ha
+                ea = ca * sa - cb * sb
+                eb = ca * sb + cb * sa
+                if un is None:
+                    ia0, ib0, iam, ibm, ia1, ib1 = ca, cb, ma, mb, ea, eb
+                else:
+                    z = un(complex(ca, cb))
+                    ia0, ib0 = z.real, z.imag
+                    z = un(complex(ma, mb))
+                    iam, ibm = z.real, z.imag
+                    z = un(complex(ea, eb))
+                    ia1, ib1 = z.real, z.imag
+                if varying:
+                    load = self._torque(k, T_L) * inv_J
+                # one classical RK4 step of rows 1–3 of (1), i_s sampled at each stage:
+                # dψ_r/dt = (−α + jω)ψ_r + αM·i_s, dω/dt = μ(ψ_ra·i_sb − ψ_rb·i_sa) − T_L/J
+                dpa1 = na * pa - w * pb + aM * ia0
+                dpb1 = na * pb + w * pa + aM * ib0
+                dw1 = mu * (pa * ib0 - pb * ia0) - load
+                w2 = w + hh * dw1
+                pa2 = pa + hh * dpa1
+                pb2 = pb + hh * dpb1
+                dpa2 = na * pa2 - w2 * pb2 + aM * iam
+                dpb2 = na * pb2 + w2 * pa2 + aM * ibm
+                dw2 = mu * (pa2 * ibm - pb2 * iam) - load
+                w3 = w + hh * dw2
+                pa3 = pa + hh * dpa2
+                pb3 = pb + hh * dpb2
+                dpa3 = na * pa3 - w3 * pb3 + aM * iam
+                dpb3 = na * pb3 + w3 * pa3 + aM * ibm
+                dw3 = mu * (pa3 * ibm - pb3 * iam) - load
+                w4 = w + h * dw3
+                pa4 = pa + h * dpa3
+                pb4 = pb + h * dpb3
+                dpa4 = na * pa4 - w4 * pb4 + aM * ia1
+                dpb4 = na * pb4 + w4 * pa4 + aM * ib1
+                dw4 = mu * (pa4 * ib1 - pb4 * ia1) - load
+                w = w + h6 * (dw1 + 2.0 * (dw2 + dw3) + dw4)
+                pa = pa + h6 * (dpa1 + 2.0 * (dpa2 + dpa3) + dpa4)
+                pb = pb + h6 * (dpb1 + 2.0 * (dpb2 + dpb3) + dpb4)
+                ca, cb = ea, eb
+            self._w, self._psi = w, complex(pa, pb)
+            self._i = complex(ca, cb) if un is None else un(complex(ca, cb))
         else:
             mean_i = 0j
             self._i = 0j
@@ -424,7 +531,7 @@ class Drive:
         """current-loop / voltage modes; returns (average voltage, limit clipped)."""
         done, u_sum, limited = 0, 0j, False
         if self._enabled:
-            if self.params.mode == "current-loop":
+            if self._loop:
                 done, u_sum, limited = self._run_current_loop(n, T_L)
             else:
                 done, u_sum, limited = self._run_voltage(n, T_L)
@@ -437,89 +544,216 @@ class Drive:
         """PI + feedforward + circular limit + back-calculation anti-windup, RK4 with ZOH.
 
         Returns (steps done before a trip or n, sum of the applied step voltages, clipped).
+        The n steps run in this one function on float locals (the real and imaginary parts
+        of the complex quantities; the same operations in the same order as the complex
+        forms, :func:`plant.motor.rk4_step_full`): no calls, no objects per step.
         """
-        c = self._c
         h = self._h
-        rot, step, half = self._frame(n)
+        rot, (sa, sb, ha, hb) = self._frame(n)
         sp = self._sp
-        i_ref = sp.i_s_ref
-        u_ff = sp.u_s_ref
-        K_p = self._K_p
-        K_i_h = self._K_i * h
-        h_over_T_i = K_i_h / K_p
-        u_lim = self.params.u_lim
-        u_lim2 = u_lim * u_lim
-        trip2 = self.params.i_trip**2
-        rk4 = rk4_step_full
+        i_ref, u_ff = sp.i_s_ref, sp.u_s_ref
+        ref_a, ref_b, ff_a, ff_b = i_ref.real, i_ref.imag, u_ff.real, u_ff.imag
+        K_p, K_i_h, h_over_T_i, u_lim, u_lim2 = self._pi
+        trip2 = self._trip2
         sqrt = math.sqrt
+        na, aM, beta, mu, rs, inv_sigma, inv_J, hh, h6 = self._k
+        load = T_L * inv_J
         w, psi, i = self._w, self._psi, self._i
-        x = self._x_ab * rot.conjugate()  # integrator in the setpoint frame
-        u_sum = 0j
+        pa, pb, ia, ib = psi.real, psi.imag, i.real, i.imag
+        ra, rb = rot.real, rot.imag
+        x = self._x_ab  # the integrator, to the setpoint frame: x·e^{−jε}
+        xa = x.real * ra + x.imag * rb
+        xb = x.imag * ra - x.real * rb
+        sum_a = sum_b = 0.0
         limited = False
         done = n
-        plain = self._exact_sensors and not self._u_errors and self.load is None
-        sense, u_error, torque_at = self._sense, self._u_error, self._torque
+        u_errors = self._u_errors
+        varying = self.load is not None
+        # the sensors' model is skipped when it is exact, as long as nothing else varies
+        plain = self._exact_sensors and not u_errors and not varying
         t0 = self._n * h
         for k in range(n):
-            e = i_ref - (i if plain else sense(i)) * rot.conjugate()
-            u = u_ff + K_p * e + x
-            m2 = u.real * u.real + u.imag * u.imag
+            # the error in the setpoint frame: e = i_ref − i_meas·e^{−jε}
+            if plain:
+                ma, mb = ia, ib
+            else:
+                m = self._sense(complex(ia, ib))
+                ma, mb = m.real, m.imag
+            ea = ref_a - (ma * ra + mb * rb)
+            eb = ref_b - (mb * ra - ma * rb)
+            ua = ff_a + K_p * ea + xa
+            ub = ff_b + K_p * eb + xb
+            m2 = ua * ua + ub * ub
             if m2 > u_lim2:
                 limited = True
-                u *= u_lim / sqrt(m2)
-                x += h_over_T_i * (u - u_ff - x)  # back-calculation, T_t = T_i
+                scale = u_lim / sqrt(m2)
+                ua *= scale
+                ub *= scale
+                xa += h_over_T_i * (ua - ff_a - xa)  # back-calculation, T_t = T_i
+                xb += h_over_T_i * (ub - ff_b - xb)
             else:
-                x += K_i_h * e
-            u_ab = u * (rot * half)
-            u_sum += u_ab
-            if plain:
-                w, psi, i = rk4(c, w, psi, i, u_ab, T_L, h)
-            else:
-                u_app = u_error(u_ab, i, t0 + (k + 0.5) * h) if self._u_errors else u_ab
-                w, psi, i = rk4(c, w, psi, i, u_app, torque_at(k, T_L), h)
-            rot *= step
-            if i.real * i.real + i.imag * i.imag > trip2:
+                xa += K_i_h * ea
+                xb += K_i_h * eb
+            # to (a, b) with the angle of the step's midpoint: u·(e^{jε}·e^{jω0·h/2})
+            ta = ra * ha - rb * hb
+            tb = ra * hb + rb * ha
+            uaa = ua * ta - ub * tb
+            uab = ua * tb + ub * ta
+            sum_a += uaa
+            sum_b += uab
+            if u_errors:
+                u_app = self._u_error(complex(uaa, uab), complex(ia, ib), t0 + (k + 0.5) * h)
+                uaa, uab = u_app.real, u_app.imag
+            if varying:
+                load = self._torque(k, T_L) * inv_J
+            # one classical RK4 step of (1), the voltage held (ZOH)
+            ud_a = uaa * inv_sigma
+            ud_b = uab * inv_sigma
+            # stage 1: dψ_r/dt = (−α + jω)ψ_r + αM·i_s (rows 2–3), di_s/dt = (u_s − R_s·i_s)/σ
+            # − β·dψ_r/dt (rows 4–5), dω/dt = μ(ψ_ra·i_sb − ψ_rb·i_sa) − T_L/J (row 1)
+            dpa1 = na * pa - w * pb + aM * ia
+            dpb1 = na * pb + w * pa + aM * ib
+            dia1 = ud_a - rs * ia - beta * dpa1
+            dib1 = ud_b - rs * ib - beta * dpb1
+            dw1 = mu * (pa * ib - pb * ia) - load
+            # stage 2
+            w2 = w + hh * dw1
+            pa2 = pa + hh * dpa1
+            pb2 = pb + hh * dpb1
+            ia2 = ia + hh * dia1
+            ib2 = ib + hh * dib1
+            dpa2 = na * pa2 - w2 * pb2 + aM * ia2
+            dpb2 = na * pb2 + w2 * pa2 + aM * ib2
+            dia2 = ud_a - rs * ia2 - beta * dpa2
+            dib2 = ud_b - rs * ib2 - beta * dpb2
+            dw2 = mu * (pa2 * ib2 - pb2 * ia2) - load
+            # stage 3
+            w3 = w + hh * dw2
+            pa3 = pa + hh * dpa2
+            pb3 = pb + hh * dpb2
+            ia3 = ia + hh * dia2
+            ib3 = ib + hh * dib2
+            dpa3 = na * pa3 - w3 * pb3 + aM * ia3
+            dpb3 = na * pb3 + w3 * pa3 + aM * ib3
+            dia3 = ud_a - rs * ia3 - beta * dpa3
+            dib3 = ud_b - rs * ib3 - beta * dpb3
+            dw3 = mu * (pa3 * ib3 - pb3 * ia3) - load
+            # stage 4
+            w4 = w + h * dw3
+            pa4 = pa + h * dpa3
+            pb4 = pb + h * dpb3
+            ia4 = ia + h * dia3
+            ib4 = ib + h * dib3
+            dpa4 = na * pa4 - w4 * pb4 + aM * ia4
+            dpb4 = na * pb4 + w4 * pa4 + aM * ib4
+            dia4 = ud_a - rs * ia4 - beta * dpa4
+            dib4 = ud_b - rs * ib4 - beta * dpb4
+            dw4 = mu * (pa4 * ib4 - pb4 * ia4) - load
+            w = w + h6 * (dw1 + 2.0 * (dw2 + dw3) + dw4)
+            pa = pa + h6 * (dpa1 + 2.0 * (dpa2 + dpa3) + dpa4)
+            pb = pb + h6 * (dpb1 + 2.0 * (dpb2 + dpb3) + dpb4)
+            ia = ia + h6 * (dia1 + 2.0 * (dia2 + dia3) + dia4)
+            ib = ib + h6 * (dib1 + 2.0 * (dib2 + dib3) + dib4)
+            ra, rb = ra * sa - rb * sb, ra * sb + rb * sa  # e^{jε} of the next step
+            if ia * ia + ib * ib > trip2:
                 done = k + 1
                 break
-        self._w, self._psi, self._i = w, psi, i
-        self._x_ab = x * rot
+        self._w, self._psi, self._i = w, complex(pa, pb), complex(ia, ib)
+        self._x_ab = complex(xa * ra - xb * rb, xa * rb + xb * ra)  # x·e^{jε}
         if done < n:
             self._trip()
-        return done, u_sum, limited
+        return done, complex(sum_a, sum_b), limited
 
     def _run_voltage(self, n: int, T_L: float) -> tuple[int, complex, bool]:
-        """u_s_ref applied, circularly limited, RK4 with ZOH; returns like the current loop."""
-        c = self._c
+        """u_s_ref applied, circularly limited, RK4 with ZOH; returns like the current loop.
+
+        On float locals in one function, as :meth:`_run_current_loop`.
+        """
         h = self._h
-        rot, step, half = self._frame(n)
+        rot, (sa, sb, ha, hb) = self._frame(n)
         u = self._sp.u_s_ref
-        u_lim = self.params.u_lim
+        u_lim = self._u_lim
         limited = abs(u) > u_lim
         if limited:
             u *= u_lim / abs(u)
-        trip2 = self.params.i_trip**2
-        rk4 = rk4_step_full
+        trip2 = self._trip2
+        na, aM, beta, mu, rs, inv_sigma, inv_J, hh, h6 = self._k
+        load = T_L * inv_J
         w, psi, i = self._w, self._psi, self._i
-        u_rot = u * rot * half
-        u_sum = 0j
+        pa, pb, ia, ib = psi.real, psi.imag, i.real, i.imag
+        u_rot = u * rot * complex(ha, hb)
+        ura, urb = u_rot.real, u_rot.imag
+        sum_a = sum_b = 0.0
         done = n
-        plain = not self._u_errors and self.load is None
+        u_errors = self._u_errors
+        varying = self.load is not None
         t0 = self._n * h
         for k in range(n):
-            u_sum += u_rot
-            if plain:
-                w, psi, i = rk4(c, w, psi, i, u_rot, T_L, h)
+            sum_a += ura
+            sum_b += urb
+            if u_errors:
+                u_app = self._u_error(complex(ura, urb), complex(ia, ib), t0 + (k + 0.5) * h)
+                uaa, uab = u_app.real, u_app.imag
             else:
-                u_app = self._u_error(u_rot, i, t0 + (k + 0.5) * h) if self._u_errors else u_rot
-                w, psi, i = rk4(c, w, psi, i, u_app, self._torque(k, T_L), h)
-            u_rot *= step
-            if i.real * i.real + i.imag * i.imag > trip2:
+                uaa, uab = ura, urb
+            if varying:
+                load = self._torque(k, T_L) * inv_J
+            # one classical RK4 step of (1), the voltage held (ZOH)
+            ud_a = uaa * inv_sigma
+            ud_b = uab * inv_sigma
+            # stage 1: dψ_r/dt = (−α + jω)ψ_r + αM·i_s (rows 2–3), di_s/dt = (u_s − R_s·i_s)/σ
+            # − β·dψ_r/dt (rows 4–5), dω/dt = μ(ψ_ra·i_sb − ψ_rb·i_sa) − T_L/J (row 1)
+            dpa1 = na * pa - w * pb + aM * ia
+            dpb1 = na * pb + w * pa + aM * ib
+            dia1 = ud_a - rs * ia - beta * dpa1
+            dib1 = ud_b - rs * ib - beta * dpb1
+            dw1 = mu * (pa * ib - pb * ia) - load
+            # stage 2
+            w2 = w + hh * dw1
+            pa2 = pa + hh * dpa1
+            pb2 = pb + hh * dpb1
+            ia2 = ia + hh * dia1
+            ib2 = ib + hh * dib1
+            dpa2 = na * pa2 - w2 * pb2 + aM * ia2
+            dpb2 = na * pb2 + w2 * pa2 + aM * ib2
+            dia2 = ud_a - rs * ia2 - beta * dpa2
+            dib2 = ud_b - rs * ib2 - beta * dpb2
+            dw2 = mu * (pa2 * ib2 - pb2 * ia2) - load
+            # stage 3
+            w3 = w + hh * dw2
+            pa3 = pa + hh * dpa2
+            pb3 = pb + hh * dpb2
+            ia3 = ia + hh * dia2
+            ib3 = ib + hh * dib2
+            dpa3 = na * pa3 - w3 * pb3 + aM * ia3
+            dpb3 = na * pb3 + w3 * pa3 + aM * ib3
+            dia3 = ud_a - rs * ia3 - beta * dpa3
+            dib3 = ud_b - rs * ib3 - beta * dpb3
+            dw3 = mu * (pa3 * ib3 - pb3 * ia3) - load
+            # stage 4
+            w4 = w + h * dw3
+            pa4 = pa + h * dpa3
+            pb4 = pb + h * dpb3
+            ia4 = ia + h * dia3
+            ib4 = ib + h * dib3
+            dpa4 = na * pa4 - w4 * pb4 + aM * ia4
+            dpb4 = na * pb4 + w4 * pa4 + aM * ib4
+            dia4 = ud_a - rs * ia4 - beta * dpa4
+            dib4 = ud_b - rs * ib4 - beta * dpb4
+            dw4 = mu * (pa4 * ib4 - pb4 * ia4) - load
+            w = w + h6 * (dw1 + 2.0 * (dw2 + dw3) + dw4)
+            pa = pa + h6 * (dpa1 + 2.0 * (dpa2 + dpa3) + dpa4)
+            pb = pb + h6 * (dpb1 + 2.0 * (dpb2 + dpb3) + dpb4)
+            ia = ia + h6 * (dia1 + 2.0 * (dia2 + dia3) + dia4)
+            ib = ib + h6 * (dib1 + 2.0 * (dib2 + dib3) + dib4)
+            ura, urb = ura * sa - urb * sb, ura * sb + urb * sa  # u_rot·e^{jω0·h}
+            if ia * ia + ib * ib > trip2:
                 done = k + 1
                 break
-        self._w, self._psi, self._i = w, psi, i
+        self._w, self._psi, self._i = w, complex(pa, pb), complex(ia, ib)
         if done < n:
             self._trip()
-        return done, u_sum, limited
+        return done, complex(sum_a, sum_b), limited
 
     def _run_disabled(self, n: int, T_L: float) -> complex:
         """Freewheeling diodes until i_s = 0, then open stator; returns Σ u_step (V)."""
@@ -567,17 +801,9 @@ class Drive:
         return c.M_over_L_r * (psi_end - psi)
 
     def _measure(self, u_avg: complex, limited: bool) -> Measurement:
-        p = self.params
         i = self._i
         psi = self._psi
-        i_meas = self._sense(i)
+        # exact sensors: what _sense computes, without the call
+        i_meas = self._g * i + self._i_offset if self._exact_sensors else self._sense(i)
         T_e = self._c.M_over_L_r * (psi.real * i.imag - psi.imag * i.real)
-        return Measurement(
-            i_s_ab=i_meas,
-            u_s_ab=u_avg,
-            u_dc=p.u_dc,
-            w_m=self._w,
-            psi_r_ab=psi,
-            T_e=T_e,
-            limit_active=limited,
-        )
+        return _measurement(i_meas, u_avg, self._u_dc, self._w, psi, T_e, limited)

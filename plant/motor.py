@@ -19,7 +19,9 @@ Two forms:
   :func:`rhs_current_fed`; state ``[ω, ψ_ra, ψ_rb, i_sa, i_sb]`` or ``[ω, ψ_ra, ψ_rb]``);
 * scalar complex forms and classical RK4 steps for the fixed-step integrator of the drive
   (:func:`rk4_step_full`, :func:`rk4_step_current_fed`), taking the precomputed
-  :class:`Coeffs` so the inner loop does no attribute lookups.
+  :class:`Coeffs`. :class:`plant.drive.Drive` runs the same operations, in the same order,
+  on the real and imaginary parts as float locals, a whole period's steps in one function
+  (the same numbers, bit for bit: tests/test_fast_paths.py); these are its reference.
 """
 
 from __future__ import annotations
@@ -135,7 +137,7 @@ def rk4_step_full(
     """One classical RK4 step of (1) over h (s) with u_s_ab and T_L held (ZOH).
 
     Returns (ω, ψ_r, i_s) at t + h. Written out (no calls, no allocations beyond the
-    complex scalars) because the drive calls it f_pwm times per simulated second.
+    complex scalars); the drive's internal steps are this step on float locals.
     """
     a = c.alpha
     aM = c.alpha_M

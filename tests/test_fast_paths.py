@@ -1,8 +1,10 @@
-"""The controller's and the references' fast paths give the plain expressions' numbers, bit
-for bit (signed zeros included: compared by repr): the (d, q) interval model against the
-general one, the model kept from a step's prediction against the one computed again, the
-references' constant stretches against the signals' own evaluation, the reference window
-against the profile, a Command built through its slots against its constructor.
+"""The controller's, the references' and the drive model's fast paths give the plain
+expressions' numbers, bit for bit (signed zeros included: compared by repr): the (d, q)
+interval model against the general one, the model kept from a step's prediction against the
+one computed again, the references' constant stretches against the signals' own evaluation,
+the reference window against the profile, a Command built through its slots against its
+constructor; the drive's fused internal steps (float locals) against one RK4 call per step
+on complex scalars, a Measurement built through its slots against its constructor.
 
 (tools/same_signals.py compares whole runs against the code before the fast paths.)
 """
@@ -16,6 +18,7 @@ from dataclasses import fields
 
 import pytest
 
+from dbc.modes import SetpointFrame
 from dbc.motor import MotorParams
 from dbc.timing import Sampling
 from gateway.control import sampled
@@ -30,6 +33,16 @@ from gateway.control.sampled import (
 )
 from gateway.reference import load_profile, paper_profile
 from gateway.reference.signals import _make_references
+from plant.drive import (
+    Drive,
+    Measurement,
+    MotorState,
+    Setpoints,
+    _mean_turning,
+    _measurement,
+)
+from plant.motor import rk4_step_current_fed, rk4_step_full
+from plant.params import DriveParams
 
 MOTOR = MotorParams.paper()
 
@@ -174,3 +187,183 @@ def test_a_command_built_through_its_slots_is_the_constructors():
     assert fast == plain
     assert [getattr(fast, f.name) for f in fields(Command)] == [
         getattr(plain, f.name) for f in fields(Command)]
+
+
+# ---- the drive model's fused internal steps ---------------------------------------------------
+class _ReferenceDrive(Drive):
+    """The drive with its internal steps written plainly, on complex scalars, one call of
+    :func:`plant.motor.rk4_step_full` / :func:`rk4_step_current_fed` per step (the code
+    before the steps were fused onto float locals)."""
+
+    def _turning(self, n: int) -> tuple[complex, complex, complex]:
+        rot, (sa, sb, ha, hb) = self._frame(n)
+        return rot, complex(sa, sb), complex(ha, hb)
+
+    def _advance_ideal(self, n: int, T_L: float) -> complex:
+        c, h, sp = self._c, self._h, self._sp
+        psi_s_start = c.sigma * self._i + c.M_over_L_r * self._psi
+        if self._enabled and abs(sp.i_s_ref) > self.params.i_trip:
+            self._trip()
+        if self._enabled:
+            rot, step, half = self._turning(n)
+            turning = _mean_turning(sp.w_0 * n * h) if sp.frame is SetpointFrame.DQ else 1.0
+            mean_i = sp.i_s_ref * rot * turning
+            w, psi = self._w, self._psi
+            i0 = sp.i_s_ref * rot
+            if self._exact_sensors and self.load is None:
+                for _ in range(n):
+                    i1 = i0 * step
+                    w, psi = rk4_step_current_fed(c, w, psi, i0, i0 * half, i1, T_L, h)
+                    i0 = i1
+                self._w, self._psi, self._i = w, psi, i0
+            else:
+                un = self._unsense
+                mean_i = un(mean_i)
+                for k in range(n):
+                    i1 = i0 * step
+                    w, psi = rk4_step_current_fed(c, w, psi, un(i0), un(i0 * half), un(i1),
+                                                  self._torque(k, T_L), h)
+                    i0 = i1
+                self._w, self._psi, self._i = w, psi, un(i0)
+        else:
+            mean_i = 0j
+            self._i = 0j
+            self._open_circuit(n * h, self._torque(0.5 * n - 0.5, T_L))
+        psi_s_end = c.sigma * self._i + c.M_over_L_r * self._psi
+        return (psi_s_end - psi_s_start) / (n * h) + c.R_s * mean_i
+
+    def _run_current_loop(self, n: int, T_L: float) -> tuple[int, complex, bool]:
+        c, h = self._c, self._h
+        rot, step, half = self._turning(n)
+        i_ref, u_ff = self._sp.i_s_ref, self._sp.u_s_ref
+        K_p, K_i_h = self._K_p, self._K_i * h
+        h_over_T_i = K_i_h / K_p
+        u_lim = self.params.u_lim
+        w, psi, i = self._w, self._psi, self._i
+        x = self._x_ab * rot.conjugate()
+        u_sum, limited, done = 0j, False, n
+        plain = self._exact_sensors and not self._u_errors and self.load is None
+        t0 = self._n * h
+        for k in range(n):
+            e = i_ref - (i if plain else self._sense(i)) * rot.conjugate()
+            u = u_ff + K_p * e + x
+            m2 = u.real * u.real + u.imag * u.imag
+            if m2 > u_lim * u_lim:
+                limited = True
+                u *= u_lim / math.sqrt(m2)
+                x += h_over_T_i * (u - u_ff - x)
+            else:
+                x += K_i_h * e
+            u_ab = u * (rot * half)
+            u_sum += u_ab
+            if plain:
+                w, psi, i = rk4_step_full(c, w, psi, i, u_ab, T_L, h)
+            else:
+                u_app = self._u_error(u_ab, i, t0 + (k + 0.5) * h) if self._u_errors else u_ab
+                w, psi, i = rk4_step_full(c, w, psi, i, u_app, self._torque(k, T_L), h)
+            rot *= step
+            if i.real * i.real + i.imag * i.imag > self.params.i_trip**2:
+                done = k + 1
+                break
+        self._w, self._psi, self._i = w, psi, i
+        self._x_ab = x * rot
+        if done < n:
+            self._trip()
+        return done, u_sum, limited
+
+    def _run_voltage(self, n: int, T_L: float) -> tuple[int, complex, bool]:
+        c, h = self._c, self._h
+        rot, step, half = self._turning(n)
+        u = self._sp.u_s_ref
+        u_lim = self.params.u_lim
+        limited = abs(u) > u_lim
+        if limited:
+            u *= u_lim / abs(u)
+        w, psi, i = self._w, self._psi, self._i
+        u_rot = u * rot * half
+        u_sum, done = 0j, n
+        plain = not self._u_errors and self.load is None
+        t0 = self._n * h
+        for k in range(n):
+            u_sum += u_rot
+            if plain:
+                w, psi, i = rk4_step_full(c, w, psi, i, u_rot, T_L, h)
+            else:
+                u_app = self._u_error(u_rot, i, t0 + (k + 0.5) * h) if self._u_errors else u_rot
+                w, psi, i = rk4_step_full(c, w, psi, i, u_app, self._torque(k, T_L), h)
+            u_rot *= step
+            if i.real * i.real + i.imag * i.imag > self.params.i_trip**2:
+                done = k + 1
+                break
+        self._w, self._psi, self._i = w, psi, i
+        if done < n:
+            self._trip()
+        return done, u_sum, limited
+
+
+def _drive_run(cls: type[Drive], seed: int, mode: str) -> list[str]:
+    """A random drive's life (sensor and inverter errors, a varying load, drift, trips,
+    the limit, (d, q) and (a, b) setpoints, signed zeros): every sample, as repr."""
+    rnd = random.Random(seed)
+    kw: dict = {}
+    if rnd.random() < 0.3:
+        kw.update(i_noise_rms=0.01, i_gain_error=0.02, i_offset_ab=0.01 - 0.02j)
+    if rnd.random() < 0.2:
+        kw.update(i_gain_phase=(0.01, -0.02))
+    if rnd.random() < 0.2:
+        kw.update(dead_time=1e-6)
+    if rnd.random() < 0.2:
+        kw.update(u_dc_ripple=0.05)
+    if rnd.random() < 0.2:
+        kw.update(f_pwm=rnd.choice([8e3, 16e3]))
+    if rnd.random() < 0.3:
+        kw.update(i_trip=rnd.choice([5.0, 10.0]))
+    params = DriveParams(mode=mode, **kw)
+    load = (lambda t, T_L: T_L * (1.0 + 0.1 * math.sin(100.0 * t))) if rnd.random() < 0.2 else None
+    drift = {"R_s": 0.1} if rnd.random() < 0.1 else None
+    state = (MotorState() if rnd.random() < 0.3 else
+             MotorState(0.5 * _values(rnd), complex(_values(rnd), _values(rnd)) * 0.005,
+                        complex(_values(rnd), _values(rnd)) * 0.02))
+    d = cls(MOTOR, params, state, load=load, motor_drift=drift)
+    d.enable(rnd.random() < 0.9)
+    out = []
+    for _ in range(30):
+        x = rnd.random()
+        if x < 0.3:
+            d.set_setpoints(Setpoints(
+                rnd.choice(["dq", "ab"]), complex(_values(rnd), _values(rnd)) * 0.03,
+                complex(_values(rnd), _values(rnd)) * 1.5, rnd.uniform(-4.0, 4.0),
+                _values(rnd) if rnd.random() < 0.7 else 0.0))
+        elif x < 0.35:
+            d.set_references(Setpoints("dq", complex(_values(rnd), _values(rnd)) * 0.03,
+                                       complex(_values(rnd), _values(rnd)) * 1.5))
+        elif x < 0.38:
+            d.enable(not d.enabled)
+        m = d.advance(params.h * rnd.choice([1, 4, 10, 10, 25]), 0.01 * _values(rnd))
+        out.append(repr((m, d.state, d.t, d.enabled, d.tripped, d._x_ab)))
+    return out
+
+
+@pytest.mark.parametrize("mode", ["ideal", "current-loop", "voltage"])
+def test_the_drives_fused_steps_are_the_plain_rk4_steps(mode):
+    """Drive's internal steps run fused on float locals: the same numbers as one
+    rk4_step_* call per step on complex scalars, bit for bit."""
+    for seed in range(60):
+        assert _drive_run(Drive, seed, mode) == _drive_run(_ReferenceDrive, seed, mode), seed
+
+
+def test_a_measurement_built_through_its_slots_is_the_constructors():
+    args = (1 + 2j, -0.0 - 3j, 560.0, -0.0, 0.25 - 1j, 7.5, True)
+    fast, plain = _measurement(*args), Measurement(*args)
+    assert fast == plain and repr(fast) == repr(plain)
+
+
+def test_setpoints_are_checked_as_before():
+    sp = Setpoints("ab", 1, 2.5, 0, 3)  # numbers of any kind, the frame by its value
+    assert sp.frame is SetpointFrame.AB and sp.i_s_ref == 1
+    assert Setpoints(SetpointFrame.DQ).frame is SetpointFrame.DQ
+    assert Setpoints("dq", "1+2j").i_s_ref == "1+2j"  # complex() reads it, as before
+    for bad in ({"frame": "DQ"}, {"frame": ["dq"]}, {"i_s_ref": complex(math.inf, 0.0)},
+                {"u_s_ref": math.nan}, {"eps_0": -math.inf}, {"w_0": complex(0.0, math.nan)}):
+        with pytest.raises(ValueError):
+            Setpoints(**bad)

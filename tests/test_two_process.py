@@ -325,7 +325,7 @@ def test_realtime_10ms_records_its_timing(candump_channel, tmp_path):
     whose answer was not complete before the next SYNC."""
     if IN_QEMU:
         pytest.skip("QEMU under TCG (vcan-run's last resort) emulates every instruction: the "
-                    "emulated motor, 18-35x faster than real time natively (BENCHMARKS.md), "
+                    "emulated motor, 40-65x faster than real time natively (BENCHMARKS.md), "
                     "runs at about real time there, so no period keeps real time; the "
                     "real-time figures come from native vcan or UML")
     ch = candump_channel
