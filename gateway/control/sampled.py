@@ -46,6 +46,7 @@ from dbc.modes import SetpointFrame
 from gateway.control.commissioning import Commissioning
 from gateway.control.controller import (
     PAPER_SIGNALS,
+    TWO_PI,
     Controller,
     ControllerConfig,
     Discretisation,
@@ -95,6 +96,8 @@ def phi(s: complex, T: float) -> complex:
         return T * (1.0 + x / 2.0 + x * x / 6.0)
     return (cmath.exp(x) - 1.0) / s
 
+
+_PI = math.pi
 
 #: Interval(…) with all six fields given, without NamedTuple's Python-level __new__
 _new_tuple = tuple.__new__
@@ -600,7 +603,8 @@ class FullOrderSampledController(SampledController):
     """
 
     _lookahead = 1  # the end of the commanded interval, 2(k + d) + 2
-    __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_gamma_2", "_i_prev")
+    __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_eps_k", "_gamma_2", "_i_prev",
+                 "_rot_k")
 
     def __init__(self, motor, config: ControllerConfig, refs_at: Callable[[float], Refs],
                  eps_0: float = 0.0, w_hat: float = 0.0) -> None:
@@ -615,6 +619,8 @@ class FullOrderSampledController(SampledController):
         self._decay_gain = (1.0 - self._decay) / g.k_e  # (1 − e^{−ke·T})/ke
         self._T_6 = self._T / 6.0  # Simpson's weight
         self._i_prev = 0j  # measured current at t_{k−1}, frame at t_{k−1}
+        self._eps_k: float | None = None  # ε_k of the last step and its e^{−jε_k}
+        self._rot_k = 1 + 0j
 
     def _set_motor(self, motor) -> None:
         super()._set_motor(motor)
@@ -648,16 +654,34 @@ class FullOrderSampledController(SampledController):
         if (kept is not None and kept[0] is c and kept[1] is i0 and kept[2] is psi0
                 and kept[3] is w0):
             return kept[4]
+        return self._fo_predict(c, i0, psi0, w0, r0, rh, r1, f0)
+
+    def _fo_predict(self, c: Interval, i0: complex, psi0: complex, w0: float,
+                    r0: Refs, rh: Refs, r1: Refs, f0: float | None = None):
+        """:meth:`_fo_model` computed (nothing kept looked at: a step's prediction, from
+        the state it has just estimated)."""
         if f0 is None:
             f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
         w_m = w0 + self._half_T * f0
-        a = (complex(-self._c1, -c.w_0), self._beta * complex(self._alpha, -w_m), self._a21,
-             complex(-self._alpha, w_m - c.w_0))  # A(ω0, ω) at the midpoint's speed
-        a11, a12, a21, a22 = a
+        # A(ω0, ω) at the midpoint's speed
+        a11, a12, a21, a22 = (complex(-self._c1, -c.w_0), self._beta * complex(self._alpha, -w_m),
+                              self._a21, complex(-self._alpha, w_m - c.w_0))
         det = a11 * a22 - a12 * a21
         b = c.u_dq / self._sigma
         i_ss, p_ss = -a22 * b / det, a21 * b / det
-        e11, e12, e21, e22 = expm2(a, self._half_T, det)
+        # e^{A·T/2}: expm2(a, T/2, det) inline (the same operations)
+        tau = self._half_T
+        half_tr = 0.5 * (a11 + a22)
+        disc = cmath.sqrt(half_tr * half_tr - det)
+        l1, l2 = half_tr + disc, half_tr - disc
+        gap = l1 - l2
+        if abs(gap) * tau < 1e-9:  # (nearly) repeated eigenvalue
+            e11, e12, e21, e22 = expm2((a11, a12, a21, a22), tau, det)
+        else:
+            e1, e2 = cmath.exp(l1 * tau), cmath.exp(l2 * tau)
+            f = (e1 - e2) / gap  # coefficient of A
+            g = (l1 * e2 - l2 * e1) / gap  # coefficient of I
+            e11, e12, e21, e22 = g + f * a11, f * a12, f * a21, g + f * a22
         di, dp = i0 - i_ss, psi0 - p_ss
         di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
         di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
@@ -703,9 +727,20 @@ class FullOrderSampledController(SampledController):
         i_k = sample.i_s_ab * rot_k
         # the past interval by the model: the estimator's current integral, then ω̂
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
-        model = self._fo_model(prev, self._i_prev, psi0, self._w_prev, win[0], win[1], win[2])
+        kept = self._kept  # the last step's prediction of this interval (_fo_model, inline)
+        if (kept is not None and kept[0] is prev and kept[1] is self._i_prev
+                and kept[2] is psi0 and kept[3] is self._w_prev):
+            model = kept[4]
+        else:
+            model = self._fo_predict(prev, self._i_prev, psi0, self._w_prev, win[0], win[1],
+                                     win[2])
         i_h, i_1 = model[7], model[9]
-        rot_s = cmath.exp(1j * prev.eps)
+        eps_s = prev.eps
+        # e^{jε} of the last step's ε_k (the same float object, not a zero: its sign) is the
+        # conjugate of that step's e^{−jε_k}
+        rot_s = (self._rot_k.conjugate() if eps_s is self._eps_k and eps_s != 0.0
+                 else cmath.exp(1j * eps_s))
+        self._eps_k, self._rot_k = eps_k, rot_k
         turn_h = cmath.exp(0.5j * prev.w_0 * T)
         turn_1 = turn_h * turn_h
         int_i_ab = self._T_6 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
@@ -716,7 +751,19 @@ class FullOrderSampledController(SampledController):
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         psi_k = psi_ab * rot_k
-        _, _, w_k, f_end = self._fo_finish(model, (i_k, psi_k))
+        # ω̂ at t_k and the rate there: _fo_finish(model, (i_k, psi_k)) inline
+        _, w_k, tl_j, i_ref, rh, r1, f0, i_h, p_h, i_1, p_1 = model
+        i_h += 0.5 * (i_k - i_1)
+        p_h += 0.5 * (psi_k - p_1)
+        mu, beta, gamma_2, T_6 = self._mu, self._beta, self._gamma_2, self._T_6
+        e_d, e_q = i_h.real - i_ref.real, i_h.imag - i_ref.imag
+        w_o = (rh.psi_ref * p_h.imag + beta * (p_h.imag * e_d - p_h.real * e_q)) / gamma_2
+        f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - tl_j + w_o  # (27), (32)
+        i_ref = prev.i_ref1
+        e_d, e_q = i_k.real - i_ref.real, i_k.imag - i_ref.imag
+        w_o = (r1.psi_ref * psi_k.imag + beta * (psi_k.imag * e_d - psi_k.real * e_q)) / gamma_2
+        f_end = mu * (psi_k.real * i_k.imag - psi_k.imag * i_k.real) - tl_j + w_o
+        w_k = w_k + T_6 * (f0 + 4.0 * f_h + f_end)  # Simpson
         self.w_hat = w_k
         # (27), (32) at the end of an interval, against its end reference, is the rate at
         # the start of the next against that one's start reference (the same reference
@@ -726,15 +773,28 @@ class FullOrderSampledController(SampledController):
         for j in range(1, d + 1):
             c = hist[j]
             r0 = win[2 * j]
-            model = self._fo_model(c, i, psi, w, r0, win[2 * j + 1], win[2 * j + 2],
-                                   f_end if (c.i_ref0 is hist[j - 1].i_ref1
-                                             and _same_number(r0.T_L, load_end)) else None)
+            load = r0.T_L  # _same_number(load, load_end), inline
+            model = self._fo_predict(c, i, psi, w, r0, win[2 * j + 1], win[2 * j + 2],
+                                     f_end if (c.i_ref0 is hist[j - 1].i_ref1
+                                               and (load is load_end
+                                                    or (load == load_end and load != 0.0)))
+                                     else None)
             if j == 1:  # the next step's model of its past interval
                 self._kept = (c, i, psi, w, model)
-            i, psi, w, f_end = self._fo_finish(model)
-            load_end = r0.T_L
+            # (i, ψ, ω̂, dω̂/dt) at the interval's end: _fo_finish(model) inline
+            _, w, tl_j, i_ref, rh, r1, f0, i_h, p_h, i, psi = model
+            e_d, e_q = i_h.real - i_ref.real, i_h.imag - i_ref.imag
+            w_o = (rh.psi_ref * p_h.imag + beta * (p_h.imag * e_d - p_h.real * e_q)) / gamma_2
+            f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - tl_j + w_o
+            i_ref = c.i_ref1
+            e_d, e_q = i.real - i_ref.real, i.imag - i_ref.imag
+            w_o = (r1.psi_ref * psi.imag + beta * (psi.imag * e_d - psi.real * e_q)) / gamma_2
+            f_end = mu * (psi.real * i.imag - psi.imag * i.real) - tl_j + w_o
+            w = w + T_6 * (f0 + 4.0 * f_h + f_end)
+            load_end = load
         last = hist[-1]
-        eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
+        # wrap_angle(last.eps + T·last.w_0), inline
+        eps_app = (last.eps + T * last.w_0 + _PI) % TWO_PI - _PI if d else eps_k
         # the command for I_{k+d} = (t0, t0 + T], t0 = (k + d)·T
         r0, rh, r1 = win[self._cmd_refs]
         T_L = r0.T_L
@@ -742,23 +802,42 @@ class FullOrderSampledController(SampledController):
             i_ref0 = last.i_ref1
             # (27), (32) at t0 with i_ref0 = the end reference of I_{k+d−1}: the rate the
             # model ended that interval with, when its load is this one (the same number)
-            f0 = (f_end if _same_number(T_L, load_end)
+            f0 = (f_end if T_L is load_end or (load_end == T_L and T_L != 0.0)  # _same_number
                   else self._fo_rate(psi, i, i_ref0, r0, T_L))
         else:
             i_ref0 = complex(*self._currents(r0, w, T_L)[:2])
             f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
-        i_sd1, i_sq1, limited = self._currents(r1, w + T * f0, T_L)
+        # i_sd*, i_sq* of (25) at the end, ω̂ extrapolated: _currents(r1, w + T·f0, T_L) inline
+        psi_ref = r1.psi_ref
+        i_sd1 = psi_ref / self._M + r1.dpsi_ref / self._aM
+        i_sq1 = ((-self._g.k_w * math.tanh(w + T * f0 - r1.w_ref) + T_L / self._J + r1.dw_ref)
+                 / (self._mu * psi_ref))
+        q2 = self._i_max2 - i_sd1 * i_sd1
+        q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
+        limited = abs(i_sq1) > q_max
+        if limited:
+            i_sq1 = math.copysign(q_max, i_sq1)
         i_ref1 = complex(i_sd1, i_sq1)
         e0 = i - i_ref0
         e1 = self._decay * e0 - self._decay_gain * self._aM * (psi.real - r0.psi_ref)
         target = i_ref1 + e1
         w_mid = w + self._half_T * f0
         w_0 = w_mid + self._aM * 0.5 * (i.imag + target.imag) / rh.psi_ref  # (26)
-        a = (complex(-self._c1, -w_0), self._beta * complex(self._alpha, -w_mid), self._a21,
-             complex(-self._alpha, w_mid - w_0))  # A(ω0, ω̂_mid)
-        a11, a12, a21, a22 = a
+        # A(ω0, ω̂_mid)
+        a11, a12, a21, a22 = (complex(-self._c1, -w_0), self._beta * complex(self._alpha, -w_mid),
+                              self._a21, complex(-self._alpha, w_mid - w_0))
         det = a11 * a22 - a12 * a21
-        e11, e12 = expm2(a, T, det, True)
+        # the first row of e^{A·T}: expm2(a, T, det, True) inline (the same operations)
+        half_tr = 0.5 * (a11 + a22)
+        disc = cmath.sqrt(half_tr * half_tr - det)
+        l1, l2 = half_tr + disc, half_tr - disc
+        gap = l1 - l2
+        if abs(gap) * T < 1e-9:  # (nearly) repeated eigenvalue
+            e11, e12 = expm2((a11, a12, a21, a22), T, det, True)
+        else:
+            x1, x2 = cmath.exp(l1 * T), cmath.exp(l2 * T)
+            f = (x1 - x2) / gap  # coefficient of A
+            e11, e12 = (l1 * x2 - l2 * x1) / gap + f * a11, f * a12
         free = e11 * i + e12 * psi  # i(T) with u = 0
         # i(T) = free − (u/σ)·[(I − E)·A⁻¹·e1]_0, A⁻¹·e1 = (a22, −a21)/det
         gain = ((1.0 - e11) * a22 + e12 * a21) / det
@@ -773,7 +852,7 @@ class FullOrderSampledController(SampledController):
         self.eps_0 = eps_k
         to_ab = cmath.exp(1j * (eps_app + self._half_T * w_0))
         return make_command(target, u, eps_app, w_0, target * to_ab, u * to_ab, limited,
-                            paper_logged(w_k, psi_k))
+                            (w_k, abs(psi_k), psi_k.real, psi_k.imag))  # paper_logged
 
     def coast(self) -> None:
         """A cycle without measurements: the model carries (i, ψ, ω̂) over the interval."""
