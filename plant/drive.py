@@ -448,7 +448,7 @@ class Drive:
         """Current-fed model; returns the exact average voltage Δψ_s/T + R_s·mean(i_s).
 
         The n RK4 steps of rows 1–3 of (1) run on float locals, as in
-        :meth:`_run_current_loop` (the same operations as :func:`plant.motor.
+        :meth:`_run_inverter` (the same operations as :func:`plant.motor.
         rk4_step_current_fed`).
         """
         c = self._c
@@ -531,17 +531,16 @@ class Drive:
         """current-loop / voltage modes; returns (average voltage, limit clipped)."""
         done, u_sum, limited = 0, 0j, False
         if self._enabled:
-            if self._loop:
-                done, u_sum, limited = self._run_current_loop(n, T_L)
-            else:
-                done, u_sum, limited = self._run_voltage(n, T_L)
+            done, u_sum, limited = self._run_inverter(n, T_L)
         if done < n:
             # the load while disabled: the dynamometer's torque at the interval's midpoint
             u_sum += self._run_disabled(n - done, self._torque(0.5 * (n + done) - 0.5, T_L))
         return u_sum / n, limited
 
-    def _run_current_loop(self, n: int, T_L: float) -> tuple[int, complex, bool]:
-        """PI + feedforward + circular limit + back-calculation anti-windup, RK4 with ZOH.
+    def _run_inverter(self, n: int, T_L: float) -> tuple[int, complex, bool]:
+        """The inverter's voltage, RK4 with ZOH: with the current loop (``self._loop``) PI +
+        feedforward + circular limit + back-calculation anti-windup, else u_s_ref applied,
+        circularly limited.
 
         Returns (steps done before a trip or n, sum of the applied step voltages, clipped).
         The n steps run in this one function on float locals (the real and imaginary parts
@@ -551,54 +550,68 @@ class Drive:
         h = self._h
         rot, (sa, sb, ha, hb) = self._frame(n)
         sp = self._sp
-        i_ref, u_ff = sp.i_s_ref, sp.u_s_ref
-        ref_a, ref_b, ff_a, ff_b = i_ref.real, i_ref.imag, u_ff.real, u_ff.imag
-        K_p, K_i_h, h_over_T_i, u_lim, u_lim2 = self._pi
+        loop = self._loop
         trip2 = self._trip2
-        sqrt = math.sqrt
         na, aM, beta, mu, rs, inv_sigma, inv_J, hh, h6 = self._k
         load = T_L * inv_J
         w, psi, i = self._w, self._psi, self._i
         pa, pb, ia, ib = psi.real, psi.imag, i.real, i.imag
-        ra, rb = rot.real, rot.imag
-        x = self._x_ab  # the integrator, to the setpoint frame: x·e^{−jε}
-        xa = x.real * ra + x.imag * rb
-        xb = x.imag * ra - x.real * rb
         sum_a = sum_b = 0.0
-        limited = False
         done = n
         u_errors = self._u_errors
         varying = self.load is not None
-        # the sensors' model is skipped when it is exact, as long as nothing else varies
-        plain = self._exact_sensors and not u_errors and not varying
         t0 = self._n * h
+        if loop:
+            i_ref, u_ff = sp.i_s_ref, sp.u_s_ref
+            ref_a, ref_b, ff_a, ff_b = i_ref.real, i_ref.imag, u_ff.real, u_ff.imag
+            K_p, K_i_h, h_over_T_i, u_lim, u_lim2 = self._pi
+            sqrt = math.sqrt
+            ra, rb = rot.real, rot.imag
+            x = self._x_ab  # the integrator, to the setpoint frame: x·e^{−jε}
+            xa = x.real * ra + x.imag * rb
+            xb = x.imag * ra - x.real * rb
+            limited = False
+            # the sensors' model is skipped when it is exact, as long as nothing else varies
+            plain = self._exact_sensors and not u_errors and not varying
+            ura = urb = 0.0
+        else:
+            u = sp.u_s_ref
+            u_lim = self._u_lim
+            limited = abs(u) > u_lim
+            if limited:
+                u *= u_lim / abs(u)
+            u_rot = u * rot * complex(ha, hb)
+            ura, urb = u_rot.real, u_rot.imag
         for k in range(n):
-            # the error in the setpoint frame: e = i_ref − i_meas·e^{−jε}
-            if plain:
-                ma, mb = ia, ib
+            if loop:
+                # the error in the setpoint frame: e = i_ref − i_meas·e^{−jε}
+                if plain:
+                    ma, mb = ia, ib
+                else:
+                    m = self._sense(complex(ia, ib))
+                    ma, mb = m.real, m.imag
+                ea = ref_a - (ma * ra + mb * rb)
+                eb = ref_b - (mb * ra - ma * rb)
+                ua = ff_a + K_p * ea + xa
+                ub = ff_b + K_p * eb + xb
+                m2 = ua * ua + ub * ub
+                if m2 > u_lim2:
+                    limited = True
+                    scale = u_lim / sqrt(m2)
+                    ua *= scale
+                    ub *= scale
+                    xa += h_over_T_i * (ua - ff_a - xa)  # back-calculation, T_t = T_i
+                    xb += h_over_T_i * (ub - ff_b - xb)
+                else:
+                    xa += K_i_h * ea
+                    xb += K_i_h * eb
+                # to (a, b) with the angle of the step's midpoint: u·(e^{jε}·e^{jω0·h/2})
+                ta = ra * ha - rb * hb
+                tb = ra * hb + rb * ha
+                uaa = ua * ta - ub * tb
+                uab = ua * tb + ub * ta
             else:
-                m = self._sense(complex(ia, ib))
-                ma, mb = m.real, m.imag
-            ea = ref_a - (ma * ra + mb * rb)
-            eb = ref_b - (mb * ra - ma * rb)
-            ua = ff_a + K_p * ea + xa
-            ub = ff_b + K_p * eb + xb
-            m2 = ua * ua + ub * ub
-            if m2 > u_lim2:
-                limited = True
-                scale = u_lim / sqrt(m2)
-                ua *= scale
-                ub *= scale
-                xa += h_over_T_i * (ua - ff_a - xa)  # back-calculation, T_t = T_i
-                xb += h_over_T_i * (ub - ff_b - xb)
-            else:
-                xa += K_i_h * ea
-                xb += K_i_h * eb
-            # to (a, b) with the angle of the step's midpoint: u·(e^{jε}·e^{jω0·h/2})
-            ta = ra * ha - rb * hb
-            tb = ra * hb + rb * ha
-            uaa = ua * ta - ub * tb
-            uab = ua * tb + ub * ta
+                uaa, uab = ura, urb
             sum_a += uaa
             sum_b += uab
             if u_errors:
@@ -654,103 +667,16 @@ class Drive:
             pb = pb + h6 * (dpb1 + 2.0 * (dpb2 + dpb3) + dpb4)
             ia = ia + h6 * (dia1 + 2.0 * (dia2 + dia3) + dia4)
             ib = ib + h6 * (dib1 + 2.0 * (dib2 + dib3) + dib4)
-            ra, rb = ra * sa - rb * sb, ra * sb + rb * sa  # e^{jε} of the next step
-            if ia * ia + ib * ib > trip2:
-                done = k + 1
-                break
-        self._w, self._psi, self._i = w, complex(pa, pb), complex(ia, ib)
-        self._x_ab = complex(xa * ra - xb * rb, xa * rb + xb * ra)  # x·e^{jε}
-        if done < n:
-            self._trip()
-        return done, complex(sum_a, sum_b), limited
-
-    def _run_voltage(self, n: int, T_L: float) -> tuple[int, complex, bool]:
-        """u_s_ref applied, circularly limited, RK4 with ZOH; returns like the current loop.
-
-        On float locals in one function, as :meth:`_run_current_loop`.
-        """
-        h = self._h
-        rot, (sa, sb, ha, hb) = self._frame(n)
-        u = self._sp.u_s_ref
-        u_lim = self._u_lim
-        limited = abs(u) > u_lim
-        if limited:
-            u *= u_lim / abs(u)
-        trip2 = self._trip2
-        na, aM, beta, mu, rs, inv_sigma, inv_J, hh, h6 = self._k
-        load = T_L * inv_J
-        w, psi, i = self._w, self._psi, self._i
-        pa, pb, ia, ib = psi.real, psi.imag, i.real, i.imag
-        u_rot = u * rot * complex(ha, hb)
-        ura, urb = u_rot.real, u_rot.imag
-        sum_a = sum_b = 0.0
-        done = n
-        u_errors = self._u_errors
-        varying = self.load is not None
-        t0 = self._n * h
-        for k in range(n):
-            sum_a += ura
-            sum_b += urb
-            if u_errors:
-                u_app = self._u_error(complex(ura, urb), complex(ia, ib), t0 + (k + 0.5) * h)
-                uaa, uab = u_app.real, u_app.imag
+            if loop:
+                ra, rb = ra * sa - rb * sb, ra * sb + rb * sa  # e^{jε} of the next step
             else:
-                uaa, uab = ura, urb
-            if varying:
-                load = self._torque(k, T_L) * inv_J
-            # one classical RK4 step of (1), the voltage held (ZOH)
-            ud_a = uaa * inv_sigma
-            ud_b = uab * inv_sigma
-            # stage 1: dψ_r/dt = (−α + jω)ψ_r + αM·i_s (rows 2–3), di_s/dt = (u_s − R_s·i_s)/σ
-            # − β·dψ_r/dt (rows 4–5), dω/dt = μ(ψ_ra·i_sb − ψ_rb·i_sa) − T_L/J (row 1)
-            dpa1 = na * pa - w * pb + aM * ia
-            dpb1 = na * pb + w * pa + aM * ib
-            dia1 = ud_a - rs * ia - beta * dpa1
-            dib1 = ud_b - rs * ib - beta * dpb1
-            dw1 = mu * (pa * ib - pb * ia) - load
-            # stage 2
-            w2 = w + hh * dw1
-            pa2 = pa + hh * dpa1
-            pb2 = pb + hh * dpb1
-            ia2 = ia + hh * dia1
-            ib2 = ib + hh * dib1
-            dpa2 = na * pa2 - w2 * pb2 + aM * ia2
-            dpb2 = na * pb2 + w2 * pa2 + aM * ib2
-            dia2 = ud_a - rs * ia2 - beta * dpa2
-            dib2 = ud_b - rs * ib2 - beta * dpb2
-            dw2 = mu * (pa2 * ib2 - pb2 * ia2) - load
-            # stage 3
-            w3 = w + hh * dw2
-            pa3 = pa + hh * dpa2
-            pb3 = pb + hh * dpb2
-            ia3 = ia + hh * dia2
-            ib3 = ib + hh * dib2
-            dpa3 = na * pa3 - w3 * pb3 + aM * ia3
-            dpb3 = na * pb3 + w3 * pa3 + aM * ib3
-            dia3 = ud_a - rs * ia3 - beta * dpa3
-            dib3 = ud_b - rs * ib3 - beta * dpb3
-            dw3 = mu * (pa3 * ib3 - pb3 * ia3) - load
-            # stage 4
-            w4 = w + h * dw3
-            pa4 = pa + h * dpa3
-            pb4 = pb + h * dpb3
-            ia4 = ia + h * dia3
-            ib4 = ib + h * dib3
-            dpa4 = na * pa4 - w4 * pb4 + aM * ia4
-            dpb4 = na * pb4 + w4 * pa4 + aM * ib4
-            dia4 = ud_a - rs * ia4 - beta * dpa4
-            dib4 = ud_b - rs * ib4 - beta * dpb4
-            dw4 = mu * (pa4 * ib4 - pb4 * ia4) - load
-            w = w + h6 * (dw1 + 2.0 * (dw2 + dw3) + dw4)
-            pa = pa + h6 * (dpa1 + 2.0 * (dpa2 + dpa3) + dpa4)
-            pb = pb + h6 * (dpb1 + 2.0 * (dpb2 + dpb3) + dpb4)
-            ia = ia + h6 * (dia1 + 2.0 * (dia2 + dia3) + dia4)
-            ib = ib + h6 * (dib1 + 2.0 * (dib2 + dib3) + dib4)
-            ura, urb = ura * sa - urb * sb, ura * sb + urb * sa  # u_rot·e^{jω0·h}
+                ura, urb = ura * sa - urb * sb, ura * sb + urb * sa  # u_rot·e^{jω0·h}
             if ia * ia + ib * ib > trip2:
                 done = k + 1
                 break
         self._w, self._psi, self._i = w, complex(pa, pb), complex(ia, ib)
+        if loop:
+            self._x_ab = complex(xa * ra - xb * rb, xa * rb + xb * ra)  # x·e^{jε}
         if done < n:
             self._trip()
         return done, complex(sum_a, sum_b), limited

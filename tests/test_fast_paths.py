@@ -246,6 +246,11 @@ class _ReferenceDrive(Drive):
         psi_s_end = c.sigma * self._i + c.M_over_L_r * self._psi
         return (psi_s_end - psi_s_start) / (n * h) + c.R_s * mean_i
 
+    def _run_inverter(self, n: int, T_L: float) -> tuple[int, complex, bool]:
+        if self._loop:
+            return self._run_current_loop(n, T_L)
+        return self._run_voltage(n, T_L)
+
     def _run_current_loop(self, n: int, T_L: float) -> tuple[int, complex, bool]:
         c, h = self._c, self._h
         rot, step, half = self._turning(n)
