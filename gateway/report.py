@@ -311,9 +311,14 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
                 f"± {v['J']['std']:.2g}, friction {v['friction_viscous']['value']:.3g} N·m·s "
                 f"viscous, {v['friction_coulomb']['value']:.3g} N·m Coulomb")
     if ident.get("accepted"):
+        sensors = ""
+        if ident.get("sensors_corrected"):
+            sensors = (f"; current sensors corrected: offsets "
+                       f"{1e3 * ident['offset_a']:.2f}/{1e3 * ident['offset_b']:.2f} mA, "
+                       f"phase b's gain {ident['gain_b']:.4f}")
         return (f"identified at standstill ({ident['samples']} samples): R_s "
-                f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s), "
-                "used from the end of the magnetisation")
+                f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s)"
+                f"{sensors}, used from the end of the magnetisation")
     return f"standstill identification not applied: {ident.get('reason', '')}"
 
 

@@ -13,6 +13,7 @@ from sim_support import sim_config
 from dbc.motor import MotorParams
 from gateway.cli import main
 from gateway.control.commissioning import StandstillIdentifier
+from gateway.control.correction import SensorCorrection
 from gateway.reference import load_profile, paper_profile
 from gateway.simulate import run
 from plant.scenario import parse_scenario, resolve_scenario
@@ -54,6 +55,33 @@ def test_identifier_finds_the_plant_of_an_exact_magnetisation(f_rs, f_rr):
     assert r.R_s == pytest.approx(plant.R_s, rel=1e-4)
     assert r.R_r == pytest.approx(plant.R_r, rel=1e-3)
     assert r.fit < 1e-8 and r.samples == 321
+
+
+@pytest.mark.parametrize("offset_a, offset_b, gain_b", [
+    (0.0, 0.0, 1.0), (0.010, 0.0, 1.0), (0.010, -0.005, 1.01), (-0.02, 0.003, 0.98)])
+@pytest.mark.parametrize("f_rs, f_rr", [(1.0, 1.0), (1.1, 1.2), (0.8, 0.9)])
+def test_identifier_finds_the_sensors_errors_with_the_plant(f_rs, f_rr, offset_a, offset_b,
+                                                            gain_b):
+    """The drive regulates the current it reads: the motor carries the true current, the
+    controller sees (C1) of it. The joint fit (solve_offsets) gives R_s, α, the offsets and
+    phase b's gain; the first fit, which knows no offsets, is off (an offset is a
+    resistance at DC)."""
+    plant = replace(MOTOR, R_s=MOTOR.R_s * f_rs, R_r=MOTOR.R_r * f_rr)
+    sensors = SensorCorrection(offset_a=offset_a, offset_b=offset_b, gain_b=gain_b)
+    idf = StandstillIdentifier(MOTOR, T)
+    for i, u in _magnetise(plant):
+        idf.add(sensors.reading(i), u)
+    first = idf.solve()
+    fit = idf.solve_offsets(first)
+    assert fit is not None and not fit.edge and fit.fit < 1e-6
+    assert fit.R_s == pytest.approx(plant.R_s, rel=1e-4)
+    assert fit.alpha * MOTOR.L_r == pytest.approx(plant.R_r, rel=1e-3)
+    # within λ·o_b (the fit takes phase b's error as λ times its reading, offset included)
+    assert fit.offset_ab == pytest.approx(sensors.offset_ab, abs=1e-4)
+    assert fit.gain_b == pytest.approx(gain_b, abs=2e-4)
+    if offset_a:
+        assert abs(first.R_r / plant.R_r - 1.0) > 5 * abs(fit.alpha * MOTOR.L_r / plant.R_r
+                                                          - 1.0)
 
 
 def test_identifier_refuses_what_it_cannot_know():

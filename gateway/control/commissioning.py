@@ -41,10 +41,14 @@ Pure module: no I/O, no clock, no global state.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
+
+from gateway.control.correction import SensorCorrection
+
+SQRT3 = math.sqrt(3.0)
 
 
 class Refs(Protocol):
@@ -78,6 +82,36 @@ class Identification:
     samples: int
     accepted: bool
     reason: str = ""
+    #: the phase current sensors' errors fitted with R_s and α as in a motor file's
+    #: [commissioning] (offsets of phases a and b, A; phase b's gain relative to a's),
+    #: their least-squares standard deviations, whether the run corrects them (then R_s,
+    #: R_r and α above are the joint fit's), and why not when not
+    offset_a: float = 0.0
+    offset_b: float = 0.0
+    gain_b: float = 1.0
+    offset_a_std: float = 0.0
+    offset_b_std: float = 0.0
+    gain_b_std: float = 0.0
+    sensors_corrected: bool = False
+    sensors_reason: str = ""
+
+
+@dataclass(frozen=True)
+class OffsetFit:
+    """:meth:`StandstillIdentifier.solve_offsets`: R_s (Ω) and α (1/s) fitted with the
+    current sensors' offsets, whose (a, b) image is ``offset_ab`` (A) with the standard
+    deviations ``std_ab`` (of the real and imaginary parts, as real + j·imaginary, A);
+    ``fit``: the relative residual; ``edge``: α's minimum on the edge of the search."""
+
+    R_s: float
+    alpha: float
+    offset_ab: complex
+    std_ab: complex
+    gain_b: float
+    gain_b_std: float
+    psi_ab: complex
+    fit: float
+    edge: bool
 
 
 class StandstillIdentifier:
@@ -96,6 +130,14 @@ class StandstillIdentifier:
     #: shipped plant but the PI-current-loop drive with 2 µs dead time, 9e-4, whose reported
     #: voltages are not the applied ones at standstill)
     FIT_MAX = 1e-4
+    #: the most samples kept for the offsets' fit (a longer standstill: no offsets)
+    RECORD_MAX = 60_000
+    #: the α search of the offsets' fit, as factors of the first fit's α̂ (an offset
+    #: moves α̂ by about 0.15 % per mA)
+    OFFSET_SPAN = (0.9, 1.1)
+    OFFSET_POINTS = 41
+    #: Gauss–Newton steps per α (the problem is bilinear in R_s and o: it converges in 3)
+    GN_STEPS = 5
 
     def __init__(self, motor: Motor, period: float) -> None:
         if not period > 0.0:
@@ -125,6 +167,8 @@ class StandstillIdentifier:
         self._a_h = 0j
         self._b_h = 0j
         self._c_h = np.zeros(self.POINTS, dtype=complex)
+        # the samples, for the offsets' fit (:meth:`solve_offsets`): i_k, a_k, b_k
+        self._rec: list[tuple[complex, complex, complex]] = []
 
     def gap(self) -> None:
         """A period without a sample (a missed cycle): the motor lived it, its voltage and
@@ -171,6 +215,8 @@ class StandstillIdentifier:
         self._s_cc += c.real * c.real + c.imag * c.imag
         self._a, self._b = a, b
         self._i_last = i_s_ab
+        if len(self._rec) < self.RECORD_MAX:
+            self._rec.append((i_s_ab, a, b))
         if self.gaps:  # the sums over the samples the voltage model's offset is in
             self._n_h += 1
             self._a_h += a
@@ -241,6 +287,103 @@ class StandstillIdentifier:
             reason = f"R_s = {R_s:.3g} Ω is not within 0.5…2 × the controller's {m.R_s:g} Ω"
         return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason)
 
+    def solve_offsets(self, first: Identification) -> OffsetFit | None:
+        """R_s, α and the current sensors' offsets together (docs/robustness.md §5), from
+        the first fit ``first`` (:meth:`solve`); None where they cannot be fitted (samples
+        missing, or more than :attr:`RECORD_MAX`).
+
+        The drive regulates the current it reads, i_k, and the motor carries i_k − o (o the
+        offsets' (a, b) image, constant). With the true current in both flux models,
+
+            (24):  a_k − R_s·b_k + o·(L_r/M)·(R_s·T·k + σ),
+            (1):   c_k(α) − o·M·(1 − e^{−αTk}),
+
+        so their difference is r_k = a_k − c_k(α) − R_s·b_k + o·q_k with
+        q_k = (L_r/M)(R_s·T·k + σ) + M(1 − e^{−αTk}): linear in o for a given R_s, and in
+        R_s for a given o. For each α of a grid around ``first``'s, Gauss–Newton on (R_s, o)
+        from (``first``'s R_s, 0); the minimum over the grid, refined by a parabola in
+        log α, is the fit. Each value's standard deviation is the least-squares one."""
+        n = len(self._rec)
+        if self.gaps or n < 10 or n >= self.RECORD_MAX:
+            return None
+        rec = np.array(self._rec)
+        i, a, b = rec[:, 0], rec[:, 1], rec[:, 2]
+        k = np.arange(1, n + 1, dtype=float)
+        logf = np.log(np.geomspace(self.OFFSET_SPAN[0], self.OFFSET_SPAN[1],
+                                   self.OFFSET_POINTS)) + math.log(first.alpha)
+        best = self._offset_fit(np.exp(logf), i, a, b, k, first.R_s)
+        cost = best[4]
+        j = int(np.argmin(cost))
+        x = logf[j]
+        if 0 < j < len(logf) - 1:
+            y0, y1, y2 = cost[j - 1], cost[j], cost[j + 1]
+            den = y0 - 2.0 * y1 + y2
+            if den > 0.0:
+                x = logf[j] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
+        R_s, o, lam, std, c, psi = (v[0] for v in self._offset_fit(
+            np.array([math.exp(x)]), i, a, b, k, float(best[0][j])))
+        ssa = float(np.sum(a.real ** 2 + a.imag ** 2))
+        return OffsetFit(R_s=float(R_s), alpha=math.exp(x), offset_ab=complex(o),
+                         std_ab=complex(std[0], std[1]), gain_b=1.0 / (1.0 - float(lam)),
+                         gain_b_std=float(std[2]), psi_ab=complex(psi),
+                         fit=float(c) / ssa if ssa > 0.0 else math.nan,
+                         edge=j in (0, len(logf) - 1))
+
+    def _offset_fit(self, alphas: np.ndarray, i: np.ndarray, a: np.ndarray, b: np.ndarray,
+                    k: np.ndarray, R_0: float) -> tuple[np.ndarray, ...]:
+        """:meth:`solve_offsets` for each α of ``alphas``: (R_s, o, λ, the standard
+        deviations of (Re o, Im o, λ), residual Σ|r|², the flux at the last sample), arrays
+        over the α's."""
+        m, T, kr = self.motor, self._T, self._k_r
+        e = np.exp(-alphas * T)
+        # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
+        e_b = 1j * (2.0 / SQRT3) * (-0.5 * i.real + 0.5 * SQRT3 * i.imag)
+        c = np.empty((len(alphas), len(i)), dtype=complex)
+        c_b = np.empty((len(alphas), len(i)), dtype=complex)
+        ck = np.zeros(len(alphas), dtype=complex)
+        cb = np.zeros(len(alphas), dtype=complex)
+        w = (1.0 - e) * m.M
+        for n, (i_n, e_n) in enumerate(zip(i, e_b, strict=True)):
+            ck = e * ck + w * i_n
+            cb = e * cb + w * e_n
+            c[:, n] = ck
+            c_b[:, n] = cb
+        d = a[None, :] - c
+        g = kr * T * k
+        h = kr * m.sigma + m.M * (1.0 - np.exp(-np.outer(alphas, k * T)))
+        E = kr * T * np.cumsum(e_b)
+        s_e = kr * m.sigma * e_b
+        R = np.full(len(alphas), float(R_0))
+        o = np.zeros(len(alphas), dtype=complex)
+        lam = np.zeros(len(alphas))
+
+        def residual() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            q = R[:, None] * g[None, :] + h
+            p = R[:, None] * E[None, :] + s_e[None, :] + c_b
+            return d - R[:, None] * b[None, :] + o[:, None] * q + lam[:, None] * p, q, p
+
+        for _ in range(self.GN_STEPS):
+            r, q, p = residual()
+            jr = -b[None, :] + o[:, None] * g[None, :] + lam[:, None] * E[None, :]
+            cols = (jr, q + 0j, 1j * q, p)  # ∂r/∂(R_s, Re o, Im o, λ)
+            A = np.empty((len(alphas), 4, 4))
+            y = np.empty((len(alphas), 4))
+            for u_, cu in enumerate(cols):
+                y[:, u_] = np.sum((cu.conj() * r).real, axis=1)
+                for v_, cv in enumerate(cols):
+                    A[:, u_, v_] = np.sum((cu.conj() * cv).real, axis=1)
+            step = np.linalg.solve(A, -y[..., None])[..., 0]
+            R = R + step[:, 0]
+            o = o + step[:, 1] + 1j * step[:, 2]
+            lam = lam + step[:, 3]
+        r, q, p = residual()
+        cost = np.sum(r.real ** 2 + r.imag ** 2, axis=1)
+        s2 = cost / max(2 * len(i) - 5, 1)
+        cov = np.linalg.inv(A) * s2[:, None, None]
+        std = np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
+        psi = a[-1] - R * b[-1] + o * q[:, -1] + lam * (R * E[-1] + s_e[-1])
+        return R, o, lam, std, cost, psi
+
 
 class Commissioning:
     """The controller's side of the identification: samples fed while the speed reference
@@ -253,18 +396,20 @@ class Commissioning:
     #: how long the flux reference holds still after its rise before the magnetisation is
     #: over, s (the controller's flux follows its reference: (16)'s feedforward)
     SETTLED_S = 0.05
-    #: at standstill, before the identification: once the voltage model's flux is this far
-    #: from the current model's (Wb), the laws take the current model's until the
-    #: identification (docs/robustness.md §5)
-    DISAGREE = 0.1
+    #: the least phase offset (A), and gain error, the run corrects: the fit is within
+    #: 0.5 mA and 0.1 % on the shipped plants (5 mA of noise alone gives 0.4 mA); below
+    #: both the sensors are read as they are
+    OFFSET_MIN = 1e-3
+    GAIN_MIN = 5e-3
 
-    def __init__(self, motor: Motor, period: float) -> None:
+    def __init__(self, motor: Motor, period: float, sensors: bool = False) -> None:
         self.identifier = StandstillIdentifier(motor, period)
+        self.sensors = sensors
         self.result: Identification | None = None
         self._settled = max(1, round(self.SETTLED_S / period))
         self._rose = False  # the flux reference has moved
-        self._disagreed = False  # the voltage model left the current model at standstill
         self._still = 0  # samples since it last moved
+        self._psi_fit = 0j  # the rotor flux of the sensors' fit at its last sample
 
     def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex) -> Identification | None:
         """One sample with its references; the identification at the sample that ends the
@@ -279,8 +424,61 @@ class Commissioning:
         if (refs.w_ref == 0.0 and refs.dw_ref == 0.0 and refs.T_L == 0.0
                 and not magnetised):
             return None
-        self.result = self.identifier.solve()
-        return self.result
+        found = self.identifier.solve()
+        ident = self.identifier
+        if (self.sensors and not math.isnan(found.fit)
+                and abs(ident.flux(found.R_s)) >= StandstillIdentifier.PSI_MIN):
+            found = self._with_offsets(found)
+        self.result = found
+        return found
+
+    def _with_offsets(self, first: Identification) -> Identification:
+        """``first`` with the current sensors' errors fitted (:meth:`StandstillIdentifier.
+        solve_offsets`): where they are corrected, accepted with the joint fit's R_s and α
+        (also when ``first`` was refused for its residual: a sensor error the first fit
+        cannot explain); else ``first``, with the errors found and why they are not."""
+        fit = self.identifier.solve_offsets(first)
+        if fit is None:
+            return replace(first, sensors_reason="samples missing during the standstill: "
+                                                  "sensor errors not fitted")
+        o = fit.offset_ab
+        o_a, o_b = o.real, 0.5 * (SQRT3 * o.imag - o.real)
+        s_a = fit.std_ab.real
+        s_b = 0.5 * math.sqrt(3.0 * fit.std_ab.imag ** 2 + s_a ** 2)
+        found = replace(first, offset_a=o_a, offset_b=o_b, gain_b=fit.gain_b,
+                        offset_a_std=s_a, offset_b_std=s_b, gain_b_std=fit.gain_b_std)
+        m = self.identifier.motor
+        largest = max(abs(o_a), abs(o_b))
+        if fit.edge:
+            reason = "α at the edge of the offsets' fit"
+        elif not fit.fit <= StandstillIdentifier.FIT_MAX:
+            reason = f"the offsets' fit does not agree (relative residual {fit.fit:.2g})"
+        elif not (0.5 * m.R_s <= fit.R_s <= 2.0 * m.R_s
+                  and StandstillIdentifier.SPAN[0] <= fit.alpha * m.L_r / m.R_r
+                  <= StandstillIdentifier.SPAN[1]):
+            reason = (f"R_s = {fit.R_s:.3g} Ω or α = {fit.alpha:.3g} 1/s of the offsets' fit "
+                      "is out of range")
+        elif not 0.5 <= fit.gain_b <= 2.0:
+            reason = f"phase b's gain {fit.gain_b:.3g} of the offsets' fit is out of range"
+        elif largest < self.OFFSET_MIN and abs(fit.gain_b - 1.0) < self.GAIN_MIN:
+            reason = (f"offsets below {1e3 * self.OFFSET_MIN:g} mA and gain within "
+                      f"{100 * self.GAIN_MIN:g} % (the fit's own error on the shipped "
+                      "plants): the sensors are read as they are")
+        else:
+            reason = ""
+        if reason:
+            return replace(found, sensors_reason=reason)
+        self._psi_fit = fit.psi_ab
+        return replace(found, R_s=fit.R_s, R_r=fit.alpha * m.L_r, alpha=fit.alpha,
+                       fit=fit.fit, sensors_corrected=True, accepted=True, reason="")
+
+    @property
+    def correction(self) -> SensorCorrection | None:
+        """The sensors' correction the identification found (None: none, or not yet)."""
+        f = self.result
+        if f is None or not f.sensors_corrected:
+            return None
+        return SensorCorrection(offset_a=f.offset_a, offset_b=f.offset_b, gain_b=f.gain_b)
 
     def gap(self) -> None:
         """A period without a sample (a missed cycle) while the identification is pending:
@@ -293,10 +491,11 @@ class Commissioning:
         """:meth:`step`, and the rotor flux the laws take at this sample (Wb, (a, b)), with
         the identification when it is accepted at this sample (else None):
 
-        * at standstill, while the identification is pending: the estimator's
-          ``psi_hat_ab`` while it agrees with the current model's flux within
-          :attr:`DISAGREE`, and from the first sample it does not, the current model's
-          (:meth:`standstill_flux`; R_s does not enter it);
+        * at standstill, while the identification is pending: the current model's flux
+          (:meth:`standstill_flux`; R_s and the sensors' offsets do not enter its frame:
+          it holds the frame still, and with it the rotor, while the voltage model would
+          integrate an R_s or offset error into a turning frame, and the torque of the
+          offset current would turn the rotor the identification takes to be at rest);
         * at the sample that ends an accepted identification: the flux ``estimator``
           restarts from (its ``identified``), the voltage model with the identified R_s;
           the controller uses the identified R_s and R_r from now on;
@@ -307,17 +506,16 @@ class Commissioning:
         found = self.step(refs, i_s_ab, u_s_ab)
         if found is None:
             if self.pending and psi_hat_ab is not None:
-                psi_cm = self.standstill_flux()
-                if self._disagreed or abs(psi_hat_ab - psi_cm) > self.DISAGREE:
-                    self._disagreed = True
-                    return None, psi_cm
+                return None, self.standstill_flux()
             return None, psi_hat_ab
         if not found.accepted:
             psi = self.standstill_flux()
             estimator.identified(self.identifier.motor.R_s, psi, i_s_ab)
             return None, psi if psi_hat_ab is not None else None
         psi = self.flux()
-        estimator.identified(found.R_s, psi, i_s_ab)
+        corr = self.correction
+        estimator.identified(found.R_s, psi,
+                             i_s_ab if corr is None else corr.true_current(i_s_ab))
         return found, psi
 
     @property
@@ -338,6 +536,8 @@ class Commissioning:
         ident = self.identifier
         if ident.gaps:
             return ident.current_model_flux_at(self.result.alpha)
+        if self.result.sensors_corrected:
+            return self._psi_fit
         return ident.flux(self.result.R_s)
 
     def describe(self) -> dict[str, object]:

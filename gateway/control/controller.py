@@ -229,7 +229,8 @@ class Controller:
                                            c.load_current_rise)
                               if c.load is LoadSource.OBSERVED else None)
         self._untold = c.load is LoadSource.UNTOLD
-        self.commissioning = Commissioning(motor, self._T) if c.identify else None
+        self.commissioning = (Commissioning(motor, self._T, sensors=(
+            c.law is Law.CURRENT_FED and c.current_lag == 0.0)) if c.identify else None)
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""

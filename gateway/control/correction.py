@@ -177,6 +177,12 @@ class CorrectedController:
         i_true = c.true_current(i_read)
         u_applied = sample.u_s_ab - c.voltage_error(i_true)
         cmd = self.inner.step(refs, replace(sample, i_s_ab=i_true, u_s_ab=u_applied))
+        return self._command(cmd)
+
+    def _command(self, cmd: Command) -> Command:
+        """The inner controller's command with the corrections: what the drive must read,
+        and apply, for the motor to get what the controller meant."""
+        c = self.correction
         half = 0.5 * self._T * cmd.w_0
         self._turns.append((half, cmd.w_0) if self._turning else (0.0, 0.0))
         # the setpoints' (a, b) image at the interval's midpoint, and its change
@@ -205,3 +211,36 @@ class CorrectedController:
         self._turns.append(self._held())
         self._sampled = self._turns.popleft()  # the interval that ended unsampled
         self.inner.coast()
+
+
+class IdentifiedCorrection(CorrectedController):
+    """The current sensors' offsets that ``inner``'s standstill identification found
+    (:meth:`gateway.control.commissioning.Commissioning.step`: fitted with R_s and α during
+    the magnetisation), corrected as :class:`CorrectedController` does from the sample
+    that ends it; before it, and when the identification applies none, the samples and
+    commands pass unchanged. ``inner`` has a ``commissioning`` (the paper's controller with
+    ``identify``)."""
+
+    def __init__(self, inner: DriveController, period: float, delay: int = 1,
+                 turning: bool = True) -> None:
+        super().__init__(inner, SensorCorrection(), period, delay, turning)
+        self._waiting = True  # for the identification's result
+
+    def step(self, refs: Refs, sample: Sample) -> Command:
+        if not self._waiting:
+            if self.correction == SensorCorrection():
+                return self.inner.step(refs, sample)
+            return super().step(refs, sample)
+        self._sampled = self._turns.popleft()
+        cmd = self.inner.step(refs, sample)
+        found = self.inner.commissioning.result
+        if found is None:
+            half = 0.5 * self._T * cmd.w_0
+            self._turns.append((half, cmd.w_0) if self._turning else (0.0, 0.0))
+            return cmd
+        self._waiting = False
+        correction = self.inner.commissioning.correction
+        if correction is None:
+            return cmd
+        self.correction = correction
+        return self._command(cmd)

@@ -216,6 +216,13 @@ class ControllerChoice:
             raise ControllerError(f"controller {self.name!r} refused its parameters or the "
                                   f"run: {exc}") from exc
         check_controller(ctl, self.name)
+        if (getattr(ctl, "commissioning", None) is not None
+                and not context.drive_mode.standard):
+            from gateway.control.correction import IdentifiedCorrection
+
+            s = context.sampling
+            ctl = IdentifiedCorrection(ctl, s.period, s.delay,
+                                       turning=s.setpoint_frame is SetpointFrame.DQ)
         if context.correction is not None and not context.drive_mode.standard:
             from gateway.control.correction import CorrectedController
 

@@ -195,7 +195,11 @@ class SampledController:
         self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
         #: the command before the last step's (what the drive holds if that one is withheld)
         self._base: Interval | None = None
-        self.commissioning = (Commissioning(motor, self._T) if config.identify else None)
+        # the current sensors' errors are fitted too where the drive holds the current
+        # over the period (an ideal current source): the fit's model of the current
+        self.commissioning = (Commissioning(motor, self._T, sensors=(
+            config.law is Law.CURRENT_FED and config.current_lag == 0.0))
+            if config.identify else None)
 
     def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
         """The standstill identification (``config.identify``): the flux the laws take
@@ -613,6 +617,8 @@ class FullOrderSampledController(SampledController):
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED), refs_at,
                                    eps_0, w_hat)
         self.config = config
+        if self.commissioning is not None:  # a voltage drive does not hold the current
+            self.commissioning.sensors = False
         g = self._g
         self._gamma_2 = g.gamma_2
         self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
