@@ -137,9 +137,10 @@ class SampledController:
     # fast attribute access (its shared keys hold 30). "__dict__": others may add their own.
     __slots__ = ("_J", "_M", "_R_s", "_T", "__dict__", "_aM", "_ab", "_alpha", "_base", "_beta",
                  "_cmd_refs", "_constant_current", "_d", "_di_prev", "_exp_0", "_g", "_gamma_1",
-                 "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_k", "_k_r", "_k_w_warped", "_kept",
-                 "_lag", "_mu", "_phi_0", "_psi_prev", "_refs", "_sigma", "_true_flux", "_w_prev",
-                 "commissioning", "config", "eps_0", "estimator", "motor", "refs_at", "w_hat")
+                 "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_joined", "_joining", "_k", "_k_r",
+                 "_k_w_warped", "_kept", "_lag", "_mu", "_phi_0", "_psi_prev", "_refs", "_sigma",
+                 "_true_flux", "_w_prev", "commissioning", "config", "eps_0", "estimator",
+                 "motor", "refs_at", "w_hat")
     signals = PAPER_SIGNALS
     #: reference instants n·T/2 a step reads, beyond 2(k − 1) … 2(k + d) + 1
     _lookahead = 0
@@ -197,6 +198,8 @@ class SampledController:
         self._base: Interval | None = None
         # the current sensors' errors are fitted too where the drive holds the current
         # over the period (an ideal current source): the fit's model of the current
+        self._joining = False  # the identification is applied at this step (_join)
+        self._joined = False  # the flux references are the joined ones
         self.commissioning = (Commissioning(motor, self._T, sensors=(
             config.law is Law.CURRENT_FED and config.current_lag == 0.0))
             if config.identify else None)
@@ -212,12 +215,41 @@ class SampledController:
         ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab)
         if ident is not None:
             self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r))
+            self._joining = True  # the flux references join the motor's (_join)
         assert psi is not None
         return psi
 
     def summary(self) -> dict[str, object] | None:
         """The standstill identification's result (``--identify``) for summary.json."""
         return None if self.commissioning is None else self.commissioning.describe()
+
+    def _join(self, e: float, k: int) -> None:
+        """At the sample t_k that applies the standstill identification: the flux
+        references the laws take from now on start from the flux the motor has, ψ* + e
+        (``e`` the d-axis flux of the identified model less ψ*, Wb), and join the
+        profile's at the rotor's own rate α̂ (docs/robustness.md §5):
+
+            ψ*_j(t) = ψ*(t) + e·e^{−α̂(t − t_k)}, with its two derivatives.
+
+        i_sd* of (9)/(15), ψ*_j/M + ψ̇*_j/(α̂M), is the profile's own: the motor's flux
+        rises as it would; what changes is that (15), (16), (20) and the voltage
+        feed-forward take the flux the motor has (a magnetisation with a wrong α leaves it
+        off by 8 % with R_r +20 %, decaying with the rotor time constant over the
+        profile's first speed step)."""
+        self._joining = False
+        if e == 0.0:
+            return
+        self._joined = True
+        t_k, a = k * self._T, self._alpha
+        refs_at = self.refs_at
+
+        def joined(t: float) -> Refs:
+            r = refs_at(t)
+            x = e * math.exp(-a * (t - t_k)) if t >= t_k else e
+            return replace(r, psi_ref=r.psi_ref + x, dpsi_ref=r.dpsi_ref - a * x,
+                           ddpsi_ref=r.ddpsi_ref + a * a * x)
+
+        self._refs = ReferenceWindow(joined, self._T, self._refs._size)
 
     def _set_motor(self, motor) -> None:
         """The controller's motor from now on, and its constants (model (2)'s α, μ, σ, β,
@@ -409,13 +441,15 @@ class SampledController:
             terms = self._terms(prev, self._i_prev_ab)
             int_i_ab, i_end_ab = self._current(prev, terms)
         psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab, i_end_ab,
-                                       eps_k, refs.psi_ref)
+                                       eps_k, win[2].psi_ref if self._joined else refs.psi_ref)
         if self.commissioning is not None:
             psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         to_k = cmath.exp(-1j * eps_k)
         psi_k = psi_ab * to_k
+        if self._joining:
+            self._join(psi_k.real - refs.psi_ref, k)
         # ω̂ at t_k: (16), (20) integrated over I_{k−1}, model corrected by the measured end
         psi0 = self._psi_prev
         if psi0 is None:
