@@ -69,10 +69,11 @@ class Motor(Protocol):
 class Identification:
     """The result of a standstill identification.
 
-    R_s: stator resistance, Ω; R_r: rotor resistance, Ω (α·L_r with the controller's L_r);
-    alpha: α = R_r/L_r, 1/s; fit: the residual relative to the voltage-model flux's energy
-    (0 = exact); samples: how many samples it used; accepted: whether the controller
-    applies it; reason: why not, when it does not.
+    R_s: stator resistance, Ω; R_r: rotor resistance, Ω (α·L_r); alpha: α = R_r/L_r, 1/s;
+    fit: the residual relative to the voltage-model flux's energy (0 = exact); samples:
+    how many samples it used; accepted: whether the controller applies it; reason: why
+    not, when it does not; M, L_s, L_r: the inductances, H (the controller's, or the
+    sensors' fit's, which fits M with the leakages held).
     """
 
     R_s: float
@@ -82,6 +83,9 @@ class Identification:
     samples: int
     accepted: bool
     reason: str = ""
+    M: float = math.nan
+    L_s: float = math.nan
+    L_r: float = math.nan
     #: the phase current sensors' errors fitted with R_s and α as in a motor file's
     #: [commissioning] (offsets of phases a and b, A; phase b's gain relative to a's),
     #: their least-squares standard deviations, whether the run corrects them (then R_s,
@@ -107,6 +111,7 @@ class OffsetFit:
 
     R_s: float
     alpha: float
+    M: float
     offset_ab: complex
     std_ab: complex
     gain_b: float
@@ -136,7 +141,7 @@ class StandstillIdentifier:
     RECORD_MAX = 60_000
     #: the α search of the offsets' fit, as factors of the first fit's α̂ (an offset
     #: moves α̂ by about 0.15 % per mA)
-    OFFSET_SPAN = (0.9, 1.1)
+    OFFSET_SPAN = (0.8, 1.25)
     OFFSET_POINTS = 41
     #: Gauss–Newton steps per α (the problem is bilinear in R_s and o: it converges in 3)
     GN_STEPS = 5
@@ -251,7 +256,7 @@ class StandstillIdentifier:
         m = self.motor
         if self._n < 10 or self._s_bb <= 0.0:
             return Identification(m.R_s, m.R_r, self._alpha0, math.nan, self._n, False,
-                                  "too few samples at standstill")
+                                  "too few samples at standstill", m.M, m.L_s, m.L_r)
         cross = self._s_ab - self._s_bc  # Σ Re(b̄·(a − c)) per α
         dd = self._s_aa - 2.0 * self._s_ac + self._s_cc  # Σ|a − c|²
         bb = self._s_bb
@@ -287,24 +292,29 @@ class StandstillIdentifier:
                       "is not the one the controller was given")
         elif not 0.5 * m.R_s <= R_s <= 2.0 * m.R_s:
             reason = f"R_s = {R_s:.3g} Ω is not within 0.5…2 × the controller's {m.R_s:g} Ω"
-        return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason)
+        return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason,
+                              m.M, m.L_s, m.L_r)
 
-    def solve_offsets(self, first: Identification) -> OffsetFit | None:
-        """R_s, α and the current sensors' offsets together (docs/robustness.md §5), from
-        the first fit ``first`` (:meth:`solve`); None where they cannot be fitted (samples
-        missing, or more than :attr:`RECORD_MAX`).
+    def solve_offsets(self, first: Identification, fit_M: bool = True) -> OffsetFit | None:
+        """R_s, α, the current sensors' offsets and phase b's gain together, and M with the
+        leakages held (``fit_M``), from the first fit ``first`` (:meth:`solve`;
+        docs/robustness.md §5); None where they cannot be fitted (samples missing, or more
+        than :attr:`RECORD_MAX`).
 
-        The drive regulates the current it reads, i_k, and the motor carries i_k − o (o the
-        offsets' (a, b) image, constant). With the true current in both flux models,
+        The drive regulates the current it reads, i_k, and the motor carries
+        i_t = i_k − o − λ·e_b,k (o the offsets' (a, b) image, e_b phase b's reading in the
+        (a, b) frame, λ = 1 − 1/g_b). With the true current in both flux models, U and Q
+        the integrals of ū and i (T·Σ),
 
-            (24):  a_k − R_s·b_k + o·(L_r/M)·(R_s·T·k + σ),
-            (1):   c_k(α) − o·M·(1 − e^{−αTk}),
+            (24):  (L_r/M)·(U_k − R_s·(Q_k − o·T·k − λ·T·Σe_b) − σ·i_t,k),
+            (1):   M·(f_k(α)[i] − o·(1 − e^{−αTk}) − λ·f_k(α)[e_b]),
 
-        so their difference is r_k = a_k − c_k(α) − R_s·b_k + o·q_k with
-        q_k = (L_r/M)(R_s·T·k + σ) + M(1 − e^{−αTk}): linear in o for a given R_s, and in
-        R_s for a given o. For each α of a grid around ``first``'s, Gauss–Newton on (R_s, o)
-        from (``first``'s R_s, 0); the minimum over the grid, refined by a parabola in
-        log α, is the fit. Each value's standard deviation is the least-squares one."""
+        f the rotor's unit filter (c_k = e^{−αT}·c_{k−1} + (1 − e^{−αT})·i_k). Their difference
+        is bilinear in R_s and (o, λ) and, through L_r/M, σ and the filter's gain, smooth in
+        M (L_s − M and L_r − M held: at standstill only M²/L_r shows). For each α of a grid
+        around ``first``'s, Gauss–Newton on (R_s, o, λ, M) from (``first``'s R_s, 0, 0, the
+        controller's M); the minimum over the grid, refined by a parabola in log α, is the
+        fit. Each value's standard deviation is the least-squares one."""
         n = len(self._rec)
         if self.gaps or n < 10 or n >= self.RECORD_MAX:
             return None
@@ -313,8 +323,8 @@ class StandstillIdentifier:
         k = np.arange(1, n + 1, dtype=float)
         logf = np.log(np.geomspace(self.OFFSET_SPAN[0], self.OFFSET_SPAN[1],
                                    self.OFFSET_POINTS)) + math.log(first.alpha)
-        best = self._offset_fit(np.exp(logf), i, a, b, k, first.R_s)
-        cost = best[4]
+        best = self._offset_fit(np.exp(logf), i, a, b, k, first.R_s, fit_M)
+        cost = best[5]
         j = int(np.argmin(cost))
         x = logf[j]
         if 0 < j < len(logf) - 1:
@@ -322,54 +332,70 @@ class StandstillIdentifier:
             den = y0 - 2.0 * y1 + y2
             if den > 0.0:
                 x = logf[j] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
-        R_s, o, lam, std, c, psi = (v[0] for v in self._offset_fit(
-            np.array([math.exp(x)]), i, a, b, k, float(best[0][j])))
+        R_s, M, o, lam, std, c, psi = (v[0] for v in self._offset_fit(
+            np.array([math.exp(x)]), i, a, b, k, float(best[0][j]), fit_M))
         ssa = float(np.sum(a.real ** 2 + a.imag ** 2))
-        return OffsetFit(R_s=float(R_s), alpha=math.exp(x), offset_ab=complex(o),
+        return OffsetFit(R_s=float(R_s), alpha=math.exp(x), M=float(M), offset_ab=complex(o),
                          std_ab=complex(std[0], std[1]), gain_b=1.0 / (1.0 - float(lam)),
                          gain_b_std=float(std[2]), psi_ab=complex(psi),
                          fit=float(c) / ssa if ssa > 0.0 else math.nan,
                          edge=j in (0, len(logf) - 1))
 
     def _offset_fit(self, alphas: np.ndarray, i: np.ndarray, a: np.ndarray, b: np.ndarray,
-                    k: np.ndarray, R_0: float) -> tuple[np.ndarray, ...]:
-        """:meth:`solve_offsets` for each α of ``alphas``: (R_s, o, λ, the standard
+                    k: np.ndarray, R_0: float, fit_M: bool) -> tuple[np.ndarray, ...]:
+        """:meth:`solve_offsets` for each α of ``alphas``: (R_s, M, o, λ, the standard
         deviations of (Re o, Im o, λ), residual Σ|r|², the flux at the last sample), arrays
-        over the α's."""
-        m, T, kr = self.motor, self._T, self._k_r
+        over the α's. M with the leakages held (L_s − M and L_r − M the controller's), or
+        the controller's (``fit_M`` false)."""
+        m, T = self.motor, self._T
+        n_a = len(alphas)
+        L_ls, L_lr = m.L_s - m.M, m.L_r - m.M
+        U = a / self._k_r + m.sigma * i  # T·Σ ū
+        Q = b / self._k_r  # T·Σ i (charge)
         e = np.exp(-alphas * T)
         # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
         e_b = 1j * (2.0 / SQRT3) * (-0.5 * i.real + 0.5 * SQRT3 * i.imag)
-        c = np.empty((len(alphas), len(i)), dtype=complex)
-        c_b = np.empty((len(alphas), len(i)), dtype=complex)
-        ck = np.zeros(len(alphas), dtype=complex)
-        cb = np.zeros(len(alphas), dtype=complex)
-        w = (1.0 - e) * m.M
+        F = np.empty((n_a, len(i)), dtype=complex)  # the rotor's unit filter of i, of e_b
+        F_b = np.empty((n_a, len(i)), dtype=complex)
+        fk = np.zeros(n_a, dtype=complex)
+        fb = np.zeros(n_a, dtype=complex)
+        w = 1.0 - e
         for n, (i_n, e_n) in enumerate(zip(i, e_b, strict=True)):
-            ck = e * ck + w * i_n
-            cb = e * cb + w * e_n
-            c[:, n] = ck
-            c_b[:, n] = cb
-        d = a[None, :] - c
-        g = kr * T * k
-        h = kr * m.sigma + m.M * (1.0 - np.exp(-np.outer(alphas, k * T)))
-        E = kr * T * np.cumsum(e_b)
-        s_e = kr * m.sigma * e_b
-        R = np.full(len(alphas), float(R_0))
-        o = np.zeros(len(alphas), dtype=complex)
-        lam = np.zeros(len(alphas))
+            fk = e * fk + w * i_n
+            fb = e * fb + w * e_n
+            F[:, n] = fk
+            F_b[:, n] = fb
+        rise = 1.0 - np.exp(-np.outer(alphas, k * T))  # the filter of a constant
+        Tk = T * k
+        E = T * np.cumsum(e_b)
+        R = np.full(n_a, float(R_0))
+        M = np.full(n_a, float(m.M))
+        o = np.zeros(n_a, dtype=complex)
+        lam = np.zeros(n_a)
 
-        def residual() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            q = R[:, None] * g[None, :] + h
-            p = R[:, None] * E[None, :] + s_e[None, :] + c_b
-            return d - R[:, None] * b[None, :] + o[:, None] * q + lam[:, None] * p, q, p
+        def terms():
+            L_r = L_lr + M
+            kr = (L_r / M)[:, None]
+            sigma = (L_ls + M - M * M / L_r)[:, None]
+            i_t = i[None, :] - o[:, None] - lam[:, None] * e_b[None, :]
+            I_t = Q[None, :] - o[:, None] * Tk[None, :] - lam[:, None] * E[None, :]
+            flux_i = F - o[:, None] * rise - lam[:, None] * F_b  # unit filter of i_true
+            r = kr * (U[None, :] - R[:, None] * I_t - sigma * i_t) - M[:, None] * flux_i
+            return r, kr, sigma, i_t, I_t, flux_i, L_r
 
         for _ in range(self.GN_STEPS):
-            r, q, p = residual()
-            jr = -b[None, :] + o[:, None] * g[None, :] + lam[:, None] * E[None, :]
-            cols = (jr, q + 0j, 1j * q, p)  # ∂r/∂(R_s, Re o, Im o, λ)
-            A = np.empty((len(alphas), 4, 4))
-            y = np.empty((len(alphas), 4))
+            r, kr, sigma, i_t, I_t, flux_i, L_r = terms()
+            q = kr * (R[:, None] * Tk[None, :] + sigma) + M[:, None] * rise
+            p = kr * (R[:, None] * E[None, :] + sigma * e_b[None, :]) + M[:, None] * F_b
+            d_kr = (-L_lr / (M * M))[:, None]
+            d_sigma = (1.0 - (M * M + 2.0 * M * L_lr) / (L_r * L_r))[:, None]
+            d_M = (d_kr * (U[None, :] - R[:, None] * I_t - sigma * i_t)
+                   - kr * d_sigma * i_t - flux_i)
+            cols = (-kr * I_t, q + 0j, 1j * q, p, d_M)  # ∂r/∂(R_s, Re o, Im o, λ, M)
+            if not fit_M:
+                cols = cols[:4]
+            A = np.empty((n_a, len(cols), len(cols)))
+            y = np.empty((n_a, len(cols)))
             for u_, cu in enumerate(cols):
                 y[:, u_] = np.sum((cu.conj() * r).real, axis=1)
                 for v_, cv in enumerate(cols):
@@ -378,16 +404,18 @@ class StandstillIdentifier:
             R = R + step[:, 0]
             o = o + step[:, 1] + 1j * step[:, 2]
             lam = lam + step[:, 3]
-        r, q, p = residual()
+            if fit_M:
+                M = M + step[:, 4]
+        r, kr, sigma, i_t, I_t, flux_i, L_r = terms()
         cost = np.sum(r.real ** 2 + r.imag ** 2, axis=1)
-        s2 = cost / max(2 * len(i) - 5, 1)
+        s2 = cost / max(2 * len(i) - 1 - len(cols), 1)
         cov = np.linalg.inv(A) * s2[:, None, None]
         std = np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
         # the flux at the last sample: the rotor model's with the true current (exact at
         # standstill for α; the voltage model's would carry the fit's R_s error times ∫i:
         # 0.029 against 0.0096 rad/s RMS with a 10 mA offset after the handover)
-        psi = c[:, -1] - o * m.M * (1.0 - np.exp(-alphas * T * len(i))) - lam * c_b[:, -1]
-        return R, o, lam, std, cost, psi
+        psi = M * flux_i[:, -1]
+        return R, M, o, lam, std, cost, psi
 
 
 class Commissioning:
@@ -406,6 +434,9 @@ class Commissioning:
     #: both the sensors are read as they are
     OFFSET_MIN = 1e-3
     GAIN_MIN = 5e-3
+    #: the least change of M (relative) the fit applies without a sensor error: 5 mA of
+    #: noise alone moves it by 2.2 %
+    M_MIN = 0.03
 
     def __init__(self, motor: Motor, period: float, sensors: bool = False) -> None:
         self.identifier = StandstillIdentifier(motor, period)
@@ -415,6 +446,7 @@ class Commissioning:
         self._rose = False  # the flux reference has moved
         self._still = 0  # samples since it last moved
         self._psi_fit = 0j  # the rotor flux of the sensors' fit at its last sample
+        self._joint = False  # the result is the sensors' fit's (with its M)
 
     def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex) -> Identification | None:
         """One sample with its references; the identification at the sample that ends the
@@ -443,6 +475,9 @@ class Commissioning:
         (also when ``first`` was refused for its residual: a sensor error the first fit
         cannot explain); else ``first``, with the errors found and why they are not."""
         fit = self.identifier.solve_offsets(first)
+        m = self.identifier.motor
+        if fit is not None and abs(fit.M / m.M - 1.0) < self.M_MIN:  # M: the controller's
+            fit = self.identifier.solve_offsets(first, fit_M=False)
         if fit is None:
             return replace(first, sensors_reason="samples missing during the standstill: "
                                                   "sensor errors not fitted")
@@ -465,17 +500,30 @@ class Commissioning:
                       "is out of range")
         elif not 0.5 <= fit.gain_b <= 2.0:
             reason = f"phase b's gain {fit.gain_b:.3g} of the offsets' fit is out of range"
-        elif largest < self.OFFSET_MIN and abs(fit.gain_b - 1.0) < self.GAIN_MIN:
-            reason = (f"offsets below {1e3 * self.OFFSET_MIN:g} mA and gain within "
-                      f"{100 * self.GAIN_MIN:g} % (the fit's own error on the shipped "
-                      "plants): the sensors are read as they are")
+        elif not 0.5 <= fit.M / m.M <= 2.0:
+            reason = f"M = {fit.M:.3g} H of the offsets' fit is out of range"
         else:
             reason = ""
+        sensors = largest >= self.OFFSET_MIN or abs(fit.gain_b - 1.0) >= self.GAIN_MIN
+        inductance = abs(fit.M / m.M - 1.0) >= self.M_MIN
+        if not reason and not (sensors or inductance):
+            reason = (f"offsets below {1e3 * self.OFFSET_MIN:g} mA, gain within "
+                      f"{100 * self.GAIN_MIN:g} % and M within {100 * self.M_MIN:g} % (the "
+                      "fit's own error on the shipped plants): the sensors are read as they "
+                      "are")
         if reason:
             return replace(found, sensors_reason=reason)
         self._psi_fit = fit.psi_ab
-        return replace(found, R_s=fit.R_s, R_r=fit.alpha * m.L_r, alpha=fit.alpha,
-                       fit=fit.fit, sensors_corrected=True, accepted=True, reason="")
+        self._joint = True
+        L_s, L_r = m.L_s - m.M + fit.M, m.L_r - m.M + fit.M
+        if not sensors:
+            found = replace(found, offset_a=0.0, offset_b=0.0, gain_b=1.0)
+        return replace(found, R_s=fit.R_s, R_r=fit.alpha * L_r, alpha=fit.alpha, M=fit.M,
+                       L_s=L_s, L_r=L_r, fit=fit.fit, sensors_corrected=sensors,
+                       accepted=True, reason="", sensors_reason="" if sensors else (
+                           f"offsets below {1e3 * self.OFFSET_MIN:g} mA and gain within "
+                           f"{100 * self.GAIN_MIN:g} %: the sensors are read as they are "
+                           "(M is the fit's)"))
 
     @property
     def correction(self) -> SensorCorrection | None:
@@ -519,6 +567,8 @@ class Commissioning:
             return None, psi if psi_hat_ab is not None else None
         psi = self.flux()
         corr = self.correction
+        if self._joint:  # the fit's inductances from now on
+            estimator.inductances(found.M, found.L_s, found.L_r)
         estimator.identified(found.R_s, psi,
                              i_s_ab if corr is None else corr.true_current(i_s_ab))
         return found, psi
@@ -541,7 +591,7 @@ class Commissioning:
         ident = self.identifier
         if ident.gaps:
             return ident.current_model_flux_at(self.result.alpha)
-        if self.result.sensors_corrected:
+        if self._joint:
             return self._psi_fit
         return ident.flux(self.result.R_s)
 

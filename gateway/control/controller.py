@@ -243,7 +243,8 @@ class Controller:
             ident, psi_hat_ab = self.commissioning.apply(refs, sample.i_s_ab, sample.u_s_ab,
                                                          self.estimator, psi_hat_ab)
             if ident is not None:
-                self.motor = replace(self.motor, R_s=ident.R_s, R_r=ident.R_r)
+                self.motor = replace(self.motor, R_s=ident.R_s, R_r=ident.R_r, M=ident.M,
+                                     L_s=ident.L_s, L_r=ident.L_r)
         psi_r_ab = law_flux(self._true_flux, sample, psi_hat_ab)
         if self.load_observer is not None:  # T_L not known: the laws get T̂_L, dT̂_L/dt
             refs = self.load_observer.refs(refs, sample.i_s_ab, sample.u_s_ab, eps_0)

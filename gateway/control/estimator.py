@@ -64,6 +64,12 @@ class OpenLoopFluxEstimator:
         self.psi_s_ab = 0j
         self._i_prev = None
 
+    def inductances(self, M: float, L_s: float, L_r: float) -> None:
+        """The inductances (H) from now on (a standstill identification that fitted M)."""
+        self._sigma = L_s - M * M / L_r
+        self._k_r = L_r / M
+        self._m_lr = M / L_r
+
     def identified(self, R_s: float, psi_r_ab: complex, i_s_ab: complex) -> None:
         """After a standstill identification (:mod:`gateway.control.commissioning`): the
         identified R_s (Ω) from now on, and the rotor flux at this sample (Wb, (a, b))."""

@@ -214,7 +214,8 @@ class SampledController:
             return psi_hat_ab
         ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab)
         if ident is not None:
-            self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r))
+            self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r, M=ident.M,
+                                    L_s=ident.L_s, L_r=ident.L_r))
             self._joining = True  # the flux references join the motor's (_join)
         assert psi is not None
         return psi
