@@ -116,7 +116,10 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
     else:
         medium = InProcessChannel("hil-sim")
         channel = medium.name
-        bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
+        # the drive handles each frame in the thread that sent it (the gateway's): a
+        # lockstep cycle needs no hand-off between threads on the drive's side
+        bus_gw = medium.bus(receive_own_messages=True)
+        bus_dev = medium.bus(in_sender_thread=True)
         if wrap is not None:
             bus_gw = wrap(bus_gw, medium.bus())
     plant = plant or PlantScenario()

@@ -46,10 +46,15 @@ are plain storage. This module composes the parts and runs the cycle.
 
 Two threads: the receiver (``bus.recv``; every frame handled under one lock by
 :meth:`DriveDevice._handle`, malformed frames ignored) and the timer (heartbeat producer
-and consumer, under the same lock). A handler exception in either is never silent: it is
-counted (``internal_errors``), logged with its traceback, and answered with EMCY 0x1000
-and Fault (power stage off); the device keeps running and answering SDO.
-:meth:`DriveDevice.stop` joins both threads; the caller owns the bus.
+and consumer, under the same lock). On a bus that delivers in the sender's thread (one
+with ``in_sender_thread`` true and ``set_receiver``: `hil-gateway sim`'s in-process
+channel, :mod:`gateway.transport`) there is no receive thread: the bus hands each frame to
+the device, one at a time and in order, in the thread that sent it, and the device
+handles it there under the same lock. A handler exception in any of them is never
+silent: it is counted (``internal_errors``), logged with its traceback, and answered with
+EMCY 0x1000 and Fault (power stage off); the device keeps running and answering SDO.
+:meth:`DriveDevice.stop` joins the threads (and takes the device off such a bus's
+delivery); the caller owns the bus.
 """
 
 from __future__ import annotations
@@ -148,6 +153,9 @@ class DriveDevice:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
+        #: the bus hands frames to the device in the sender's thread (module docstring)
+        self._in_sender_thread = (getattr(bus, "in_sender_thread", False) is True
+                                  and callable(getattr(bus, "set_receiver", None)))
         self.node_id = node_id
         self.on_sample = on_sample
         self._motor0 = motor if motor is not None else MotorParams()
@@ -212,7 +220,12 @@ class DriveDevice:
             self._stop_event.clear()
             self._sm.boot()
             self.nmt.boot()
-        for target, name in ((self._rx_loop, "rx"), (self._timer_loop, "timer")):
+        loops = [(self._timer_loop, "timer")]
+        if self._in_sender_thread:
+            self.bus.set_receiver(self._receive)  # type: ignore[attr-defined]
+        else:
+            loops.insert(0, (self._rx_loop, "rx"))
+        for target, name in loops:
             t = threading.Thread(target=target, name=f"hil-plant-{name}-{self.node_id}",
                                  daemon=True)
             self._threads.append(t)
@@ -222,6 +235,8 @@ class DriveDevice:
         """Power stage off, heartbeat stopped, silent on the bus (the bus stays open)."""
         self._stop_event.set()
         self._wake.set()
+        if self._in_sender_thread:
+            self.bus.set_receiver(None)  # type: ignore[attr-defined]
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads.clear()
@@ -717,6 +732,16 @@ class DriveDevice:
                 if stop.is_set():
                     break
                 self._handle(msg.arbitration_id, bytes(msg.data))
+
+    def _receive(self, msg: can.Message) -> None:
+        """One frame from a bus that delivers in the sender's thread: what the receive
+        thread does with each frame it receives."""
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return
+        with self._lock:
+            if self._stop_event.is_set():
+                return
+            self._handle(msg.arbitration_id, bytes(msg.data))
 
     def _handle(self, can_id: int, data: bytes) -> None:
         """One received frame (the caller holds the lock); a handler exception is an
