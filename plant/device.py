@@ -168,6 +168,8 @@ class DriveDevice:
             dictionary = odm.Dictionary.emulator(node_id)
         self._store = odm.ObjectStore(node_id, self._overrides(dictionary), dictionary,
                                       f_pwm=self._params0.f_pwm)
+        #: how :meth:`_put` writes each object it has written (its dictionary's type)
+        self._put_kinds: dict[odm.Key, Any] = {}
         self._values = self._store.values
         self._send = Sender(bus)
         self._lock = threading.RLock()
@@ -604,22 +606,20 @@ class DriveDevice:
         range of its integer type (a twin's REAL type: as it is); nothing if the dictionary
         lacks it."""
         key = (index, 0)
-        var = self._store.vars.get(key)
-        if var is None:
+        kind = self._put_kinds.get(key)
+        if kind is None:
+            kind = self._put_kinds[key] = _put_kind(self._store.vars.get(key))
+        if kind is _NOT_PUT:
             return
-        if var.data_type in datatypes.FLOAT_TYPES:
+        if kind is _FLOAT:
             self._values[key] = float(value)
             return
-        if var.data_type not in datatypes.INTEGER_TYPES:
-            return
-        bits, signed = len(var), var.data_type in datatypes.SIGNED_TYPES
+        bits, signed, lo, hi = kind
         x = round(value)
         if wrap:
             x %= 1 << bits
             x -= (1 << bits) if signed and x >> (bits - 1) else 0
         else:
-            lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0,
-                                                                             (1 << bits) - 1)
             x = max(lo, min(hi, x))
         self._values[key] = x
 
@@ -806,11 +806,32 @@ class DriveDevice:
         return IDLE_STEP_S
 
 
+_NOT_PUT = "not written"  # no such object, or not a number
+_FLOAT = "float"
+
+
+def _put_kind(var: Any) -> Any:
+    """How :meth:`DriveDevice._put` writes an object (an ODVariable, or None when the
+    dictionary lacks it): as a float, as an integer (bits, signed, lowest, highest), or
+    not at all."""
+    if var is None:
+        return _NOT_PUT
+    if var.data_type in datatypes.FLOAT_TYPES:
+        return _FLOAT
+    if var.data_type not in datatypes.INTEGER_TYPES:
+        return _NOT_PUT
+    bits, signed = len(var), var.data_type in datatypes.SIGNED_TYPES
+    lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+    return bits, signed, lo, hi
+
+
 def _finite(meas: Measurement) -> bool:
     """Every number of a measurement is finite."""
-    return all(math.isfinite(x) for x in (
-        meas.i_s_ab.real, meas.i_s_ab.imag, meas.u_s_ab.real, meas.u_s_ab.imag, meas.w_m,
-        meas.psi_r_ab.real, meas.psi_r_ab.imag, meas.T_e))
+    isfinite = math.isfinite
+    i, u, psi = meas.i_s_ab, meas.u_s_ab, meas.psi_r_ab
+    return (isfinite(i.real) and isfinite(i.imag) and isfinite(u.real) and isfinite(u.imag)
+            and isfinite(meas.w_m) and isfinite(psi.real) and isfinite(psi.imag)
+            and isfinite(meas.T_e))
 
 
 def _at_rest(u_dc: float) -> Measurement:

@@ -11,7 +11,7 @@ import can
 import canopen
 import pytest
 
-from gateway.transport import InProcessChannel
+from gateway.transport import InProcessChannel, _frame
 from plant.device import DriveDevice
 
 
@@ -36,6 +36,46 @@ def test_queued_buses_hand_every_receiver_the_frame():
     assert not a.in_sender_thread and not b.in_sender_thread
     with pytest.raises(ValueError):
         b.set_receiver(lambda m: None)
+    a.shutdown()
+    b.shutdown()
+
+
+@pytest.mark.parametrize("msg", [
+    can.Message(arbitration_id=0x181, data=[1, 2, 3], is_extended_id=False),
+    can.Message(arbitration_id=0x1ABCDEF, data=bytearray(b"\x01\x02"), dlc=5),
+    can.Message(arbitration_id=0x80, data=None, is_extended_id=False),
+    can.Message(arbitration_id=0x701, is_remote_frame=True, dlc=1, data=b"\x05"),
+    can.Message(is_error_frame=True, data=b"\x00\x01", channel="can3", is_rx=False),
+    can.Message(arbitration_id=0x123, data=bytes(12), is_fd=True, bitrate_switch=True,
+                error_state_indicator=True),
+], ids=["list", "bytearray-ext-dlc", "no-data", "remote", "error", "fd"])
+def test_a_frame_is_what_the_message_constructor_makes(msg):
+    """The channel's frames are built attribute by attribute: the same as python-can's
+    constructor with the arguments the channel always gave it."""
+    got = _frame(msg, "hil-sim")
+    want = can.Message(
+        timestamp=got.timestamp, arbitration_id=msg.arbitration_id,
+        is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+        is_error_frame=msg.is_error_frame, dlc=msg.dlc, data=msg.data, channel="hil-sim",
+        is_fd=msg.is_fd, check=False)
+    for name in can.Message.__slots__:
+        if not name.startswith("__"):
+            assert getattr(got, name) == getattr(want, name), name
+            assert type(getattr(got, name)) is type(getattr(want, name)), name
+    assert (got.data is msg.data) == (want.data is msg.data)  # shared as the constructor does
+
+
+def test_recv_honours_filters_and_timeouts():
+    ch = InProcessChannel("t")
+    a, b = ch.bus(), ch.bus()
+    b.set_filters([{"can_id": 0x181, "can_mask": 0x7FF}])
+    assert b.recv(0) is None and b.recv(0.01) is None
+    a.send(_msg(0x201))
+    a.send(_msg(0x181, 7))
+    m = b.recv(0.5)
+    assert (m.arbitration_id, bytes(m.data)) == (0x181, b"\x07")
+    a.send(_msg(0x201))
+    assert b.recv(0) is None  # filtered out
     a.shutdown()
     b.shutdown()
 
