@@ -334,3 +334,30 @@ def test_the_emulated_drive_on_a_bus_that_delivers_in_the_senders_thread():
     assert [i for i, _ in _drain(dev_bus)] == [0x000]  # queued: nobody took it
     dev_bus.shutdown()
     other.shutdown()
+
+
+@pytest.mark.parametrize("in_sender_thread", [True, False])
+def test_sim_gives_the_drive_a_receive_thread_only_in_real_time(in_sender_thread):
+    """open_emulator: in lockstep (the default) the drive handles frames in the sender's
+    thread; in real time (the gateway's SYNC thread keeps a schedule) in a thread of its
+    own, as before. Either way the drive answers."""
+    from dbc.modes import DriveMode
+    from dbc.motor import MotorParams
+    from gateway.sim import open_emulator
+
+    bus, label, close = open_emulator("inprocess", 9, MotorParams.paper(), DriveMode.IDEAL,
+                                      in_sender_thread=in_sender_thread)
+    try:
+        assert label.startswith("inprocess:")
+        names = {t.name for t in threading.enumerate()}
+        assert ("hil-plant-rx-9" in names) is not in_sender_thread
+        assert "hil-plant-timer-9" in names
+        net = canopen.Network(bus)
+        net.connect()
+        try:
+            node = net.add_node(9, canopen.ObjectDictionary())
+            assert int.from_bytes(node.sdo.upload(0x1000, 0), "little") != 0
+        finally:
+            net.notifier.stop()
+    finally:
+        close()
