@@ -43,7 +43,7 @@ from _common import Figures, RunError, add_json_option, failed_text, require_com
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
-from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS, Timing
 from gateway.drive_profile import DriveProfile, load_drive_profile
 from gateway.reference import paper_profile
 from gateway.runner import BusTarget
@@ -59,12 +59,13 @@ REALTIME = ("cycles", "missed_cycles", "late_rpdo", "sync_jitter_median_us",
 def _target(args: argparse.Namespace, transport: str) -> BusTarget:
     """The external bus, or the emulator on a new in-process bus
     (:func:`gateway.sim.open_emulator`, as `hil-gateway sim` starts it)."""
-    def open_buses(*_: object):
+    def open_buses(spec: RunSpec, *_: object):
         if args.interface:
             bus = can.Bus(interface=args.interface, channel=args.channel,
                           receive_own_messages=True)
             return bus, f"{args.interface}:{args.channel}", bus.shutdown
-        return open_emulator(transport, 1, MotorParams.paper(), DriveMode.IDEAL)
+        return open_emulator(transport, 1, MotorParams.paper(), DriveMode.IDEAL,
+                             in_sender_thread=spec.timing is Timing.LOCKSTEP)
 
     return BusTarget(args.drive_profile, open_buses, command="bench")
 

@@ -18,7 +18,7 @@ import numpy as np
 from dbc.errors import UserError
 from dbc.modes import DriveMode
 from dbc.motor import MotorParams
-from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS
+from dbc.timing import SIM_HEARTBEAT_TIMEOUT_MS, Timing
 from plant.drive import Measurement
 from plant.params import DriveParams
 from plant.scenario import (
@@ -92,9 +92,15 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
                   plant: PlantScenario | None = None, reference_load: Any = None,
                   on_sample: Callable[[int, Measurement], None] | None = None,
                   wrap: Callable[[can.BusABC, can.BusABC], can.BusABC] | None = None,
+                  in_sender_thread: bool = True,
                   ) -> tuple[can.BusABC, str, Callable[[], None]]:
     """Start the emulated drive at ``node`` on a new in-process bus; returns the gateway's
     bus, its label ('inprocess:hil-sim-…') and the function that stops and closes it all.
+
+    ``in_sender_thread`` (the in-process channel only): the drive handles each frame in the
+    thread that sent it (:mod:`gateway.transport`; a lockstep cycle then runs in the
+    gateway's receive thread without a hand-off); otherwise in a receive thread of its own,
+    as in real time, where the gateway's SYNC thread must stay free for its schedule.
 
     ``plant``: how the emulated plant differs from the controller's model (the controller's
     ``motor`` × the scenario); ``reference_load``: the reference profile's load signal, for
@@ -116,7 +122,8 @@ def open_emulator(transport: str, node: int, motor: MotorParams, mode: DriveMode
     else:
         medium = InProcessChannel("hil-sim")
         channel = medium.name
-        bus_gw, bus_dev = medium.bus(receive_own_messages=True), medium.bus()
+        bus_gw = medium.bus(receive_own_messages=True)
+        bus_dev = medium.bus(in_sender_thread=in_sender_thread)
         if wrap is not None:
             bus_gw = wrap(bus_gw, medium.bus())
     plant = plant or PlantScenario()
@@ -150,7 +157,8 @@ def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_lo
                plant_label: str = "the plant scenario", mapping: Mapping | None = None
                ) -> BusTarget:
     """`sim`'s target: the emulated drive in ``mode`` started in this process on a new bus
-    (``transport``: "inprocess" or python-can's "virtual") for each run, with its built-in
+    (``transport``: "inprocess" or python-can's "virtual"; in lockstep, on the in-process
+    channel, the drive handles its frames in the sender's thread) for each run, with its built-in
     drive profile (the standard one for a standard ``mode``), whose watch of the gateway's
     heartbeat is :data:`dbc.timing.SIM_HEARTBEAT_TIMEOUT_MS`; ``plant`` and
     ``reference_load`` as for :func:`open_emulator`, the scenario's bus faults injected
@@ -171,7 +179,8 @@ def sim_target(mode: DriveMode, plant: PlantScenario | None = None, reference_lo
         wrap = _fault_wrapper(plant, spec.period, drive, node,
                               gateway_node or drive.gateway_node, plant_label)
         return open_emulator(transport, node, motor, spec.drive_mode, plant, reference_load,
-                             on_sample=truth, wrap=wrap)
+                             on_sample=truth, wrap=wrap,
+                             in_sender_thread=spec.timing is Timing.LOCKSTEP)
 
     return BusTarget(drive, open_buses, command="sim", truth=truth)
 

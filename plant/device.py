@@ -46,10 +46,15 @@ are plain storage. This module composes the parts and runs the cycle.
 
 Two threads: the receiver (``bus.recv``; every frame handled under one lock by
 :meth:`DriveDevice._handle`, malformed frames ignored) and the timer (heartbeat producer
-and consumer, under the same lock). A handler exception in either is never silent: it is
-counted (``internal_errors``), logged with its traceback, and answered with EMCY 0x1000
-and Fault (power stage off); the device keeps running and answering SDO.
-:meth:`DriveDevice.stop` joins both threads; the caller owns the bus.
+and consumer, under the same lock). On a bus that delivers in the sender's thread (one
+with ``in_sender_thread`` true and ``set_receiver``: `hil-gateway sim`'s in-process
+channel, :mod:`gateway.transport`) there is no receive thread: the bus hands each frame to
+the device, one at a time and in order, in the thread that sent it, and the device
+handles it there under the same lock. A handler exception in any of them is never
+silent: it is counted (``internal_errors``), logged with its traceback, and answered with
+EMCY 0x1000 and Fault (power stage off); the device keeps running and answering SDO.
+:meth:`DriveDevice.stop` joins the threads (and takes the device off such a bus's
+delivery); the caller owns the bus.
 """
 
 from __future__ import annotations
@@ -148,6 +153,9 @@ class DriveDevice:
         if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id!r} is outside 1..127")
         self.bus = bus
+        #: the bus hands frames to the device in the sender's thread (module docstring)
+        self._in_sender_thread = (getattr(bus, "in_sender_thread", False) is True
+                                  and callable(getattr(bus, "set_receiver", None)))
         self.node_id = node_id
         self.on_sample = on_sample
         self._motor0 = motor if motor is not None else MotorParams()
@@ -160,6 +168,8 @@ class DriveDevice:
             dictionary = odm.Dictionary.emulator(node_id)
         self._store = odm.ObjectStore(node_id, self._overrides(dictionary), dictionary,
                                       f_pwm=self._params0.f_pwm)
+        #: how :meth:`_put` writes each object it has written (its dictionary's type)
+        self._put_kinds: dict[odm.Key, Any] = {}
         self._values = self._store.values
         self._send = Sender(bus)
         self._lock = threading.RLock()
@@ -212,7 +222,12 @@ class DriveDevice:
             self._stop_event.clear()
             self._sm.boot()
             self.nmt.boot()
-        for target, name in ((self._rx_loop, "rx"), (self._timer_loop, "timer")):
+        loops = [(self._timer_loop, "timer")]
+        if self._in_sender_thread:
+            self.bus.set_receiver(self._receive)  # type: ignore[attr-defined]
+        else:
+            loops.insert(0, (self._rx_loop, "rx"))
+        for target, name in loops:
             t = threading.Thread(target=target, name=f"hil-plant-{name}-{self.node_id}",
                                  daemon=True)
             self._threads.append(t)
@@ -222,6 +237,8 @@ class DriveDevice:
         """Power stage off, heartbeat stopped, silent on the bus (the bus stays open)."""
         self._stop_event.set()
         self._wake.set()
+        if self._in_sender_thread:
+            self.bus.set_receiver(None)  # type: ignore[attr-defined]
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads.clear()
@@ -589,22 +606,20 @@ class DriveDevice:
         range of its integer type (a twin's REAL type: as it is); nothing if the dictionary
         lacks it."""
         key = (index, 0)
-        var = self._store.vars.get(key)
-        if var is None:
+        kind = self._put_kinds.get(key)
+        if kind is None:
+            kind = self._put_kinds[key] = _put_kind(self._store.vars.get(key))
+        if kind is _NOT_PUT:
             return
-        if var.data_type in datatypes.FLOAT_TYPES:
+        if kind is _FLOAT:
             self._values[key] = float(value)
             return
-        if var.data_type not in datatypes.INTEGER_TYPES:
-            return
-        bits, signed = len(var), var.data_type in datatypes.SIGNED_TYPES
+        bits, signed, lo, hi = kind
         x = round(value)
         if wrap:
             x %= 1 << bits
             x -= (1 << bits) if signed and x >> (bits - 1) else 0
         else:
-            lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0,
-                                                                             (1 << bits) - 1)
             x = max(lo, min(hi, x))
         self._values[key] = x
 
@@ -718,6 +733,16 @@ class DriveDevice:
                     break
                 self._handle(msg.arbitration_id, bytes(msg.data))
 
+    def _receive(self, msg: can.Message) -> None:
+        """One frame from a bus that delivers in the sender's thread: what the receive
+        thread does with each frame it receives."""
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return
+        with self._lock:
+            if self._stop_event.is_set():
+                return
+            self._handle(msg.arbitration_id, bytes(msg.data))
+
     def _handle(self, can_id: int, data: bytes) -> None:
         """One received frame (the caller holds the lock); a handler exception is an
         internal error (EMCY 0x1000, Fault), never silent."""
@@ -781,11 +806,32 @@ class DriveDevice:
         return IDLE_STEP_S
 
 
+_NOT_PUT = "not written"  # no such object, or not a number
+_FLOAT = "float"
+
+
+def _put_kind(var: Any) -> Any:
+    """How :meth:`DriveDevice._put` writes an object (an ODVariable, or None when the
+    dictionary lacks it): as a float, as an integer (bits, signed, lowest, highest), or
+    not at all."""
+    if var is None:
+        return _NOT_PUT
+    if var.data_type in datatypes.FLOAT_TYPES:
+        return _FLOAT
+    if var.data_type not in datatypes.INTEGER_TYPES:
+        return _NOT_PUT
+    bits, signed = len(var), var.data_type in datatypes.SIGNED_TYPES
+    lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+    return bits, signed, lo, hi
+
+
 def _finite(meas: Measurement) -> bool:
     """Every number of a measurement is finite."""
-    return all(math.isfinite(x) for x in (
-        meas.i_s_ab.real, meas.i_s_ab.imag, meas.u_s_ab.real, meas.u_s_ab.imag, meas.w_m,
-        meas.psi_r_ab.real, meas.psi_r_ab.imag, meas.T_e))
+    isfinite = math.isfinite
+    i, u, psi = meas.i_s_ab, meas.u_s_ab, meas.psi_r_ab
+    return (isfinite(i.real) and isfinite(i.imag) and isfinite(u.real) and isfinite(u.imag)
+            and isfinite(meas.w_m) and isfinite(psi.real) and isfinite(psi.imag)
+            and isfinite(meas.T_e))
 
 
 def _at_rest(u_dc: float) -> Measurement:

@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 HEARTBEAT_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL, NmtState.STOPPED)
 
 
+_TIME_BASES = {int(b): b for b in TimeBase}
+
 class NmtSlave:
     """NMT state, boot-up, command dispatch, heartbeat producer and consumer.
 
@@ -76,7 +78,9 @@ class NmtSlave:
         dictionary is another drive's, whose clock is the wall clock."""
         if not self._own:
             return TimeBase.WALL
-        return TimeBase(self._values.get((odm.TIME_BASE, 0), 0))
+        value = self._values.get((odm.TIME_BASE, 0), 0)
+        base = _TIME_BASES.get(value)  # every SYNC: a lookup, not an enum call
+        return TimeBase(value) if base is None else base
 
     def _wall_limit(self, timeout: float) -> float:
         return (timeout if self.time_base is TimeBase.WALL
