@@ -121,20 +121,25 @@ def labels(values: dict) -> tuple[str, str, str]:
     return block, ", ".join(row), " ".join(c for c in col if c)
 
 
-def only(blocks: list[str], out: Path) -> Path:
-    """The campaign with only the grids of ``blocks``, written beside ``out``."""
-    data = tomllib.loads(CAMPAIGN.read_text(encoding="utf-8"))
+def only(blocks: list[str], out: Path, campaign: Path = CAMPAIGN) -> Path:
+    """``campaign`` with only the grids of ``blocks`` (a block's label, or its part before
+    "/"), written beside ``out``."""
+    data = tomllib.loads(campaign.read_text(encoding="utf-8"))
     data["grid"] = [g for g in data["grid"]
-                    if g["block"][0]["label"].partition("/")[0] in blocks]
+                    if g["block"][0]["label"].partition("/")[0] in blocks
+                    or g["block"][0]["label"] in blocks]
     path = out.with_name(f"{out.name}-campaign.toml")
     out.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomltext.dumps(data), encoding="utf-8")
     return path
 
 
-def run_campaign(args: argparse.Namespace, out: Path) -> tuple[Path, int]:
-    """The campaign (its summary to stderr); the campaign file run and its exit status."""
-    path = only(args.only, out) if args.only else CAMPAIGN
+def run_campaign(args: argparse.Namespace, out: Path, campaign: Path = CAMPAIGN,
+                 keep_runs: bool = False) -> tuple[Path, int]:
+    """``campaign`` (its summary to stderr) where ``args`` say (``--only``, ``--in-process``,
+    ``--scheduler``, ``--workers``), its runs' directories kept with ``keep_runs``; the
+    campaign file run and its exit status."""
+    path = only(args.only, out, campaign) if args.only else campaign
     words = ["campaign", str(path), "--out", str(out), "--worst", "0"]
     if args.in_process:
         words.append("--in-process")
@@ -142,7 +147,7 @@ def run_campaign(args: argparse.Namespace, out: Path) -> tuple[Path, int]:
         words += ["--scheduler", args.scheduler]
     elif args.workers:
         words += ["--workers", str(args.workers)]
-    if args.png:
+    if keep_runs:
         words.append("--keep-runs")
     with contextlib.redirect_stdout(sys.stderr):
         status = hil_gateway(words)
@@ -281,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         f"bench-robustness-{datetime.now():%Y%m%d-%H%M%S}")
     fig = Figures()
     t0 = time.perf_counter()
-    path, status = run_campaign(args, out)
+    path, status = run_campaign(args, out, keep_runs=bool(args.png))
     if not (out / "results.parquet").exists():
         print(f"the campaign did not run (exit status {status}); see above", file=sys.stderr)
         return 1

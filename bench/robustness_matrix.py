@@ -35,11 +35,9 @@ targets missed are results, not failures: they are counted and listed. ``--json 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import sys
 import time
-import tomllib
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -48,11 +46,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from _common import Figures, add_json_option, failed_text  # noqa: E402
+from robustness import run_campaign  # noqa: E402
 
-from gateway.campaign import tomltext  # noqa: E402
 from gateway.campaign.model import load_campaign  # noqa: E402
 from gateway.campaign.points import every_point  # noqa: E402
-from gateway.cli import main as hil_gateway  # noqa: E402
 
 CAMPAIGN = ROOT / "campaigns" / "robustness-matrix.toml"
 BLOCKS = ("current-fed", "full-order", "full-order/2 ms", "low speed", "load")
@@ -114,18 +111,6 @@ def target(row: Row) -> tuple[str, bool | None]:
         limit = 1.5 * tf.rms
         return f"RMS ≤ 1.5 × true flux = {limit:.3g}", not stops and d.rms <= limit
     return "completes", not stops
-
-
-def only(blocks: list[str], out: Path) -> Path:
-    """The campaign with only the grids of ``blocks``, written beside ``out``."""
-    data = tomllib.loads(CAMPAIGN.read_text(encoding="utf-8"))
-    data["grid"] = [g for g in data["grid"]
-                    if g["block"][0]["label"].partition("/")[0] in blocks
-                    or g["block"][0]["label"] in blocks]
-    path = out.with_name(f"{out.name}-campaign.toml")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(tomltext.dumps(data), encoding="utf-8")
-    return path
 
 
 def rows_of(path: Path, out: Path) -> list[Row]:
@@ -219,18 +204,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     out = Path(args.out) if args.out else ROOT / "runs" / (
         f"bench-matrix-{datetime.now():%Y%m%d-%H%M%S}")
-    path = only(args.only, out) if args.only else CAMPAIGN
-    words = ["campaign", str(path), "--out", str(out), "--worst", "0"]
-    if args.in_process:
-        words.append("--in-process")
-    elif args.scheduler:
-        words += ["--scheduler", args.scheduler]
-    elif args.workers:
-        words += ["--workers", str(args.workers)]
     fig = Figures()
     t0 = time.perf_counter()
-    with contextlib.redirect_stdout(sys.stderr):
-        status = hil_gateway(words)
+    path, status = run_campaign(args, out, CAMPAIGN)
     if not (out / "results.parquet").exists():
         print(f"the campaign did not run (exit status {status}); see above", file=sys.stderr)
         return 1

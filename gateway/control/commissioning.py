@@ -46,9 +46,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from gateway.control.correction import SensorCorrection
-
-SQRT3 = math.sqrt(3.0)
+from gateway.control.correction import SQRT3, SensorCorrection, phases
 
 
 class Refs(Protocol):
@@ -354,7 +352,7 @@ class StandstillIdentifier:
         Q = b / self._k_r  # T·Σ i (charge)
         e = np.exp(-alphas * T)
         # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
-        e_b = 1j * (2.0 / SQRT3) * (-0.5 * i.real + 0.5 * SQRT3 * i.imag)
+        e_b = 1j * (2.0 / SQRT3) * phases(i)[1]
         F = np.empty((n_a, len(i)), dtype=complex)  # the rotor's unit filter of i, of e_b
         F_b = np.empty((n_a, len(i)), dtype=complex)
         fk = np.zeros(n_a, dtype=complex)
@@ -481,13 +479,11 @@ class Commissioning:
         if fit is None:
             return replace(first, sensors_reason="samples missing during the standstill: "
                                                   "sensor errors not fitted")
-        o = fit.offset_ab
-        o_a, o_b = o.real, 0.5 * (SQRT3 * o.imag - o.real)
+        o_a, o_b = phases(fit.offset_ab)
         s_a = fit.std_ab.real
         s_b = 0.5 * math.sqrt(3.0 * fit.std_ab.imag ** 2 + s_a ** 2)
         found = replace(first, offset_a=o_a, offset_b=o_b, gain_b=fit.gain_b,
                         offset_a_std=s_a, offset_b_std=s_b, gain_b_std=fit.gain_b_std)
-        m = self.identifier.motor
         largest = max(abs(o_a), abs(o_b))
         if fit.edge:
             reason = "α at the edge of the offsets' fit"

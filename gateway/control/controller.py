@@ -162,6 +162,13 @@ class ControllerConfig:
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
 
+    @property
+    def holds_current(self) -> bool:
+        """The drive holds the current-fed law's setpoints over the period (an ideal
+        current source): the standstill identification's model of the current, so it also
+        fits the current sensors' errors (:class:`Commissioning`'s ``sensors``)."""
+        return self.law is Law.CURRENT_FED and self.current_lag == 0.0
+
 
 #: The signals the paper's controllers log (their :attr:`Command.logged`, in order): the speed
 #: estimate ω̂ (16)/(27), rad/s, and the rotor flux the law used in the frame at t_k, Wb:
@@ -229,8 +236,8 @@ class Controller:
                                            c.load_current_rise)
                               if c.load is LoadSource.OBSERVED else None)
         self._untold = c.load is LoadSource.UNTOLD
-        self.commissioning = (Commissioning(motor, self._T, sensors=(
-            c.law is Law.CURRENT_FED and c.current_lag == 0.0)) if c.identify else None)
+        self.commissioning = (Commissioning(motor, self._T, sensors=c.holds_current)
+                              if c.identify else None)
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sampling instant: flux, law, output; then ε0 and ω̂ advance by T."""

@@ -103,26 +103,27 @@ class SensorCorrection:
 
     def true_current(self, i_read_ab: complex) -> complex:
         """The inverse of (C1): the true current (a, b) for the reading ``i_read_ab``, A."""
-        r_a, r_b = _phases(i_read_ab)
+        r_a, r_b = phases(i_read_ab)
         return _clarke(r_a - self.offset_a, (r_b - self.offset_b) / self.gain_b)
 
     def reading(self, i_ab: complex) -> complex:
         """(C1): what the sensors read for the true current ``i_ab`` (a, b), A."""
-        i_a, i_b = _phases(i_ab)
+        i_a, i_b = phases(i_ab)
         return _clarke(i_a + self.offset_a, self.gain_b * i_b + self.offset_b)
 
     def voltage_error(self, i_ab: complex) -> complex:
         """D·g(i) of (C2): what the inverter applies less than it reports at ``i_ab``, V."""
         if self.u_dead == 0.0:
             return 0j
-        i_a, i_b = _phases(i_ab)
+        i_a, i_b = phases(i_ab)
         s_a, s_b = _sign(i_a), _sign(i_b)
         s_c = _sign(-i_a - i_b)
         return self.u_dead * (2.0 / 3.0) * (s_a + s_b * _A + s_c * _A.conjugate())
 
 
-def _phases(x_ab: complex) -> tuple[float, float]:
-    """Phases a and b of an (a, b) vector (the inverse amplitude-invariant Clarke transform)."""
+def phases(x_ab: Any) -> tuple[Any, Any]:
+    """Phases a and b of an (a, b) vector, or of an array of them (the inverse
+    amplitude-invariant Clarke transform)."""
     return x_ab.real, -0.5 * x_ab.real + 0.5 * SQRT3 * x_ab.imag
 
 
@@ -183,8 +184,7 @@ class CorrectedController:
         """The inner controller's command with the corrections: what the drive must read,
         and apply, for the motor to get what the controller meant."""
         c = self.correction
-        half = 0.5 * self._T * cmd.w_0
-        self._turns.append((half, cmd.w_0) if self._turning else (0.0, 0.0))
+        half = self._turn(cmd)
         # the setpoints' (a, b) image at the interval's midpoint, and its change
         turn = cmath.exp(1j * (cmd.eps_0 + half))
         i_ab = cmd.i_s_dq_ref * turn
@@ -195,6 +195,13 @@ class CorrectedController:
         return replace(cmd, i_s_dq_ref=cmd.i_s_dq_ref + di / turn,
                        u_s_dq_ref=cmd.u_s_dq_ref + du / turn,
                        i_s_ab_ref=cmd.i_s_ab_ref + di_ab, u_s_ab_ref=cmd.u_s_ab_ref + du_ab)
+
+    def _turn(self, cmd: Command) -> float:
+        """Records the interval ``cmd`` commands (its turn at the end, its ω0) for the sample
+        that ends it; returns its half-period turn ω0·T/2."""
+        half = 0.5 * self._T * cmd.w_0
+        self._turns.append((half, cmd.w_0) if self._turning else (0.0, 0.0))
+        return half
 
     def _held(self) -> tuple[float, float]:
         """The interval after the last one commanded, on held setpoints: the drive keeps
@@ -235,8 +242,7 @@ class IdentifiedCorrection(CorrectedController):
         cmd = self.inner.step(refs, sample)
         found = self.inner.commissioning.result
         if found is None:
-            half = 0.5 * self._T * cmd.w_0
-            self._turns.append((half, cmd.w_0) if self._turning else (0.0, 0.0))
+            self._turn(cmd)
             return cmd
         self._waiting = False
         correction = self.inner.commissioning.correction

@@ -216,19 +216,17 @@ class ControllerChoice:
             raise ControllerError(f"controller {self.name!r} refused its parameters or the "
                                   f"run: {exc}") from exc
         check_controller(ctl, self.name)
-        if (getattr(ctl, "commissioning", None) is not None
-                and not context.drive_mode.standard):
-            from gateway.control.correction import IdentifiedCorrection
+        if context.drive_mode.standard:  # no vector setpoints: nothing to correct
+            return ctl
+        from gateway.control.correction import CorrectedController, IdentifiedCorrection
 
-            s = context.sampling
-            ctl = IdentifiedCorrection(ctl, s.period, s.delay,
-                                       turning=s.setpoint_frame is SetpointFrame.DQ)
-        if context.correction is not None and not context.drive_mode.standard:
-            from gateway.control.correction import CorrectedController
-
-            s = context.sampling
+        s = context.sampling
+        turning = s.setpoint_frame is SetpointFrame.DQ
+        if getattr(ctl, "commissioning", None) is not None:  # the run's own identification
+            ctl = IdentifiedCorrection(ctl, s.period, s.delay, turning=turning)
+        if context.correction is not None:  # the motor file's
             ctl = CorrectedController(ctl, context.correction, s.period, s.delay,
-                                      turning=s.setpoint_frame is SetpointFrame.DQ)
+                                      turning=turning)
         return ctl
 
 

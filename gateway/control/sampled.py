@@ -196,13 +196,10 @@ class SampledController:
         self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
         #: the command before the last step's (what the drive holds if that one is withheld)
         self._base: Interval | None = None
-        # the current sensors' errors are fitted too where the drive holds the current
-        # over the period (an ideal current source): the fit's model of the current
         self._joining = False  # the identification is applied at this step (_join)
         self._joined = False  # the flux references are the joined ones
-        self.commissioning = (Commissioning(motor, self._T, sensors=(
-            config.law is Law.CURRENT_FED and config.current_lag == 0.0))
-            if config.identify else None)
+        self.commissioning = (Commissioning(motor, self._T, sensors=config.holds_current)
+                              if config.identify else None)
 
     def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
         """The standstill identification (``config.identify``): the flux the laws take
