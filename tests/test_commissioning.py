@@ -22,18 +22,20 @@ MOTOR = MotorParams()
 T = 1e-3
 
 
-def _magnetise(plant: MotorParams, n: int = 320, u_error=None):
+def _magnetise(plant: MotorParams, n: int = 320, u_error=None, held=frozenset()):
     """(i, u) samples of a magnetisation at standstill by the exact discrete model: a
     current ramping to 3.4 A along a, held over each period; u is the period's average
-    voltage of (24) with the plant's R_s and α (plus ``u_error(i)``)."""
+    voltage of (24) with the plant's R_s and α (plus ``u_error(i)``). At the samples
+    ``held`` the drive keeps the last period's current (it did not receive that SYNC)."""
     alpha = plant.R_r / plant.L_r
     k_m = plant.M / plant.L_r
     e = math.exp(-alpha * T)
     psi = 0j
     out = [(0j, 0j)]
     for k in range(1, n + 1):
-        i = complex(3.4 * min(1.0, k / 150.0), 0.1 * math.sin(k / 40.0))
         i_prev = out[-1][0]
+        i = i_prev if k in held else complex(3.4 * min(1.0, k / 150.0),
+                                                0.1 * math.sin(k / 40.0))
         psi_new = e * psi + (1.0 - e) * plant.M * i
         # ψ_s = σ·i + (M/L_r)·ψ_r, and ∫u = Δψ_s + R_s·∫i (current held over the period)
         u = (plant.sigma * (i - i_prev) + k_m * (psi_new - psi)) / T + plant.R_s * i
@@ -55,6 +57,31 @@ def test_identifier_finds_the_plant_of_an_exact_magnetisation(f_rs, f_rr):
     assert r.R_s == pytest.approx(plant.R_s, rel=1e-4)
     assert r.R_r == pytest.approx(plant.R_r, rel=1e-3)
     assert r.fit < 1e-8 and r.samples == 321
+
+
+@pytest.mark.parametrize("held", [False, True])
+def test_identifier_is_exact_with_a_tenth_of_the_samples_missing(held):
+    """Missed cycles at random (a loaded host): a lost TPDO (the drive moved its current,
+    the gateway never heard of it) or a SYNC the drive did not receive (it held its
+    current). Each gap puts an unknown constant into the voltage model's flux from then
+    on; with one unknown per gap the fit stays exact (with one for all gaps it found α
+    17 % low on a loaded host and the run ran away)."""
+    plant = replace(MOTOR, R_s=MOTOR.R_s * 1.1, R_r=MOTOR.R_r * 0.8)
+    rng = np.random.default_rng(5)
+    missing = {k for k in range(20, 320) if rng.random() < 0.1}
+    samples = _magnetise(plant, held=frozenset(missing) if held else frozenset())
+    idf = StandstillIdentifier(MOTOR, T)
+    for k, (i, u) in enumerate(samples):
+        if k in missing:
+            idf.gap()
+        else:
+            idf.add(i, u)
+    r = idf.solve()
+    assert len(missing) > 20 and idf.gaps == len(missing)
+    assert r.accepted, r.reason
+    assert r.R_s == pytest.approx(plant.R_s, rel=2e-3)
+    assert r.R_r == pytest.approx(plant.R_r, rel=3e-3)
+    assert r.samples == 321
 
 
 @pytest.mark.parametrize("offset_a, offset_b, gain_b", [
@@ -118,6 +145,33 @@ def test_a_run_identifies_the_magnetising_inductance(tmp_path, plant):
     assert ident["accepted"] and ident["M"] == pytest.approx(f_m * MOTOR.M, rel=5e-3)
     assert not ident["sensors_corrected"] and "M is the fit's" in ident["sensors_reason"]
     assert summary["speed_error"]["rms"] < 0.03
+
+
+@pytest.mark.parametrize("fault", ['kind = "drop"\nmessage = "TPDO1"',
+                                   'kind = "sync-missing"'], ids=["drop", "sync-missing"])
+def test_a_run_with_a_tenth_of_its_standstill_cycles_missing_identifies_the_motor(
+        tmp_path, fault):
+    """The loop of a loaded host: a tenth of the cycles of the magnetisation missed at
+    random (lost TPDOs, SYNCs the drive did not receive), R_s +10 % and R_r +20 %: the
+    identification is as exact as without them and the run as good as one that misses none
+    (measured: α within 0.1 % where one unknown for all gaps had it 4.7 % low)."""
+    motor = '[motor]\nRs = 1.1\nRr = 1.2\n'
+    summaries = []
+    for name, extra in (("missed", f"[[bus.fault]]\n{fault}\nstart = 0.0\nduration = 0.3\n"
+                                    "probability = 0.1\nseed = 7\n"), ("none", "")):
+        scenario = tmp_path / f"{name}.toml"
+        scenario.write_text(f'[scenario]\nname = "{name}"\n{motor}{extra}')
+        out = tmp_path / name
+        assert main(["simulate", "--plant", str(scenario), "--no-figures",
+                     "--out", str(out)]) == 0
+        summaries.append(json.loads((out / "summary.json").read_text()))
+    missed, none = summaries
+    assert missed["run"]["missed_cycles"] > 20 and "missed_cycles" not in none["run"]
+    ident = missed["identification"]
+    assert ident["accepted"], ident
+    assert ident["R_s"] == pytest.approx(1.1 * MOTOR.R_s, rel=2e-3)
+    assert ident["R_r"] == pytest.approx(1.2 * MOTOR.R_r, rel=3e-3)
+    assert missed["speed_error"]["rms"] < 1.5 * none["speed_error"]["rms"] + 0.005
 
 
 def test_identifier_refuses_what_it_cannot_know():
