@@ -174,6 +174,26 @@ def test_a_run_with_a_tenth_of_its_standstill_cycles_missing_identifies_the_moto
     assert missed["speed_error"]["rms"] < 1.5 * none["speed_error"]["rms"] + 0.005
 
 
+@pytest.mark.parametrize("plant, f_rs, f_rr", [("nominal", 1.0, 1.0), ("rs+10", 1.1, 1.0),
+                                              ("rr+20", 1.0, 1.2), ("rr-20", 1.0, 0.8)])
+def test_a_voltage_drive_is_identified_with_its_currents_charge(tmp_path, plant, f_rs, f_rr):
+    """The full-order law's voltage drive does not hold the current over the period: the
+    identification takes each period's charge from the controller's model of the current
+    (started from the measured one, so the mismatch is zero at the period's start).
+    Measured: R_s and R_r within 0.05 %, RMS 0.0047–0.010 rad/s; with T·i_k for the
+    charge α came out 3.9 % low on the nominal motor and the run gave 0.275, and with the
+    trapezoid of both ends' mismatches 1.1 % high with R_r +20 % (0.12 rad/s)."""
+    out = tmp_path / plant
+    assert main(["simulate", "--law", "full-order", "--drive", "voltage", "--plant", plant,
+                 "--no-figures", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    ident = summary["identification"]
+    assert ident["accepted"], ident
+    assert ident["R_s"] == pytest.approx(f_rs * MOTOR.R_s, rel=1e-3)
+    assert ident["R_r"] == pytest.approx(f_rr * MOTOR.R_r, rel=1.5e-3)
+    assert summary["speed_error"]["rms"] < 0.015
+
+
 def test_identifier_refuses_what_it_cannot_know():
     idf = StandstillIdentifier(MOTOR, T)
     for i, u in _magnetise(MOTOR, n=5):

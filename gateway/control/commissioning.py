@@ -23,11 +23,14 @@ Per sample t_k (period T) with the measured current i_k and the period's average
     a_k = (L_r/M)·(T·Σ_{j≤k} ū_j − σ·i_k),   b_k = (L_r/M)·T·Σ_{j≤k} i_j,
     c_k(α) = e^{−αT}·c_{k−1}(α) + (1 − e^{−αT})·M·i_k,   c_0 = 0 (the motor starts unmagnetised),
 
-and the voltage model is a_k − R_s·b_k. For each α of a grid the least-squares R_s is
-R(α) = Σ Re(b̄·(a − c))/Σ|b|², with the residual J(α) = Σ|a − c|² − (Σ Re(b̄·(a − c)))²/Σ|b|²;
-the identified pair is the grid's minimum of J, refined by a parabola through its
-neighbours. The sums are accumulated sample by sample (O(grid) per sample, no record kept),
-so the solution at the end of the magnetisation costs one pass over the grid.
+and the voltage model is a_k − R_s·b_k. Where the drive does not hold the current over the
+period (a voltage drive, a current loop's rise), T·i_j in b_k is the period's charge ∫i dt
+from the controller's model of the current, and the rotor model takes charge/T as held. For
+each α of a grid the least-squares R_s is R(α) = Σ Re(b̄·(a − c))/Σ|b|², with the residual
+J(α) = Σ|a − c|² − (Σ Re(b̄·(a − c)))²/Σ|b|²; the identified pair is the grid's minimum of
+J, refined by a parabola through its neighbours. The sums are accumulated sample by sample
+(O(grid) per sample, no record kept), so the solution at the end of the magnetisation costs
+one pass over the grid.
 
 Missed cycles (a lost TPDO, a SYNC the drive did not receive): the voltage model's flux
 moves by an unknown constant δ_j at each gap j, so the residual is a − c − R_s·b − δ_j over
@@ -183,7 +186,8 @@ class StandstillIdentifier:
         self._off_cross = np.zeros(self.POINTS)
         self._off_bb = 0.0
         # the samples, for the offsets' fit (:meth:`solve_offsets`): i_k, a_k, b_k
-        self._rec: list[tuple[complex, complex, complex]] = []
+        # (and the period's mean current where it is not held: the rotor model's input)
+        self._rec: list[tuple[complex, complex, complex, complex]] = []
 
     def gap(self) -> None:
         """A period without a sample (a missed cycle): the motor lived it, its voltage and
@@ -193,9 +197,11 @@ class StandstillIdentifier:
         self._gaps += 1
         self.gaps += 1
 
-    def add(self, i_s_ab: complex, u_s_ab: complex) -> None:
+    def add(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None) -> None:
         """One sample: the measured current at t_k (A) and the average voltage the drive
-        applied over the period before it (V), (a, b) frame.
+        applied over the period before it (V), (a, b) frame; ``charge``: ∫i dt over that
+        period (A·s) where the drive does not hold its current over the period (a voltage
+        drive, a current loop's rise: the controller's model of it), else None (T·i_k).
 
         After a :meth:`gap`, each missing period takes this period's voltage and the
         current halfway from the last sample's to this one's, in the integrals and the
@@ -213,7 +219,7 @@ class StandstillIdentifier:
             i_mid = 0.5 * (self._i_last + i_s_ab)
             for _ in range(gaps):
                 self._integrate(i_mid, u_s_ab)
-        self._add(i_s_ab, u_s_ab)
+        self._add(i_s_ab, u_s_ab, charge)
 
     def _segment(self) -> tuple[np.ndarray, np.ndarray, float]:
         """What the segment since the last gap takes off the fit's sums (Σ|a − c|²,
@@ -238,20 +244,25 @@ class StandstillIdentifier:
         self._b_h = 0j
         self._c_h = np.zeros(self.POINTS, dtype=complex)
 
-    def _integrate(self, i_s_ab: complex, u_s_ab: complex) -> tuple[complex, complex]:
-        """One period into the integrals and the current model: (a_k, b_k)."""
+    def _integrate(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None
+                   ) -> tuple[complex, complex]:
+        """One period into the integrals and the current model: (a_k, b_k). With a
+        ``charge`` the rotor model takes the period's mean current, charge/T, as held (for
+        a current linear over the period its error is M·Δi·(αT)²/12)."""
         m, T = self.motor, self._T
         self._n += 1
         self._sum_u += u_s_ab
-        self._sum_i += i_s_ab
+        i_mean = i_s_ab if charge is None else charge / T
+        self._sum_i += i_mean
         c = self._c
         c *= self._e
-        c += (1.0 - self._e) * (m.M * i_s_ab)
+        c += (1.0 - self._e) * (m.M * i_mean)
         return (self._k_r * (T * self._sum_u - m.sigma * i_s_ab),
                 self._k_r * T * self._sum_i)
 
-    def _add(self, i_s_ab: complex, u_s_ab: complex) -> None:
-        a, b = self._integrate(i_s_ab, u_s_ab)
+    def _add(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None) -> None:
+        a, b = self._integrate(i_s_ab, u_s_ab, charge)
+        i_mean = i_s_ab if charge is None else charge / self._T
         c = self._c
         self._s_bb += b.real * b.real + b.imag * b.imag
         self._s_ab += (b.conjugate() * a).real
@@ -262,7 +273,7 @@ class StandstillIdentifier:
         self._a, self._b = a, b
         self._i_last = i_s_ab
         if len(self._rec) < self.RECORD_MAX:
-            self._rec.append((i_s_ab, a, b))
+            self._rec.append((i_s_ab, a, b, i_mean))
         if self.gaps:  # the sums over the samples of this segment's offset
             self._n_h += 1
             self._a_h += a
@@ -334,11 +345,14 @@ class StandstillIdentifier:
         return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason,
                               m.M, m.L_s, m.L_r)
 
-    def solve_offsets(self, first: Identification, fit_M: bool = True) -> OffsetFit | None:
-        """R_s, α, the current sensors' offsets and phase b's gain together, and M with the
-        leakages held (``fit_M``), from the first fit ``first`` (:meth:`solve`;
-        docs/robustness.md §5); None where they cannot be fitted (samples missing, or more
-        than :attr:`RECORD_MAX`).
+    def solve_offsets(self, first: Identification, fit_M: bool = True, sensors: bool = True
+                      ) -> OffsetFit | None:
+        """R_s, α, the current sensors' offsets and phase b's gain together (``sensors``),
+        and M with the leakages held (``fit_M``), from the first fit ``first``
+        (:meth:`solve`; docs/robustness.md §5); None where they cannot be fitted (samples
+        missing, or more than :attr:`RECORD_MAX`). Without ``sensors`` (a drive that does
+        not regulate the current it reads: the voltage drive) R_s, α and M only, the rotor
+        model fed with each period's mean current.
 
         The drive regulates the current it reads, i_k, and the motor carries
         i_t = i_k − o − λ·e_b,k (o the offsets' (a, b) image, e_b phase b's reading in the
@@ -358,11 +372,11 @@ class StandstillIdentifier:
         if self.gaps or n < 10 or n >= self.RECORD_MAX:
             return None
         rec = np.array(self._rec)
-        i, a, b = rec[:, 0], rec[:, 1], rec[:, 2]
+        i, a, b, i_f = rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3]
         k = np.arange(1, n + 1, dtype=float)
         logf = np.log(np.geomspace(self.OFFSET_SPAN[0], self.OFFSET_SPAN[1],
                                    self.OFFSET_POINTS)) + math.log(first.alpha)
-        best = self._offset_fit(np.exp(logf), i, a, b, k, first.R_s, fit_M)
+        best = self._offset_fit(np.exp(logf), i, a, b, k, first.R_s, fit_M, sensors, i_f)
         cost = best[5]
         j = int(np.argmin(cost))
         x = logf[j]
@@ -372,7 +386,7 @@ class StandstillIdentifier:
             if den > 0.0:
                 x = logf[j] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
         R_s, M, o, lam, std, c, psi = (v[0] for v in self._offset_fit(
-            np.array([math.exp(x)]), i, a, b, k, float(best[0][j]), fit_M))
+            np.array([math.exp(x)]), i, a, b, k, float(best[0][j]), fit_M, sensors, i_f))
         ssa = float(np.sum(a.real ** 2 + a.imag ** 2))
         return OffsetFit(R_s=float(R_s), alpha=math.exp(x), M=float(M), offset_ab=complex(o),
                          std_ab=complex(std[0], std[1]), gain_b=1.0 / (1.0 - float(lam)),
@@ -381,11 +395,13 @@ class StandstillIdentifier:
                          edge=j in (0, len(logf) - 1))
 
     def _offset_fit(self, alphas: np.ndarray, i: np.ndarray, a: np.ndarray, b: np.ndarray,
-                    k: np.ndarray, R_0: float, fit_M: bool) -> tuple[np.ndarray, ...]:
+                    k: np.ndarray, R_0: float, fit_M: bool, sensors: bool = True,
+                    i_f: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """:meth:`solve_offsets` for each α of ``alphas``: (R_s, M, o, λ, the standard
         deviations of (Re o, Im o, λ), residual Σ|r|², the flux at the last sample), arrays
         over the α's. M with the leakages held (L_s − M and L_r − M the controller's), or
-        the controller's (``fit_M`` false)."""
+        the controller's (``fit_M`` false); o = λ = 0 without ``sensors``. ``i_f``: the
+        rotor model's input per period (default ``i``, the current held)."""
         m, T = self.motor, self._T
         n_a = len(alphas)
         L_ls, L_lr = m.L_s - m.M, m.L_r - m.M
@@ -394,19 +410,23 @@ class StandstillIdentifier:
         e = np.exp(-alphas * T)
         # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
         e_b = 1j * (2.0 / SQRT3) * phases(i)[1]
+        if i_f is None:
+            i_f, e_b_f = i, e_b
+        else:  # the periods' mean currents: the rotor model's input and the charge
+            e_b_f = 1j * (2.0 / SQRT3) * phases(i_f)[1]
         F = np.empty((n_a, len(i)), dtype=complex)  # the rotor's unit filter of i, of e_b
         F_b = np.empty((n_a, len(i)), dtype=complex)
         fk = np.zeros(n_a, dtype=complex)
         fb = np.zeros(n_a, dtype=complex)
         w = 1.0 - e
-        for n, (i_n, e_n) in enumerate(zip(i, e_b, strict=True)):
+        for n, (i_n, e_n) in enumerate(zip(i_f, e_b_f, strict=True)):
             fk = e * fk + w * i_n
             fb = e * fb + w * e_n
             F[:, n] = fk
             F_b[:, n] = fb
         rise = 1.0 - np.exp(-np.outer(alphas, k * T))  # the filter of a constant
         Tk = T * k
-        E = T * np.cumsum(e_b)
+        E = T * np.cumsum(e_b_f)
         R = np.full(n_a, float(R_0))
         M = np.full(n_a, float(m.M))
         o = np.zeros(n_a, dtype=complex)
@@ -430,9 +450,11 @@ class StandstillIdentifier:
             d_sigma = (1.0 - (M * M + 2.0 * M * L_lr) / (L_r * L_r))[:, None]
             d_M = (d_kr * (U[None, :] - R[:, None] * I_t - sigma * i_t)
                    - kr * d_sigma * i_t - flux_i)
-            cols = (-kr * I_t, q + 0j, 1j * q, p, d_M)  # ∂r/∂(R_s, Re o, Im o, λ, M)
-            if not fit_M:
-                cols = cols[:4]
+            cols = [-kr * I_t]  # ∂r/∂(R_s, Re o, Im o, λ, M)
+            if sensors:
+                cols += [q + 0j, 1j * q, p]
+            if fit_M:
+                cols.append(d_M)
             A = np.empty((n_a, len(cols), len(cols)))
             y = np.empty((n_a, len(cols)))
             for u_, cu in enumerate(cols):
@@ -441,15 +463,17 @@ class StandstillIdentifier:
                     A[:, u_, v_] = np.sum((cu.conj() * cv).real, axis=1)
             step = np.linalg.solve(A, -y[..., None])[..., 0]
             R = R + step[:, 0]
-            o = o + step[:, 1] + 1j * step[:, 2]
-            lam = lam + step[:, 3]
+            if sensors:
+                o = o + step[:, 1] + 1j * step[:, 2]
+                lam = lam + step[:, 3]
             if fit_M:
-                M = M + step[:, 4]
+                M = M + step[:, -1]
         r, kr, sigma, i_t, I_t, flux_i, L_r = terms()
         cost = np.sum(r.real ** 2 + r.imag ** 2, axis=1)
         s2 = cost / max(2 * len(i) - 1 - len(cols), 1)
         cov = np.linalg.inv(A) * s2[:, None, None]
-        std = np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
+        std = (np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
+               if sensors else np.zeros((n_a, 3)))
         # the flux at the last sample: the rotor model's with the true current (exact at
         # standstill for α; the voltage model's would carry the fit's R_s error times ∫i:
         # 0.029 against 0.0096 rad/s RMS with a 10 mA offset after the handover)
@@ -487,12 +511,13 @@ class Commissioning:
         self._psi_fit = 0j  # the rotor flux of the sensors' fit at its last sample
         self._joint = False  # the result is the sensors' fit's (with its M)
 
-    def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex) -> Identification | None:
-        """One sample with its references; the identification at the sample that ends the
-        standstill, else None."""
+    def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex,
+             charge: complex | None = None) -> Identification | None:
+        """One sample with its references (``charge``: :meth:`StandstillIdentifier.add`);
+        the identification at the sample that ends the standstill, else None."""
         if self.result is not None:
             return None
-        self.identifier.add(i_s_ab, u_s_ab)
+        self.identifier.add(i_s_ab, u_s_ab, charge)
         moving = getattr(refs, "dpsi_ref", 0.0) != 0.0 or getattr(refs, "ddpsi_ref", 0.0) != 0.0
         self._rose = self._rose or moving
         self._still = 0 if moving else self._still + 1
@@ -577,7 +602,8 @@ class Commissioning:
             self.identifier.gap()
 
     def apply(self, refs: Refs, i_s_ab: complex, u_s_ab: complex, estimator: Any,
-              psi_hat_ab: complex | None) -> tuple[Identification | None, complex | None]:
+              psi_hat_ab: complex | None, charge: complex | None = None
+              ) -> tuple[Identification | None, complex | None]:
         """:meth:`step`, and the rotor flux the laws take at this sample (Wb, (a, b)), with
         the identification when it is accepted at this sample (else None):
 
@@ -593,7 +619,7 @@ class Commissioning:
           ``estimator`` restarts from with the controller's R_s (not the flux it integrated
           over the magnetisation with an R_s error);
         * after: the estimator's ``psi_hat_ab`` (None: the laws take the true flux)."""
-        found = self.step(refs, i_s_ab, u_s_ab)
+        found = self.step(refs, i_s_ab, u_s_ab, charge)
         if found is None:
             if self.pending and psi_hat_ab is not None:
                 return None, self.standstill_flux()

@@ -165,8 +165,10 @@ class ControllerConfig:
     @property
     def holds_current(self) -> bool:
         """The drive holds the current-fed law's setpoints over the period (an ideal
-        current source): the standstill identification's model of the current, so it also
-        fits the current sensors' errors (:class:`Commissioning`'s ``sensors``)."""
+        current source): the standstill identification's model of the current. Where it
+        does not, the sampled-data design gives the identification each period's charge
+        from its model of the current; the Euler design has none, and fits the current
+        sensors' errors (:class:`Commissioning`'s ``sensors``) only where this holds."""
         return self.law is Law.CURRENT_FED and self.current_lag == 0.0
 
 

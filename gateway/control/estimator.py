@@ -163,9 +163,12 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
     (sensor errors, a current loop's lag) is added as a trapezoid:
 
         ψ_s(t_k) = ψ_s(t_{k−1}) + T·ū − R_s·(∫i_model dt + T·(δ_{k−1} + δ_k)/2),
-        δ_k = i_measured(t_k) − i_model(t_k).
+        δ_k = i_measured(t_k) − i_model(t_k),
 
-    With ``w_c > 0`` the drift-free correction of :class:`DriftFreeFluxEstimator` is added.
+    with δ_{k−1} = 0 where the model starts the period from the measured current.
+
+    The last period's charge (the bracket) is :attr:`charge`. With ``w_c > 0`` the
+    drift-free correction of :class:`DriftFreeFluxEstimator` is added.
     """
 
     def __init__(self, motor: Motor, w_c: float = 0.0) -> None:
@@ -174,23 +177,33 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
             raise ValueError(f"interval estimator: w_c = {w_c!r} rad/s must be >= 0")
         self.w_c = w_c
         self._delta = 0j
+        #: ∫i dt over the last period (A·s, (a, b)): the model's with the trapezoid of δ
+        self.charge = 0j
 
     def update(  # type: ignore[override]
         self, i_s_ab: complex, u_s_ab: complex, T: float, int_i_ab: complex,
         i_end_ab: complex, eps_0: float = 0.0, psi_ref: float = 0.0,
+        from_sample: bool = False,
     ) -> complex:
         """Integrate one period; returns ψ_r_ab at its end, Wb.
 
         i_s_ab: measured current at the end, A. u_s_ab: average applied voltage, V.
         int_i_ab: ∫ of the applied current over the period (model), A·s. i_end_ab: the
         model's current at the end, A. eps_0, psi_ref: frame angle and ψ* for w_c > 0.
+        from_sample: the model starts the period from the measured current (a current
+        loop's rise, a voltage drive's trajectory), so δ = 0 at its start: the trapezoid
+        is T·δ_k/2 (with δ_{k−1} there it added T·δ_{k−1}/2 of charge the model already
+        holds: with R_r +20 % on the voltage drive that made the identification find α
+        1.1 % high and the full-order law run at 0.12 rad/s RMS instead of 0.008).
         """
         corrected = self.w_c > 0.0
         if corrected:
             target = self._oriented(i_s_ab, eps_0, psi_ref)
             self._adapt(target, i_s_ab, eps_0, T)
         delta = i_s_ab - i_end_ab
-        increment = T * u_s_ab - self._R_s * (int_i_ab + 0.5 * T * (self._delta + delta))
+        charge = self.charge = int_i_ab + 0.5 * T * (delta if from_sample
+                                                     else self._delta + delta)
+        increment = T * u_s_ab - self._R_s * charge
         self._delta = delta
         if corrected:
             decay = cmath.exp(-self.w_c * T).real

@@ -198,7 +198,9 @@ class SampledController:
         self._base: Interval | None = None
         self._joining = False  # the identification is applied at this step (_join)
         self._joined = False  # the flux references are the joined ones
-        self.commissioning = (Commissioning(motor, self._T, sensors=config.holds_current)
+        # the sensors in the fit on every drive: where the current is not held over the
+        # period, the fit takes each period's charge from the model (_commission)
+        self.commissioning = (Commissioning(motor, self._T, sensors=True)
                               if config.identify else None)
 
     def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
@@ -209,7 +211,11 @@ class SampledController:
         c = self.commissioning
         if c is None:
             return psi_hat_ab
-        ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab)
+        # the charge of the past interval where the drive does not hold its current: the
+        # estimator's (the model's ∫i with the trapezoid of the measured mismatch)
+        charge = None if self.config.holds_current else self.estimator.charge
+        ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab,
+                             charge)
         if ident is not None:
             self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r, M=ident.M,
                                     L_s=ident.L_s, L_r=ident.L_r))
@@ -439,7 +445,8 @@ class SampledController:
             terms = self._terms(prev, self._i_prev_ab)
             int_i_ab, i_end_ab = self._current(prev, terms)
         psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab, i_end_ab,
-                                       eps_k, win[2].psi_ref if self._joined else refs.psi_ref)
+                                       eps_k, win[2].psi_ref if self._joined else refs.psi_ref,
+                                       self._lag > 0.0)
         if self.commissioning is not None:
             psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
@@ -649,8 +656,6 @@ class FullOrderSampledController(SampledController):
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED), refs_at,
                                    eps_0, w_hat)
         self.config = config
-        if self.commissioning is not None:  # a voltage drive does not hold the current
-            self.commissioning.sensors = False
         g = self._g
         self._gamma_2 = g.gamma_2
         self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
@@ -783,7 +788,7 @@ class FullOrderSampledController(SampledController):
         turn_1 = turn_h * turn_h
         int_i_ab = self._T_6 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
         psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
-                                       rot_s * turn_1 * i_1, eps_k, refs.psi_ref)
+                                       rot_s * turn_1 * i_1, eps_k, refs.psi_ref, True)
         if self.commissioning is not None:
             psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
