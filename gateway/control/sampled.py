@@ -198,9 +198,11 @@ class SampledController:
         self._base: Interval | None = None
         self._joining = False  # the identification is applied at this step (_join)
         self._joined = False  # the flux references are the joined ones
-        # the sensors in the fit on every drive: where the current is not held over the
-        # period, the fit takes each period's charge from the model (_commission)
-        self.commissioning = (Commissioning(motor, self._T, sensors=True)
+        # the sensors in the fit where the model of the current within the period is the
+        # drive's (the ideal source; the voltage drive, whose charge the fit takes from the
+        # model: _commission), not on the PI current loop, modelled as a first-order rise:
+        # there a dead time left by a motor file's correction read as a 6 mA offset
+        self.commissioning = (Commissioning(motor, self._T, sensors=self._lag == 0.0)
                               if config.identify else None)
 
     def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
