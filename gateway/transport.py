@@ -67,7 +67,7 @@ class InProcessChannel:
         its owner sets (:meth:`InProcessBus.set_receiver`) in the sender's thread (module
         docstring; one such bus per channel)."""
         with self._lock:
-            if in_sender_thread and any(b.in_sender_thread for b in self._buses):
+            if in_sender_thread and self._direct is not None:
                 raise ValueError(f"in-process channel {self.name!r} already has a bus that "
                                  "delivers in the sender's thread")
             b = InProcessBus(self, receive_own_messages, in_sender_thread)

@@ -218,8 +218,8 @@ class StandstillIdentifier:
             self._close_segment()
             i_mid = 0.5 * (self._i_last + i_s_ab)
             for _ in range(gaps):
-                self._integrate(i_mid, u_s_ab)
-        self._add(i_s_ab, u_s_ab, charge)
+                self._integrate(i_mid, u_s_ab, i_mid)
+        self._add(i_s_ab, u_s_ab, i_s_ab if charge is None else charge / self._T)
 
     def _segment(self) -> tuple[np.ndarray, np.ndarray, float]:
         """What the segment since the last gap takes off the fit's sums (Σ|a − c|²,
@@ -244,15 +244,15 @@ class StandstillIdentifier:
         self._b_h = 0j
         self._c_h = np.zeros(self.POINTS, dtype=complex)
 
-    def _integrate(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None
+    def _integrate(self, i_s_ab: complex, u_s_ab: complex, i_mean: complex
                    ) -> tuple[complex, complex]:
-        """One period into the integrals and the current model: (a_k, b_k). With a
-        ``charge`` the rotor model takes the period's mean current, charge/T, as held (for
-        a current linear over the period its error is M·Δi·(αT)²/12)."""
+        """One period into the integrals and the current model: (a_k, b_k). ``i_mean``: the
+        period's mean current, charge/T (``i_s_ab`` where the drive holds it), which the
+        rotor model takes as held (for a current linear over the period its error is
+        M·Δi·(αT)²/12)."""
         m, T = self.motor, self._T
         self._n += 1
         self._sum_u += u_s_ab
-        i_mean = i_s_ab if charge is None else charge / T
         self._sum_i += i_mean
         c = self._c
         c *= self._e
@@ -260,9 +260,8 @@ class StandstillIdentifier:
         return (self._k_r * (T * self._sum_u - m.sigma * i_s_ab),
                 self._k_r * T * self._sum_i)
 
-    def _add(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None) -> None:
-        a, b = self._integrate(i_s_ab, u_s_ab, charge)
-        i_mean = i_s_ab if charge is None else charge / self._T
+    def _add(self, i_s_ab: complex, u_s_ab: complex, i_mean: complex) -> None:
+        a, b = self._integrate(i_s_ab, u_s_ab, i_mean)
         c = self._c
         self._s_bb += b.real * b.real + b.imag * b.imag
         self._s_ab += (b.conjugate() * a).real
@@ -345,14 +344,12 @@ class StandstillIdentifier:
         return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason,
                               m.M, m.L_s, m.L_r)
 
-    def solve_offsets(self, first: Identification, fit_M: bool = True, sensors: bool = True
-                      ) -> OffsetFit | None:
-        """R_s, α, the current sensors' offsets and phase b's gain together (``sensors``),
-        and M with the leakages held (``fit_M``), from the first fit ``first``
-        (:meth:`solve`; docs/robustness.md §5); None where they cannot be fitted (samples
-        missing, or more than :attr:`RECORD_MAX`). Without ``sensors`` (a drive that does
-        not regulate the current it reads: the voltage drive) R_s, α and M only, the rotor
-        model fed with each period's mean current.
+    def solve_offsets(self, first: Identification, fit_M: bool = True) -> OffsetFit | None:
+        """R_s, α, the current sensors' offsets and phase b's gain together, and M with the
+        leakages held (``fit_M``), from the first fit ``first`` (:meth:`solve`;
+        docs/robustness.md §5); None where they cannot be fitted (samples missing, or more
+        than :attr:`RECORD_MAX`). The rotor model and the charge take each period's mean
+        current (the sample where the drive holds it).
 
         The drive regulates the current it reads, i_k, and the motor carries
         i_t = i_k − o − λ·e_b,k (o the offsets' (a, b) image, e_b phase b's reading in the
@@ -376,7 +373,7 @@ class StandstillIdentifier:
         k = np.arange(1, n + 1, dtype=float)
         logf = np.log(np.geomspace(self.OFFSET_SPAN[0], self.OFFSET_SPAN[1],
                                    self.OFFSET_POINTS)) + math.log(first.alpha)
-        best = self._offset_fit(np.exp(logf), i, a, b, k, first.R_s, fit_M, sensors, i_f)
+        best = self._offset_fit(np.exp(logf), i, a, b, i_f, k, first.R_s, fit_M)
         cost = best[5]
         j = int(np.argmin(cost))
         x = logf[j]
@@ -386,7 +383,7 @@ class StandstillIdentifier:
             if den > 0.0:
                 x = logf[j] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
         R_s, M, o, lam, std, c, psi = (v[0] for v in self._offset_fit(
-            np.array([math.exp(x)]), i, a, b, k, float(best[0][j]), fit_M, sensors, i_f))
+            np.array([math.exp(x)]), i, a, b, i_f, k, float(best[0][j]), fit_M))
         ssa = float(np.sum(a.real ** 2 + a.imag ** 2))
         return OffsetFit(R_s=float(R_s), alpha=math.exp(x), M=float(M), offset_ab=complex(o),
                          std_ab=complex(std[0], std[1]), gain_b=1.0 / (1.0 - float(lam)),
@@ -395,13 +392,13 @@ class StandstillIdentifier:
                          edge=j in (0, len(logf) - 1))
 
     def _offset_fit(self, alphas: np.ndarray, i: np.ndarray, a: np.ndarray, b: np.ndarray,
-                    k: np.ndarray, R_0: float, fit_M: bool, sensors: bool = True,
-                    i_f: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                    i_f: np.ndarray, k: np.ndarray, R_0: float, fit_M: bool
+                    ) -> tuple[np.ndarray, ...]:
         """:meth:`solve_offsets` for each α of ``alphas``: (R_s, M, o, λ, the standard
         deviations of (Re o, Im o, λ), residual Σ|r|², the flux at the last sample), arrays
         over the α's. M with the leakages held (L_s − M and L_r − M the controller's), or
-        the controller's (``fit_M`` false); o = λ = 0 without ``sensors``. ``i_f``: the
-        rotor model's input per period (default ``i``, the current held)."""
+        the controller's (``fit_M`` false). ``i_f``: the periods' mean currents, the rotor
+        model's input and the charge's."""
         m, T = self.motor, self._T
         n_a = len(alphas)
         L_ls, L_lr = m.L_s - m.M, m.L_r - m.M
@@ -410,10 +407,7 @@ class StandstillIdentifier:
         e = np.exp(-alphas * T)
         # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
         e_b = 1j * (2.0 / SQRT3) * phases(i)[1]
-        if i_f is None:
-            i_f, e_b_f = i, e_b
-        else:  # the periods' mean currents: the rotor model's input and the charge
-            e_b_f = 1j * (2.0 / SQRT3) * phases(i_f)[1]
+        e_b_f = 1j * (2.0 / SQRT3) * phases(i_f)[1]  # of the mean currents
         F = np.empty((n_a, len(i)), dtype=complex)  # the rotor's unit filter of i, of e_b
         F_b = np.empty((n_a, len(i)), dtype=complex)
         fk = np.zeros(n_a, dtype=complex)
@@ -450,11 +444,9 @@ class StandstillIdentifier:
             d_sigma = (1.0 - (M * M + 2.0 * M * L_lr) / (L_r * L_r))[:, None]
             d_M = (d_kr * (U[None, :] - R[:, None] * I_t - sigma * i_t)
                    - kr * d_sigma * i_t - flux_i)
-            cols = [-kr * I_t]  # ∂r/∂(R_s, Re o, Im o, λ, M)
-            if sensors:
-                cols += [q + 0j, 1j * q, p]
-            if fit_M:
-                cols.append(d_M)
+            cols = (-kr * I_t, q + 0j, 1j * q, p, d_M)  # ∂r/∂(R_s, Re o, Im o, λ, M)
+            if not fit_M:
+                cols = cols[:4]
             A = np.empty((n_a, len(cols), len(cols)))
             y = np.empty((n_a, len(cols)))
             for u_, cu in enumerate(cols):
@@ -463,17 +455,15 @@ class StandstillIdentifier:
                     A[:, u_, v_] = np.sum((cu.conj() * cv).real, axis=1)
             step = np.linalg.solve(A, -y[..., None])[..., 0]
             R = R + step[:, 0]
-            if sensors:
-                o = o + step[:, 1] + 1j * step[:, 2]
-                lam = lam + step[:, 3]
+            o = o + step[:, 1] + 1j * step[:, 2]
+            lam = lam + step[:, 3]
             if fit_M:
-                M = M + step[:, -1]
+                M = M + step[:, 4]
         r, kr, sigma, i_t, I_t, flux_i, L_r = terms()
         cost = np.sum(r.real ** 2 + r.imag ** 2, axis=1)
         s2 = cost / max(2 * len(i) - 1 - len(cols), 1)
         cov = np.linalg.inv(A) * s2[:, None, None]
-        std = (np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
-               if sensors else np.zeros((n_a, 3)))
+        std = np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
         # the flux at the last sample: the rotor model's with the true current (exact at
         # standstill for α; the voltage model's would carry the fit's R_s error times ∫i:
         # 0.029 against 0.0096 rad/s RMS with a 10 mA offset after the handover)

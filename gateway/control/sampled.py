@@ -136,11 +136,11 @@ class SampledController:
     # slots: a step reads some forty of them; an instance dict of that size loses CPython's
     # fast attribute access (its shared keys hold 30). "__dict__": others may add their own.
     __slots__ = ("_J", "_M", "_R_s", "_T", "__dict__", "_aM", "_ab", "_alpha", "_base", "_beta",
-                 "_cmd_refs", "_constant_current", "_d", "_di_prev", "_exp_0", "_g", "_gamma_1",
-                 "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_joined", "_joining", "_k", "_k_r",
-                 "_k_w_warped", "_kept", "_lag", "_mu", "_phi_0", "_psi_prev", "_refs", "_sigma",
-                 "_true_flux", "_w_prev", "commissioning", "config", "eps_0", "estimator",
-                 "motor", "refs_at", "w_hat")
+                 "_cmd_refs", "_constant_current", "_d", "_di_prev", "_exp_0", "_from_sample",
+                 "_g", "_gamma_1", "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_joined",
+                 "_joining", "_k", "_k_r", "_k_w_warped", "_kept", "_lag", "_mu", "_phi_0",
+                 "_psi_prev", "_refs", "_sigma", "_true_flux", "_w_prev", "commissioning",
+                 "config", "eps_0", "estimator", "motor", "refs_at", "w_hat")
     signals = PAPER_SIGNALS
     #: reference instants n·T/2 a step reads, beyond 2(k − 1) … 2(k + d) + 1
     _lookahead = 0
@@ -163,6 +163,11 @@ class SampledController:
         self._true_flux = config.flux is FluxSource.TRUE
         self._ab = config.sampling.setpoint_frame is SetpointFrame.AB
         self._lag = config.current_lag
+        # the model of the applied current starts each interval from the measured one (a
+        # current loop's rise; the full-order law's voltage drive): the drive does not hold
+        # the current, the estimator's mismatch is zero at the interval's start and the
+        # identification takes the interval's charge from the model
+        self._from_sample = self._lag > 0.0
         # (d, q) setpoints from an ideal source: one constant term, i(τ) = I (_interval_dq)
         self._constant_current = not self._ab and self._lag == 0.0
         self._set_motor(motor)
@@ -215,7 +220,7 @@ class SampledController:
             return psi_hat_ab
         # the charge of the past interval where the drive does not hold its current: the
         # estimator's (the model's ∫i with the trapezoid of the measured mismatch)
-        charge = None if self.config.holds_current else self.estimator.charge
+        charge = self.estimator.charge if self._from_sample else None
         ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab,
                              charge)
         if ident is not None:
@@ -448,7 +453,7 @@ class SampledController:
             int_i_ab, i_end_ab = self._current(prev, terms)
         psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab, i_end_ab,
                                        eps_k, win[2].psi_ref if self._joined else refs.psi_ref,
-                                       self._lag > 0.0)
+                                       self._from_sample)
         if self.commissioning is not None:
             psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
@@ -658,6 +663,7 @@ class FullOrderSampledController(SampledController):
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED), refs_at,
                                    eps_0, w_hat)
         self.config = config
+        self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
         self._gamma_2 = g.gamma_2
         self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
@@ -790,7 +796,8 @@ class FullOrderSampledController(SampledController):
         turn_1 = turn_h * turn_h
         int_i_ab = self._T_6 * rot_s * (self._i_prev + 4.0 * i_h * turn_h + i_1 * turn_1)
         psi_ab = self.estimator.update(sample.i_s_ab, sample.u_s_ab, T, int_i_ab,
-                                       rot_s * turn_1 * i_1, eps_k, refs.psi_ref, True)
+                                       rot_s * turn_1 * i_1, eps_k, refs.psi_ref,
+                                       self._from_sample)
         if self.commissioning is not None:
             psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
