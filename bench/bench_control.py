@@ -11,8 +11,11 @@ alike. Reported per configuration: the median over repeats of the mean step time
 clock (``perf_counter``) and CPU time of the thread (``thread_time``: what the step costs
 when it has a core; on a shared machine the wall figure also holds the time other
 processes had the core). Targets (the sampled-data design, estimated flux, CPU time):
-current-fed ≤ 10 µs, full-order ≤ 12 µs. Also: `Profile.at` alone, and the sampled closed
-loop (plant + controller + PDO quantisation) in simulated seconds per wall second.
+current-fed ≤ 10 µs, full-order ≤ 12 µs. Also: `Profile.at` alone, the sampled closed
+loop (plant + controller + PDO quantisation) in simulated seconds per wall second, and the
+one long step of a run: the cycle that ends the magnetisation solves the standstill
+identification (ms, wall clock, at 1 ms and 5 ms periods, beside the figure recorded
+before its fit was made one Gauss–Newton: in real time the cycles after it wait for it).
 
 A run that fails (an exception from the simulation or the controller) is a failed
 measurement: ``FAILED: <reason>`` in place of its figure, the others go on, exit status 1
@@ -24,8 +27,9 @@ measurement: ``FAILED: <reason>`` in place of its figure, the others go on, exit
 ``exact_current_fed_vs_euler`` (CPU ratio), ``recorded_current_fed_us`` (the median
 recorded before this design was made faster, BENCHMARKS.md), ``exact_current_fed_vs_recorded``
 (wall ratio), and the same with ``full_order``; ``profile_at_us``,
-``simulate_<law>/<drive>_x_real_time``, ``targets_us``, ``target_met`` (null when a
-headline figure failed), ``failed``.
+``simulate_<law>/<drive>_x_real_time``, ``identification_step_ms/<period>`` and
+``recorded_identification_step_ms/<period>`` (period ``1ms``, ``5ms``), ``targets_us``,
+``target_met`` (null when a headline figure failed), ``failed``.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ import time
 from _common import Figures, RunError, add_json_option, the_run
 
 from dbc.motor import MotorParams
+from dbc.timing import Sampling
 from gateway.control.controller import ControllerConfig, Sample
 from gateway.control.sampled import make_controller
 from gateway.reference import paper_profile
@@ -50,6 +55,9 @@ TARGETS_US = {"current-fed": 10.0, "full-order": 12.0}
 #: "Controller"; wall clock on the shared machine, 2026-11-25).
 RECORDED_US = {"current-fed": 27.9, "full-order": 35.0}
 DESIGNS = ("euler", "exact")
+#: The step that solves the identification, ms, before its fit was made one Gauss–Newton
+#: (a grid of 41 α's; wall clock on the shared machine, 2026-11-27), by period in ms.
+RECORDED_IDENT_MS = {1: 34.6, 5: 12.1}
 
 
 def _samples(law: str, n: int) -> list[tuple[object, Sample]]:
@@ -130,6 +138,35 @@ def bench_simulate(law: str, drive: str, repeats: int, duration: float) -> float
     return duration / statistics.median(walls)
 
 
+def bench_identification(period_ms: int, repeats: int) -> float:
+    """Median ms of the step that ends the magnetisation (the default controller, the
+    identification on), over ``repeats`` controllers fed the same recorded samples."""
+    motor = MotorParams.paper()
+    prof = paper_profile()
+    T = period_ms * 1e-3
+    sampling = Sampling(T, 1)
+    with the_run(f"the samples' simulation at {period_ms} ms"):
+        sig = run(RunSpec(sampling=sampling, duration=0.4, identify=False), prof, motor).sig
+    samples = [(prof.at(float(t)), Sample(complex(a, b), complex(u, v)))
+               for t, a, b, u, v in zip(sig["t"], sig["i_sa"], sig["i_sb"], sig["u_sa"],
+                                        sig["u_sb"], strict=True)]
+    times = []
+    for _ in range(repeats):
+        with the_run():
+            ctl = make_controller(motor, ControllerConfig(sampling=sampling, identify=True),
+                                  prof.at)
+            for refs, s in samples:
+                t0 = time.perf_counter()
+                ctl.step(refs, s)
+                dt = time.perf_counter() - t0
+                if ctl.commissioning.result is not None:
+                    times.append(dt * 1e3)
+                    break
+            else:
+                raise RunError("the identification was not solved within 0.4 s")
+    return statistics.median(times)
+
+
 def _headline(fig: Figures, law: str) -> bool | None:
     """The law's headline figures (estimated flux) beside their baselines; whether the
     target is met (None when a figure failed)."""
@@ -196,6 +233,16 @@ def main(argv: list[str] | None = None) -> int:
         fig.measure(name, bench_simulate, law, drive, max(1, repeats // 2),
                     0.5 if args.quick else 2.5)
         print(f"  {law + '/' + drive:26s} {fig.show(name, '{:6.1f}x real time')}")
+    print("the step that solves the standstill identification (the cycle that ends the "
+          "magnetisation):")
+    for period_ms in (1, 5):
+        name = f"identification_step_ms/{period_ms}ms"
+        fig.measure(name, bench_identification, period_ms, repeats)
+        fig.put(f"recorded_identification_step_ms/{period_ms}ms", RECORDED_IDENT_MS[period_ms])
+        ratio = (f", now/before {fig.values[name] / RECORDED_IDENT_MS[period_ms]:.2f}"
+                 if fig.ok(name) else "")
+        print(f"  period {period_ms} ms: {fig.show(name, '{:6.2f} ms')} | recorded before "
+              f"{RECORDED_IDENT_MS[period_ms]:g} ms{ratio}")
     ok = all(m is True for m in met)
     fig.put("target_met", None if None in met else ok)
     fig.report_failures()

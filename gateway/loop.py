@@ -220,6 +220,7 @@ class CycleLoop:
         self._tpdo_time = 0.0
         self._k = 0  # cycles opened (SYNCs seen)
         self._k_done = 0  # cycles completed
+        self._k_sent = 0  # the last cycle whose setpoints were sent (not withheld)
         self._consecutive_missed = 0  # cycles in a row without a sample (the gap)
         self._consecutive_lost = 0  # of them, those the drive's TPDOs did not come for
         self._sync_time = math.nan
@@ -360,6 +361,7 @@ class CycleLoop:
             self.stats.rpdo_after_sync += 1
             if self._k_done == self._k:
                 self.ctl.withhold()
+                self._k_sent = 0
         if self._k > self._k_done and self._k_done < self.cfg.n_cycles:
             self._miss()
         late, self._missed_names = self._missed_names, set()
@@ -380,20 +382,32 @@ class CycleLoop:
 
     def _skip(self, n: int) -> None:
         """The SYNC thread skipped ``n`` slots after cycle self._k (held up past them): each
-        is a cycle without a sample, which the controller coasts through (lock held)."""
+        is a cycle without a sample, which the controller coasts through (lock held).
+
+        With synchronous RPDOs the drive latches nothing without a SYNC: it holds the
+        setpoints it had through the skipped slots and latches cycle self._k's, sent for
+        the slot after it, at the SYNC after them, as sent (their frame angle ``n``
+        periods old). A controller with ``delayed(n)`` is told so; others coast as if
+        those setpoints had come on time."""
         self.stats.skipped_syncs += n
+        delayed = getattr(self.ctl, "delayed", None)
+        told = (self._k_sent == self._k == self._k_done and delayed is not None
+                and self.cfg.sampling.delay == 1)
+        if told:
+            delayed(n)
         for _ in range(n):
             if self._k >= self.cfg.n_cycles:
                 self._finish(StopReason.END_OF_PROFILE, "end of the profile")
                 return
             self._k += 1
-            self._miss(skipped=True)
+            self._miss(skipped=True, coasted=told)
             if self._done.is_set():
                 return
 
-    def _miss(self, skipped: bool = False) -> None:
+    def _miss(self, skipped: bool = False, coasted: bool = False) -> None:
         """Cycle self._k had no complete TPDO set (``skipped``: no SYNC, the SYNC thread was
-        held up past its slot): coast and count (lock held)."""
+        held up past its slot): coast (``coasted``: the controller did already) and count
+        (lock held)."""
         k = self._k
         self.stats.missed += 1
         self._consecutive_missed += 1
@@ -404,7 +418,8 @@ class CycleLoop:
         self._missed_names = (set() if skipped
                               else set(self._expected) - set(self._frames))
         self._k_done = k
-        self.ctl.coast()
+        if not coasted:
+            self.ctl.coast()
         misses, window = self._misses, self._miss_window
         misses.append(k)
         while misses[0] <= k - window:
@@ -531,6 +546,7 @@ class CycleLoop:
                                                     is_extended_id=False)):
                     return
                 self.recent.append((time.time(), "tx", cob_id, data.hex()))
+            self._k_sent = k
         t_sent = time.perf_counter()
         self._k_done = k
         self.stats.last_good_cycle = k

@@ -33,12 +33,29 @@ def test_catch_up_skips_the_slots_whose_time_has_passed():
     assert catch_up(5, 0.0, T, 0.0095) == 10  # slots 5–9 skipped
 
 
+#: when (SYNC counter time, s) the test holds the SYNC thread: at steady speed and load,
+#: between the paper profile's events (load steps at 0.5 and 1 s, speed steps at 0.32 and
+#: 1.5 s), so what a hold costs is the hold's alone
+HOLDS_S = (0.75, 1.3)
+
+
 @pytest.mark.timing
 def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, tmp_path):
-    """Real time at 5 ms: the SYNC thread is held 3.4 periods in two of its sends (the host
-    stalled it). Each time it skips the slots that passed; the drive advances through them
-    (the counter tells it), the controller coasts through them, and the run ends at the end
-    of the profile with the speed error of a few missed cycles, not a runaway."""
+    """Real time at 5 ms: the SYNC thread is held 3.4 periods twice (the host stalled it),
+    at steady speed and load: before a SYNC (that SYNC leaves late, and the cycle it opens
+    has no time to complete: missed) and after one (that cycle's setpoints go out on time,
+    and the drive latches them only at the SYNC after the skipped slots, with their frame
+    angle two periods old: the loop tells the controller, ``delayed``). Each time the
+    thread skips the slots that passed; the drive advances through them (the counter tells
+    it), the controller coasts through them, and the run ends at the end of the profile.
+    The holds cost accuracy, never stability: the speed error after each is that of the
+    setpoints the drive held (and, after the second, of the old frame angle: a braking
+    period, about 2 rad/s, and the loop's ringing after it), and the run ends on its
+    reference. The model that took the late setpoints as on time ran away there.
+
+    A host this loaded also misses and delays cycles of its own, anywhere in the profile; a
+    few of them in a speed step cost rad/s (the drive holds its setpoints while the
+    reference accelerates). That is accuracy too, and the profile's end shows it recovered."""
     from gw_support import _patient_drive_profile, bus_run
 
     from dbc.timing import Sampling
@@ -50,13 +67,23 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     emu = emulator()
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
     real_send = bus.send
-    n_sync = [0]
+    slot, last, holds = [0], [None], list(HOLDS_S)
+    held_at: list[int] = []
 
     def send(msg: can.Message, timeout: float | None = None) -> None:
-        if msg.arbitration_id == SYNC_ID:
-            n_sync[0] += 1
-            if n_sync[0] in (150, 300):
-                time.sleep(3.4 * T)  # the host holds the SYNC thread
+        if msg.arbitration_id == SYNC_ID and msg.data:
+            counter = msg.data[0]
+            slot[0] += 1 if last[0] is None else sync_periods(last[0], counter)
+            last[0] = counter
+            if holds and slot[0] * T >= holds[0]:
+                holds.pop(0)
+                held_at.append(slot[0])
+                if holds:  # the first: before this SYNC
+                    time.sleep(3.4 * T)  # the host holds the SYNC thread
+                else:  # the second: after it
+                    real_send(msg, timeout)
+                    time.sleep(3.4 * T)
+                    return
         real_send(msg, timeout)
 
     bus.send = send
@@ -70,7 +97,8 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     run = s["run"]
     assert run["stop"] == "END_OF_PROFILE", run["stop_reason"]
     assert run["exit_status"] == 0 and s["shutdown"]["safe"]
-    assert run["skipped_syncs"] >= 4, run  # at least two slots at each stall
+    assert len(held_at) == 2
+    assert run["skipped_syncs"] >= 4, run  # at least two slots at each hold
     assert emu.device.account()["sync_gaps"] >= 2
     sig = read_csv(tmp_path / "signals.csv")
     k = np.rint(sig["t"] / T).astype(int)
@@ -78,11 +106,20 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     assert all(int(c) == sync_counter(int(j)) for c, j in zip(sig["sync_counter"], k,
                                                                strict=True))
     # a row per cycle with a sample; the slots between rows are the missed ones, skipped
-    # slots included
+    # slots included, and no row in the slots each hold skipped
     assert np.array_equal(np.diff(k) - 1, np.diff(sig["missed"]).astype(int))
     assert int(sig["missed"][-1]) >= run["skipped_syncs"]
-    # accuracy, not stability: the speed error is that of a few coasted periods (15 ms
-    # open loop in a load step: up to 0.92 rad/s measured, RMS 0.07–0.13), not a runaway
+    for h in held_at:
+        assert not np.any((k > h) & (k <= h + 2)), (h, k[(k > h - 3) & (k < h + 6)])
+    # accuracy, not stability: in the 100 ms after each hold the error of the periods the
+    # drive held its setpoints (measured under two busy loops on 2 cores, 28 runs: up to
+    # 1.8 rad/s), and of the late frame angle with the ringing after it (12 runs: 2.1 to
+    # 6.1 rad/s; the model that took the setpoints as on time: 13 rad/s and runaways),
     e = sig["w_m"] - sig["w_ref"]
-    assert np.max(np.abs(e)) < 3.0, np.max(np.abs(e))
-    assert float(np.sqrt(np.mean(e * e))) < 0.5
+    for h, limit in zip(held_at, (3.0, 9.0), strict=True):
+        near = (k >= h) & (k <= h + 20)
+        assert np.max(np.abs(e[near])) < limit, (h, np.max(np.abs(e[near])))
+    # and at the profile's end the run is back on its reference (nominal: 1 mrad/s; under
+    # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp)
+    end = sig["t"] >= sig["t"][-1] - 0.1
+    assert float(np.sqrt(np.mean(e[end] ** 2))) < 1.5, e[end]

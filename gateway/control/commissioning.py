@@ -53,6 +53,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
+from scipy.signal import lfilter
 
 from gateway.control.correction import SQRT3, SensorCorrection, phases
 
@@ -145,12 +146,13 @@ class StandstillIdentifier:
     FIT_MAX = 1e-4
     #: the most samples kept for the offsets' fit (a longer standstill: no offsets)
     RECORD_MAX = 60_000
-    #: the α search of the offsets' fit, as factors of the first fit's α̂ (an offset
-    #: moves α̂ by about 0.15 % per mA)
+    #: the α range of the offsets' fit, as factors of the first fit's α̂ (an offset moves
+    #: α̂ by about 0.15 % per mA)
     OFFSET_SPAN = (0.8, 1.25)
-    OFFSET_POINTS = 41
-    #: Gauss–Newton steps per α (the problem is bilinear in R_s and o: it converges in 3)
-    GN_STEPS = 5
+    #: the offsets' fit: Gauss–Newton steps at most (bilinear in R_s and o, smooth in M and
+    #: log α: it converges in 4–6), and the largest step in log α
+    GN_STEPS = 20
+    GN_LOG_ALPHA_STEP = 0.05
 
     def __init__(self, motor: Motor, period: float) -> None:
         if not period > 0.0:
@@ -361,114 +363,105 @@ class StandstillIdentifier:
 
         f the rotor's unit filter (c_k = e^{−αT}·c_{k−1} + (1 − e^{−αT})·i_k). Their difference
         is bilinear in R_s and (o, λ) and, through L_r/M, σ and the filter's gain, smooth in
-        M (L_s − M and L_r − M held: at standstill only M²/L_r shows). For each α of a grid
-        around ``first``'s, Gauss–Newton on (R_s, o, λ, M) from (``first``'s R_s, 0, 0, the
-        controller's M); the minimum over the grid, refined by a parabola in log α, is the
-        fit. Each value's standard deviation is the least-squares one."""
+        M (L_s − M and L_r − M held: at standstill only M²/L_r shows), and in log α through
+        the filter (whose derivative in α is the same recursion driven by T·e^{−αT}·(i_k −
+        f_{k−1})). Gauss–Newton on (R_s, o, λ, M, log α) from (``first``'s R_s, 0, 0, the
+        controller's M, ``first``'s α), never uphill, log α within :attr:`OFFSET_SPAN`
+        (``edge`` where it ends on a bound). Each value's standard deviation is the
+        least-squares one at the fitted α. A few Gauss–Newton passes over the record: about
+        1 ms for the paper's magnetisation, so the cycle that ends it stays within its
+        period."""
         n = len(self._rec)
         if self.gaps or n < 10 or n >= self.RECORD_MAX:
             return None
         rec = np.array(self._rec)
         i, a, b, i_f = rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3]
-        k = np.arange(1, n + 1, dtype=float)
-        logf = np.log(np.geomspace(self.OFFSET_SPAN[0], self.OFFSET_SPAN[1],
-                                   self.OFFSET_POINTS)) + math.log(first.alpha)
-        best = self._offset_fit(np.exp(logf), i, a, b, i_f, k, first.R_s, fit_M)
-        cost = best[5]
-        j = int(np.argmin(cost))
-        x = logf[j]
-        if 0 < j < len(logf) - 1:
-            y0, y1, y2 = cost[j - 1], cost[j], cost[j + 1]
-            den = y0 - 2.0 * y1 + y2
-            if den > 0.0:
-                x = logf[j] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
-        R_s, M, o, lam, std, c, psi = (v[0] for v in self._offset_fit(
-            np.array([math.exp(x)]), i, a, b, i_f, k, float(best[0][j]), fit_M))
-        ssa = float(np.sum(a.real ** 2 + a.imag ** 2))
-        return OffsetFit(R_s=float(R_s), alpha=math.exp(x), M=float(M), offset_ab=complex(o),
-                         std_ab=complex(std[0], std[1]), gain_b=1.0 / (1.0 - float(lam)),
-                         gain_b_std=float(std[2]), psi_ab=complex(psi),
-                         fit=float(c) / ssa if ssa > 0.0 else math.nan,
-                         edge=j in (0, len(logf) - 1))
-
-    def _offset_fit(self, alphas: np.ndarray, i: np.ndarray, a: np.ndarray, b: np.ndarray,
-                    i_f: np.ndarray, k: np.ndarray, R_0: float, fit_M: bool
-                    ) -> tuple[np.ndarray, ...]:
-        """:meth:`solve_offsets` for each α of ``alphas``: (R_s, M, o, λ, the standard
-        deviations of (Re o, Im o, λ), residual Σ|r|², the flux at the last sample), arrays
-        over the α's. M with the leakages held (L_s − M and L_r − M the controller's), or
-        the controller's (``fit_M`` false). ``i_f``: the periods' mean currents, the rotor
-        model's input and the charge's."""
         m, T = self.motor, self._T
-        n_a = len(alphas)
         L_ls, L_lr = m.L_s - m.M, m.L_r - m.M
         U = a / self._k_r + m.sigma * i  # T·Σ ū
         Q = b / self._k_r  # T·Σ i (charge)
-        e = np.exp(-alphas * T)
+        Tk = T * np.arange(1, n + 1, dtype=float)
         # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
         e_b = 1j * (2.0 / SQRT3) * phases(i)[1]
         e_b_f = 1j * (2.0 / SQRT3) * phases(i_f)[1]  # of the mean currents
-        F = np.empty((n_a, len(i)), dtype=complex)  # the rotor's unit filter of i, of e_b
-        F_b = np.empty((n_a, len(i)), dtype=complex)
-        fk = np.zeros(n_a, dtype=complex)
-        fb = np.zeros(n_a, dtype=complex)
-        w = 1.0 - e
-        for n, (i_n, e_n) in enumerate(zip(i_f, e_b_f, strict=True)):
-            fk = e * fk + w * i_n
-            fb = e * fb + w * e_n
-            F[:, n] = fk
-            F_b[:, n] = fb
-        rise = 1.0 - np.exp(-np.outer(alphas, k * T))  # the filter of a constant
-        Tk = T * k
         E = T * np.cumsum(e_b_f)
-        R = np.full(n_a, float(R_0))
-        M = np.full(n_a, float(m.M))
-        o = np.zeros(n_a, dtype=complex)
-        lam = np.zeros(n_a)
+        x = np.stack([i_f, e_b_f])  # the rotor model's inputs
+        lo, hi = (math.log(f) for f in self.OFFSET_SPAN)
+        # θ = (R_s, Re o, Im o, λ, M, s), α = α̂·e^s (α̂ the first fit's)
+        theta = np.array([float(first.R_s), 0.0, 0.0, 0.0, float(m.M), 0.0])
+        free = [0, 1, 2, 3, 4, 5] if fit_M else [0, 1, 2, 3, 5]
 
-        def terms():
+        def residual(th: np.ndarray, jacobian: bool) -> tuple[Any, ...]:
+            R, o, lam, M = th[0], complex(th[1], th[2]), th[3], th[4]
+            alpha = first.alpha * math.exp(th[5])
+            e = math.exp(-alpha * T)
+            F, F_b = lfilter((1.0 - e,), (1.0, -e), x, axis=1)  # f_k(α)[i], f_k(α)[e_b]
+            decay = np.exp(-alpha * Tk)
+            flux_i = F - o * (1.0 - decay) - lam * F_b  # unit filter of i_true
             L_r = L_lr + M
-            kr = (L_r / M)[:, None]
-            sigma = (L_ls + M - M * M / L_r)[:, None]
-            i_t = i[None, :] - o[:, None] - lam[:, None] * e_b[None, :]
-            I_t = Q[None, :] - o[:, None] * Tk[None, :] - lam[:, None] * E[None, :]
-            flux_i = F - o[:, None] * rise - lam[:, None] * F_b  # unit filter of i_true
-            r = kr * (U[None, :] - R[:, None] * I_t - sigma * i_t) - M[:, None] * flux_i
-            return r, kr, sigma, i_t, I_t, flux_i, L_r
+            kr = L_r / M
+            sigma = L_ls + M - M * M / L_r
+            i_t = i - o - lam * e_b
+            I_t = Q - o * Tk - lam * E
+            r = kr * (U - R * I_t - sigma * i_t) - M * flux_i
+            if not jacobian:
+                return r, flux_i, M
+            # ∂f_k/∂α = e·∂f_{k−1}/∂α + T·e·(x_k − f_{k−1}): the same filter's recursion
+            prev = np.concatenate((np.zeros((2, 1), dtype=complex), np.stack([F, F_b])[:, :-1]),
+                                  axis=1)
+            G, G_b = lfilter((1.0,), (1.0, -e), T * e * (x - prev), axis=1)
+            q = kr * (R * Tk + sigma) + M * (1.0 - decay)
+            p = kr * (R * E + sigma * e_b) + M * F_b
+            d_kr = -L_lr / (M * M)
+            d_sigma = 1.0 - (M * M + 2.0 * M * L_lr) / (L_r * L_r)
+            d_M = d_kr * (U - R * I_t - sigma * i_t) - kr * d_sigma * i_t - flux_i
+            d_s = -M * alpha * (G - o * Tk * decay - lam * G_b)
+            cols = np.stack((-kr * I_t, q + 0j, 1j * q, p, d_M, d_s))[free]  # ∂r/∂θ
+            J = np.concatenate((cols.real, cols.imag), axis=1)
+            return r, flux_i, M, J
 
+        def cost_of(r: np.ndarray) -> float:
+            return float(np.sum(r.real ** 2 + r.imag ** 2))
+
+        r, flux_i, M, J = residual(theta, True)
+        cost = cost_of(r)
         for _ in range(self.GN_STEPS):
-            r, kr, sigma, i_t, I_t, flux_i, L_r = terms()
-            q = kr * (R[:, None] * Tk[None, :] + sigma) + M[:, None] * rise
-            p = kr * (R[:, None] * E[None, :] + sigma * e_b[None, :]) + M[:, None] * F_b
-            d_kr = (-L_lr / (M * M))[:, None]
-            d_sigma = (1.0 - (M * M + 2.0 * M * L_lr) / (L_r * L_r))[:, None]
-            d_M = (d_kr * (U[None, :] - R[:, None] * I_t - sigma * i_t)
-                   - kr * d_sigma * i_t - flux_i)
-            cols = (-kr * I_t, q + 0j, 1j * q, p, d_M)  # ∂r/∂(R_s, Re o, Im o, λ, M)
-            if not fit_M:
-                cols = cols[:4]
-            A = np.empty((n_a, len(cols), len(cols)))
-            y = np.empty((n_a, len(cols)))
-            for u_, cu in enumerate(cols):
-                y[:, u_] = np.sum((cu.conj() * r).real, axis=1)
-                for v_, cv in enumerate(cols):
-                    A[:, u_, v_] = np.sum((cu.conj() * cv).real, axis=1)
-            step = np.linalg.solve(A, -y[..., None])[..., 0]
-            R = R + step[:, 0]
-            o = o + step[:, 1] + 1j * step[:, 2]
-            lam = lam + step[:, 3]
-            if fit_M:
-                M = M + step[:, 4]
-        r, kr, sigma, i_t, I_t, flux_i, L_r = terms()
-        cost = np.sum(r.real ** 2 + r.imag ** 2, axis=1)
-        s2 = cost / max(2 * len(i) - 1 - len(cols), 1)
-        cov = np.linalg.inv(A) * s2[:, None, None]
-        std = np.sqrt(np.stack([cov[:, 1, 1], cov[:, 2, 2], cov[:, 3, 3]], axis=1))
+            A = J @ J.T
+            step = np.linalg.solve(A, -(J @ np.concatenate((r.real, r.imag))))
+            ds = step[-1]
+            if abs(ds) > self.GN_LOG_ALPHA_STEP:  # the fit is bilinear but for α: a trust
+                step *= self.GN_LOG_ALPHA_STEP / abs(ds)  # region on log α
+            new = theta.copy()
+            new[free] += step
+            new[5] = min(max(new[5], lo), hi)
+            for _ in range(8):  # never uphill: halve the step until the cost falls
+                r_new = residual(new, False)[0]
+                c_new = cost_of(r_new)
+                if c_new <= cost:
+                    break
+                new = 0.5 * (theta + new)
+            else:
+                break
+            done = np.all(np.abs(new - theta) <= 1e-12 * (1.0 + np.abs(theta)))
+            theta, cost = new, c_new
+            r, flux_i, M, J = residual(theta, True)
+            if done:
+                break
+        # the standard deviations of (o, λ): least squares at the fitted α
+        A = J[:-1] @ J[:-1].T
+        s2 = cost / max(2 * n - 1 - (len(free) - 1), 1)
+        std = np.sqrt(np.diag(np.linalg.inv(A))[1:4] * s2)
+        ssa = float(np.sum(a.real ** 2 + a.imag ** 2))
         # the flux at the last sample: the rotor model's with the true current (exact at
         # standstill for α; the voltage model's would carry the fit's R_s error times ∫i:
         # 0.029 against 0.0096 rad/s RMS with a 10 mA offset after the handover)
-        psi = M * flux_i[:, -1]
-        return R, M, o, lam, std, cost, psi
+        s = float(theta[5])
+        return OffsetFit(R_s=float(theta[0]), alpha=first.alpha * math.exp(s), M=float(M),
+                         offset_ab=complex(theta[1], theta[2]), std_ab=complex(std[0], std[1]),
+                         gain_b=1.0 / (1.0 - float(theta[3])), gain_b_std=float(std[2]),
+                         psi_ab=complex(M * flux_i[-1]),
+                         fit=cost / ssa if ssa > 0.0 else math.nan,
+                         edge=s <= lo + 1e-9 or s >= hi - 1e-9)
 
 
 class Commissioning:

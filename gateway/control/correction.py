@@ -35,6 +35,7 @@ from __future__ import annotations
 import cmath
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -218,6 +219,27 @@ class CorrectedController:
         self._turns.append(self._held())
         self._sampled = self._turns.popleft()  # the interval that ended unsampled
         self.inner.coast()
+
+    @property
+    def delayed(self) -> Callable[[int], None] | None:
+        """``delayed(n)`` where the inner controller has it (see
+        :meth:`gateway.control.sampled.SampledController.delayed`): the last command
+        withheld, ``n`` cycles coasted, and the interval after them that command's turn."""
+        inner = getattr(self.inner, "delayed", None)
+        if inner is None:
+            return None
+
+        def delayed(n: int) -> None:
+            sent = self._turns[-1]
+            self._turns.pop()
+            self._turns.append(self._held())
+            for _ in range(n):
+                self._turns.append(self._held())
+                self._sampled = self._turns.popleft()
+            self._turns[-1] = sent
+            inner(n)
+
+        return delayed
 
 
 class IdentifiedCorrection(CorrectedController):

@@ -134,7 +134,13 @@ class DriveController(Protocol):
 
     def coast(self) -> None:
         """A cycle without measurements (missed on the bus): the drive holds the last
-        setpoints and keeps turning their frame; advance the controller's state over it."""
+        setpoints and keeps turning their frame; advance the controller's state over it.
+
+        Optional, not part of the protocol: ``delayed(n)``, called instead of ``n`` coasts
+        when the real-time SYNC thread skipped ``n`` slots right after the last step's
+        sample: the drive held its previous setpoints through them and latches the last
+        step's at the SYNC after, as sent (their ε0 ``n`` periods old). A controller
+        without it is coasted."""
         ...
 
 

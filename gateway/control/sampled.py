@@ -577,6 +577,27 @@ class SampledController:
         self._hist[-1] = self._held(self._base)
         self._base = None
 
+    def delayed(self, n: int) -> None:
+        """The SYNC producer skipped ``n`` slots after the last step's sample: the drive,
+        latching nothing without a SYNC, held its previous command through them (turning
+        on) and latches this step's at the SYNC after them, as sent (its frame angle ``n``
+        periods old). The model says so: the command withheld, ``n`` cycles coasted on the
+        held one, and the interval after them this command. The controller's frame stays
+        where it is (ε0 is its estimate of the flux angle, which the drive's late frame does
+        not move): that interval is the command's current and voltage turned back by the
+        angle the drive's frame lags, ``n``·T·ω0, in the frame of the held setpoints. Call
+        once, right after the step, instead of ``n`` coasts."""
+        if self._base is None:
+            raise RuntimeError("delayed() follows a step(), once")
+        sent = self._hist[-1]
+        self.withhold()
+        for _ in range(n):
+            self.coast()
+        frame = self._hist[-1]
+        back = cmath.exp(1j * (sent.eps - frame.eps))
+        self._hist[-1] = sent._replace(i_dq=sent.i_dq * back, u_dq=sent.u_dq * back,
+                                       eps=frame.eps)
+
     def coast(self) -> None:
         """A cycle without measurements: the drive keeps the last setpoints, turning on.
 
@@ -653,6 +674,9 @@ class FullOrderSampledController(SampledController):
     """
 
     _lookahead = 1  # the end of the commanded interval, 2(k + d) + 2
+    #: the step takes the frame as continuous from one interval to the next: after skipped
+    #: SYNC slots the loop coasts it as if the last command had come on time
+    delayed = None
     __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_eps_k", "_gamma_2", "_i_prev",
                  "_rot_k")
 
