@@ -593,10 +593,10 @@ class SampledController:
         self.withhold()
         for _ in range(n):
             self.coast()
-        frame = self._hist[-1]
+        frame = self._hist[-1]  # held (the full-order law: its current reference too)
         back = cmath.exp(1j * (sent.eps - frame.eps))
-        self._hist[-1] = sent._replace(i_dq=sent.i_dq * back, u_dq=sent.u_dq * back,
-                                       eps=frame.eps)
+        self._hist[-1] = frame._replace(i_dq=sent.i_dq * back, u_dq=sent.u_dq * back,
+                                        w_0=sent.w_0)
 
     def coast(self) -> None:
         """A cycle without measurements: the drive keeps the last setpoints, turning on.
@@ -674,9 +674,6 @@ class FullOrderSampledController(SampledController):
     """
 
     _lookahead = 1  # the end of the commanded interval, 2(k + d) + 2
-    #: the step takes the frame as continuous from one interval to the next: after skipped
-    #: SYNC slots the loop coasts it as if the last command had come on time
-    delayed = None
     __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_eps_k", "_gamma_2", "_i_prev",
                  "_rot_k")
 
