@@ -113,12 +113,15 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
         assert not np.any((k > h) & (k <= h + 2)), (h, k[(k > h - 3) & (k < h + 6)])
     # accuracy, not stability: in the 100 ms after each hold the error of the periods the
     # drive held its setpoints (measured under two busy loops on 2 cores, 28 runs: up to
-    # 1.8 rad/s), and of the late frame angle with the ringing after it (12 runs: 2.1 to
-    # 6.1 rad/s; the model that took the setpoints as on time: 13 rad/s and runaways),
+    # 1.8 rad/s), and, where the cycle of the hold's slot sent its setpoints (always
+    # after the second hold, rarely after the first), of the late frame angle with the
+    # ringing after it (12 runs: 2.1 to 6.1 rad/s; the model that took the setpoints as
+    # on time: 13 rad/s and runaways),
     e = sig["w_m"] - sig["w_ref"]
-    for h, limit in zip(held_at, (3.0, 9.0), strict=True):
+    for h in held_at:
+        sent = bool(np.any((k == h) & (sig["withheld"] == 0)))
         near = (k >= h) & (k <= h + 20)
-        assert np.max(np.abs(e[near])) < limit, (h, np.max(np.abs(e[near])))
+        assert np.max(np.abs(e[near])) < (9.0 if sent else 3.0), (h, sent, e[near])
     # and at the profile's end the run is back on its reference (nominal: 1 mrad/s; under
     # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp)
     end = sig["t"] >= sig["t"][-1] - 0.1
