@@ -60,14 +60,17 @@ DESIGNS = ("euler", "exact")
 RECORDED_IDENT_MS = {1: 34.6, 5: 12.1}
 
 
-def _samples(law: str, n: int) -> list[tuple[object, Sample]]:
-    """(references, sample) pairs from a sampled run of the paper scenario."""
+def _samples(law: str, n: int, sampling: Sampling | None = None
+             ) -> list[tuple[object, Sample]]:
+    """(references, sample) pairs from a sampled run of the paper scenario, ``n`` periods
+    (default: 1 ms)."""
     motor = MotorParams.paper()
     prof = paper_profile()
     drive = "ideal" if law == "current-fed" else "voltage"
-    with the_run(f"the {law} samples' simulation"):
-        sig = run(RunSpec(law=law, drive_mode=drive, duration=n * 1e-3, identify=False),
-                  prof, motor).sig
+    sampling = sampling or Sampling()
+    with the_run(f"the {law} samples' simulation at {sampling.period * 1e3:g} ms"):
+        sig = run(RunSpec(law=law, drive_mode=drive, sampling=sampling,
+                          duration=n * sampling.period, identify=False), prof, motor).sig
     out = []
     for k in range(len(sig["t"])):
         t = float(sig["t"][k])
@@ -143,13 +146,8 @@ def bench_identification(period_ms: int, repeats: int) -> float:
     identification on), over ``repeats`` controllers fed the same recorded samples."""
     motor = MotorParams.paper()
     prof = paper_profile()
-    T = period_ms * 1e-3
-    sampling = Sampling(T, 1)
-    with the_run(f"the samples' simulation at {period_ms} ms"):
-        sig = run(RunSpec(sampling=sampling, duration=0.4, identify=False), prof, motor).sig
-    samples = [(prof.at(float(t)), Sample(complex(a, b), complex(u, v)))
-               for t, a, b, u, v in zip(sig["t"], sig["i_sa"], sig["i_sb"], sig["u_sa"],
-                                        sig["u_sb"], strict=True)]
+    sampling = Sampling(period_ms * 1e-3, 1)
+    samples = _samples("current-fed", round(400 / period_ms), sampling)
     times = []
     for _ in range(repeats):
         with the_run():

@@ -160,20 +160,30 @@ def test_expm2_matches_the_series():
 
 def _run_manual(ctl, T: float, seconds: float, missed_every: int = 0, mode: str = "ideal",
                 late: frozenset[int] = frozenset(), missed: frozenset[int] = frozenset(),
-                withhold: bool = True):
+                withhold: bool = True, skips: dict[int, int] | None = None,
+                tell: bool = True):
     """Closed loop on a Drive without the codec, with CiA 301 synchronous RPDOs (data
     received before SYNC k+1 act from it). Every ``missed_every``-th cycle and the cycles in
     ``missed`` the controller gets no sample (coast) and the drive keeps its setpoints, as
     on the bus. In the cycles in ``late`` the command is ready only after the next SYNC:
     withheld (``withhold``, what the loop does) or sent anyway, when the drive latches it
-    at the SYNC after, unless a newer command comes before that."""
+    at the SYNC after, unless a newer command comes before that. After SYNC k the SYNC
+    producer skips ``skips[k]`` slots (held up past them): the drive advances through them
+    on the setpoints it holds, latches and samples nothing, and latches cycle k's command
+    at the SYNC after them, as sent; the controller is told (``tell``: ``delayed``, what the
+    loop does) or coasts as if that command had come on time. The errors are those of the
+    cycles with a SYNC."""
     prof = paper_profile()
     drive = Drive(MOTOR, DriveParams(mode=mode))
     drive.enable(True)
     pending = after = None
     errors = []
+    gap = 0
     for k in range(1, round(seconds / T) + 1):
         meas = drive.advance(T, prof.at((k - 1) * T).T_L)
+        if gap:  # a skipped slot: no SYNC
+            gap -= 1
+            continue
         if pending is not None:
             drive.set_setpoints(pending)
         pending, after = after, None  # a late command arrives after this SYNC
@@ -188,6 +198,12 @@ def _run_manual(ctl, T: float, seconds: float, missed_every: int = 0, mode: str 
                 ctl.withhold()
             else:
                 after = sp
+            gap = (skips or {}).get(k, 0)
+            if gap and tell:
+                ctl.delayed(gap)
+            else:
+                for _ in range(gap):
+                    ctl.coast()
         errors.append(meas.w_m - prof.at(k * T).w_ref)
     return np.asarray(errors)
 
@@ -242,38 +258,6 @@ def test_late_commands_are_withheld_and_the_model_says_so():
         ctl.withhold()
 
 
-def _run_skips(ctl, T: float, seconds: float, skips: dict[int, int], tell: bool,
-               mode: str = "ideal"):
-    """Closed loop on a Drive with CiA 301 synchronous RPDOs and a SYNC producer that skips
-    ``skips[k]`` slots after SYNC k (held up past them): the drive advances through them
-    on the setpoints it holds, latches nothing and samples nothing, and latches the
-    command of cycle k at the SYNC after them, as sent. The controller is told
-    (``delayed``, what the loop does) or coasts as if that command had come on time."""
-    prof = paper_profile()
-    drive = Drive(MOTOR, DriveParams(mode=mode))
-    drive.enable(True)
-    pending = None
-    errors = []
-    gap = 0
-    for k in range(1, round(seconds / T) + 1):
-        meas = drive.advance(T, prof.at((k - 1) * T).T_L)
-        if gap:  # a skipped slot: no SYNC
-            gap -= 1
-            continue
-        if pending is not None:
-            drive.set_setpoints(pending)
-        cmd = ctl.step(prof.at(k * T), Sample(meas.i_s_ab, meas.u_s_ab))
-        pending = Setpoints("dq", cmd.i_s_dq_ref, cmd.u_s_dq_ref, cmd.eps_0, cmd.w_0)
-        gap = skips.get(k, 0)
-        if gap and tell:
-            ctl.delayed(gap)
-        else:
-            for _ in range(gap):
-                ctl.coast()
-        errors.append(meas.w_m - prof.at(k * T).w_ref)
-    return np.asarray(errors)
-
-
 def test_a_command_latched_after_skipped_sync_slots_is_modelled():
     """At 5 ms, the SYNC producer held up past two slots at 0.75 s and at 1.3 s (steady
     speed, load on and off): the drive holds its setpoints through them and then latches
@@ -288,18 +272,19 @@ def test_a_command_latched_after_skipped_sync_slots_is_modelled():
     def rms(e):
         return float(np.sqrt(np.mean(e * e)))
 
-    told = _run_skips(make_controller(MOTOR, cfg, paper_profile().at), T, 2.0, skips, True)
-    coast = _run_skips(make_controller(MOTOR, cfg, paper_profile().at), T, 2.0, skips, False)
+    told = _run_manual(make_controller(MOTOR, cfg, paper_profile().at), T, 2.0, skips=skips)
+    coast = _run_manual(make_controller(MOTOR, cfg, paper_profile().at), T, 2.0, skips=skips,
+                        tell=False)
     assert np.max(np.abs(told)) < 5.0  # measured 4.26: the braking period, physical
     assert rms(told) < 0.85 * rms(coast)  # measured 0.763 against 1.008
     assert abs(told[-1]) < 0.03 < abs(coast[-1])  # measured 0.010 and 0.074
     # the full-order law with its voltage drive, at 1 ms: five slots skipped twice
     fo = ControllerConfig(law="full-order", discretisation="exact", sampling=Sampling(1e-3, 1))
     skips = {750: 5, 1300: 5}
-    told = _run_skips(make_controller(MOTOR, fo, paper_profile().at), 1e-3, 2.0, skips, True,
-                      "voltage")
-    coast = _run_skips(make_controller(MOTOR, fo, paper_profile().at), 1e-3, 2.0, skips,
-                       False, "voltage")
+    told = _run_manual(make_controller(MOTOR, fo, paper_profile().at), 1e-3, 2.0,
+                       mode="voltage", skips=skips)
+    coast = _run_manual(make_controller(MOTOR, fo, paper_profile().at), 1e-3, 2.0,
+                        mode="voltage", skips=skips, tell=False)
     assert np.max(np.abs(told)) < 0.25  # measured 0.17 (coasting: 0.26)
     assert rms(told) < 0.75 * rms(coast)  # measured 0.036 against 0.059
     ctl = make_controller(MOTOR, cfg, paper_profile().at)

@@ -391,11 +391,13 @@ class StandstillIdentifier:
         theta = np.array([float(first.R_s), 0.0, 0.0, 0.0, float(m.M), 0.0])
         free = [0, 1, 2, 3, 4, 5] if fit_M else [0, 1, 2, 3, 5]
 
-        def residual(th: np.ndarray, jacobian: bool) -> tuple[Any, ...]:
+        def residual(th: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+            """(r, the unit filter of i_true, Σ|r|², ∂r/∂θ's real and imaginary rows)"""
             R, o, lam, M = th[0], complex(th[1], th[2]), th[3], th[4]
             alpha = first.alpha * math.exp(th[5])
             e = math.exp(-alpha * T)
-            F, F_b = lfilter((1.0 - e,), (1.0, -e), x, axis=1)  # f_k(α)[i], f_k(α)[e_b]
+            f = lfilter((1.0 - e,), (1.0, -e), x, axis=1)
+            F, F_b = f  # f_k(α)[i], f_k(α)[e_b]
             decay = np.exp(-alpha * Tk)
             flux_i = F - o * (1.0 - decay) - lam * F_b  # unit filter of i_true
             L_r = L_lr + M
@@ -404,11 +406,8 @@ class StandstillIdentifier:
             i_t = i - o - lam * e_b
             I_t = Q - o * Tk - lam * E
             r = kr * (U - R * I_t - sigma * i_t) - M * flux_i
-            if not jacobian:
-                return r, flux_i, M
             # ∂f_k/∂α = e·∂f_{k−1}/∂α + T·e·(x_k − f_{k−1}): the same filter's recursion
-            prev = np.concatenate((np.zeros((2, 1), dtype=complex), np.stack([F, F_b])[:, :-1]),
-                                  axis=1)
+            prev = np.concatenate((np.zeros((2, 1), dtype=complex), f[:, :-1]), axis=1)
             G, G_b = lfilter((1.0,), (1.0, -e), T * e * (x - prev), axis=1)
             q = kr * (R * Tk + sigma) + M * (1.0 - decay)
             p = kr * (R * E + sigma * e_b) + M * F_b
@@ -418,13 +417,9 @@ class StandstillIdentifier:
             d_s = -M * alpha * (G - o * Tk * decay - lam * G_b)
             cols = np.stack((-kr * I_t, q + 0j, 1j * q, p, d_M, d_s))[free]  # ∂r/∂θ
             J = np.concatenate((cols.real, cols.imag), axis=1)
-            return r, flux_i, M, J
+            return r, flux_i, float(np.sum(r.real ** 2 + r.imag ** 2)), J
 
-        def cost_of(r: np.ndarray) -> float:
-            return float(np.sum(r.real ** 2 + r.imag ** 2))
-
-        r, flux_i, M, J = residual(theta, True)
-        cost = cost_of(r)
+        r, flux_i, cost, J = residual(theta)
         for _ in range(self.GN_STEPS):
             A = J @ J.T
             step = np.linalg.solve(A, -(J @ np.concatenate((r.real, r.imag))))
@@ -435,16 +430,15 @@ class StandstillIdentifier:
             new[free] += step
             new[5] = min(max(new[5], lo), hi)
             for _ in range(8):  # never uphill: halve the step until the cost falls
-                r_new = residual(new, False)[0]
-                c_new = cost_of(r_new)
-                if c_new <= cost:
+                trial = residual(new)
+                if trial[2] <= cost:
                     break
                 new = 0.5 * (theta + new)
             else:
                 break
             done = np.all(np.abs(new - theta) <= 1e-12 * (1.0 + np.abs(theta)))
-            theta, cost = new, c_new
-            r, flux_i, M, J = residual(theta, True)
+            theta = new
+            r, flux_i, cost, J = trial
             if done:
                 break
         # the standard deviations of (o, λ): least squares at the fitted α
@@ -455,8 +449,8 @@ class StandstillIdentifier:
         # the flux at the last sample: the rotor model's with the true current (exact at
         # standstill for α; the voltage model's would carry the fit's R_s error times ∫i:
         # 0.029 against 0.0096 rad/s RMS with a 10 mA offset after the handover)
-        s = float(theta[5])
-        return OffsetFit(R_s=float(theta[0]), alpha=first.alpha * math.exp(s), M=float(M),
+        s, M = float(theta[5]), float(theta[4])
+        return OffsetFit(R_s=float(theta[0]), alpha=first.alpha * math.exp(s), M=M,
                          offset_ab=complex(theta[1], theta[2]), std_ab=complex(std[0], std[1]),
                          gain_b=1.0 / (1.0 - float(theta[3])), gain_b_std=float(std[2]),
                          psi_ab=complex(M * flux_i[-1]),

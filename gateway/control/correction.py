@@ -211,14 +211,20 @@ class CorrectedController:
         return phi + self._T * w_0, w_0
 
     def withhold(self) -> None:
-        self._turns.pop()  # not sent: the drive held the interval before's setpoints
-        self._turns.append(self._held())
+        self._withhold_turn()
         self.inner.withhold()
 
     def coast(self) -> None:
+        self._coast_turn()
+        self.inner.coast()
+
+    def _withhold_turn(self) -> None:
+        self._turns.pop()  # not sent: the drive held the interval before's setpoints
+        self._turns.append(self._held())
+
+    def _coast_turn(self) -> None:
         self._turns.append(self._held())
         self._sampled = self._turns.popleft()  # the interval that ended unsampled
-        self.inner.coast()
 
     @property
     def delayed(self) -> Callable[[int], None] | None:
@@ -231,11 +237,9 @@ class CorrectedController:
 
         def delayed(n: int) -> None:
             sent = self._turns[-1]
-            self._turns.pop()
-            self._turns.append(self._held())
+            self._withhold_turn()
             for _ in range(n):
-                self._turns.append(self._held())
-                self._sampled = self._turns.popleft()
+                self._coast_turn()
             self._turns[-1] = sent
             inner(n)
 
