@@ -199,6 +199,9 @@ class SampledController:
         self._w_prev = w_hat  # ω̂ at t_{k−1}
         self._i_prev_ab = 0j  # measured current at t_{k−1}
         self._di_prev = 0j  # measured − modelled current at t_{k−1}, frame at t_{k−1}
+        #: cycles coasted since the last step: the frame the drive held has drifted from
+        #: the flux (the next command's frame is set on the flux again: step)
+        self._coasted = False
         #: the command before the last step's (what the drive holds if that one is withheld)
         self._base: Interval | None = None
         self._joining = False  # the identification is applied at this step (_join)
@@ -385,8 +388,8 @@ class SampledController:
 
     def _advance(self, c: Interval, psi0: complex, w0: float, r_mid: Refs, T_L: float,
                  terms: list[tuple[complex, complex]] | None,
-                 psi_end_meas: complex | None = None, di: complex = 0j, keep: bool = False
-                 ) -> tuple[complex, float]:
+                 psi_end_meas: complex | None = None, di: complex = 0j, keep: bool = False,
+                 adapt: bool = True) -> tuple[complex, float]:
         """ψ_r (frame at the end) and ω̂ at the end of interval ``c``, whose midpoint's
         references are ``r_mid`` and whose load (the one the timing contract applies over
         the interval: T_L at its start, held, docs/ARCHITECTURE.md) is ``T_L``.
@@ -410,9 +413,9 @@ class SampledController:
             psi_end, int_psi, int_ci = kept[3]
         else:
             i = c.i_dq  # the speed at the midpoint, with dω̂/dt of (16), (20) (_rate, inline)
+            v = r_mid.psi_ref * psi0.imag / self._gamma_1 if adapt else 0.0
             w_m = w0 + self._half_T * (self._mu * (psi0.real * i.imag - psi0.imag * i.real)
-                                       - T_L / self._J
-                                       + r_mid.psi_ref * psi0.imag / self._gamma_1)
+                                       - T_L / self._J + v)
             model = (self._interval_dq(i, c.w_0, psi0, w_m) if terms is None
                      else self._interval(c, psi0, w_m, terms))
             if keep:
@@ -426,6 +429,8 @@ class SampledController:
             psi_end = psi_end_meas
         if di:
             int_ci += int_psi.conjugate() * di
+        if not adapt:
+            return psi_end, w0 + (self._mu * int_ci.imag - self._T * T_L / self._J)
         return psi_end, w0 + (self._mu * int_ci.imag - self._T * T_L / self._J
                               + r_mid.psi_ref * int_psi.imag / self._gamma_1)
 
@@ -467,10 +472,16 @@ class SampledController:
         if psi0 is None:
             psi0 = psi_k * cmath.exp(1j * prev.w_0 * T)
         di_k = (sample.i_s_ab - i_end_ab) * to_k
-        di = 0.5 * (self._di_prev + di_k)
+        eps_end = wrap_angle(prev.eps + T * prev.w_0)  # I_{k−1}'s frame at its end
+        if d and eps_end != eps_k:  # the frame was set on the flux at I_k's start (coasted)
+            to_end = cmath.exp(-1j * eps_end)
+            psi_end, di_end = psi_ab * to_end, (sample.i_s_ab - i_end_ab) * to_end
+        else:
+            psi_end, di_end = psi_k, di_k
+        di = 0.5 * (self._di_prev + di_end)
         self._di_prev = di_k
-        _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms, psi_k, di,
-                               False)
+        _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms, psi_end,
+                               di, False)
         self.w_hat = w_k
         # predict through the committed intervals I_k … I_{k+d−1}
         psi, w, i0 = psi_k, w_k, sample.i_s_ab
@@ -483,6 +494,17 @@ class SampledController:
                 i0 = self._current(c, terms)[1]
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
+        if self._coasted:
+            # After cycles without a sample the frame the drive held at its ω0 has drifted
+            # from the flux (the rotor's speed changed meanwhile): the frame of (15) is the
+            # controller's own reference, and the command for I_{k+d} sets it on the flux
+            # predicted for that interval's start, so that (20) does not read the drift as a
+            # speed error (docs/sampled-control.md, "Cycles without a sample").
+            self._coasted = False
+            if d:
+                turn = cmath.phase(psi)
+                eps_app = wrap_angle(eps_app + turn)
+                psi = complex(abs(psi), 0.0)
         # the command for I_{k+d}: references and ω̂ at its midpoint
         r0, r = win[self._cmd_refs]
         T_L = r0.T_L  # the load the drive will apply
@@ -614,15 +636,18 @@ class SampledController:
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         if self._constant_current:
-            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, None)
+            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, None,
+                                       adapt=False)
             i_end_ab = self._current_dq(prev)[1]
         else:
             terms = self._terms(prev, self._i_prev_ab)
-            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms)
+            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms,
+                                       adapt=False)
             i_end_ab = self._current(prev, terms)[1]
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
         self._i_prev_ab = i_end_ab
+        self._coasted = True
         hist.append(self._held(hist[-1]))
         hist.popleft()
         self._base = None
