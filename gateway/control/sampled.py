@@ -409,7 +409,7 @@ class SampledController:
         changes).
         """
         kept = self._kept
-        if kept is not None and kept[0] is c and kept[1] is psi0 and kept[2] is w0:
+        if adapt and kept is not None and kept[0] is c and kept[1] is psi0 and kept[2] is w0:
             psi_end, int_psi, int_ci = kept[3]
         else:
             i = c.i_dq  # the speed at the midpoint, with dω̂/dt of (16), (20) (_rate, inline)
@@ -786,12 +786,14 @@ class FullOrderSampledController(SampledController):
         return (c, w0, r0.T_L / self._J, 0.5 * (c.i_ref0 + c.i_ref1), rh, r1, f0,
                 i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1)
 
-    def _fo_finish(self, model, end: tuple[complex, complex] | None = None
-                   ) -> tuple[complex, complex, float, float]:
+    def _fo_finish(self, model, end: tuple[complex, complex] | None = None,
+                   adapt: bool = True) -> tuple[complex, complex, float, float]:
         """(i, ψ, ω̂, dω̂/dt) at the end of the modelled interval; ``end``: the measured (i, ψ)
         at the end, which also correct the mid-point by half the end's mismatch. ω̂:
         Simpson's rule on the trajectory; dω̂/dt: (27), (32) at the end, against the
-        interval's end reference ``i_ref1``."""
+        interval's end reference ``i_ref1``. Without ``adapt`` (a coasted interval, the
+        model's ``f0`` taken without it too) the rates are the mechanical copy alone, w of
+        (32) left out (:meth:`SampledController.coast`)."""
         c, w0, load, i_ref, rh, r1, f0, i_h, p_h, i_1, p_1 = model
         if end is not None:
             i_h += 0.5 * (end[0] - i_1)
@@ -799,6 +801,10 @@ class FullOrderSampledController(SampledController):
             i_1, p_1 = end
         # the rates of (27), (32) at the middle and the end (_fo_rate, inline)
         mu, beta, gamma_2 = self._mu, self._beta, self._gamma_2
+        if not adapt:
+            f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - load
+            f_1 = mu * (p_1.real * i_1.imag - p_1.imag * i_1.real) - load
+            return i_1, p_1, w0 + self._T_6 * (f0 + 4.0 * f_h + f_1), f_1
         e_d, e_q = i_h.real - i_ref.real, i_h.imag - i_ref.imag
         w = (rh.psi_ref * p_h.imag + beta * (p_h.imag * e_d - p_h.real * e_q)) / gamma_2
         f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - load + w
@@ -849,18 +855,25 @@ class FullOrderSampledController(SampledController):
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         psi_k = psi_ab * rot_k
-        # ω̂ at t_k and the rate there: _fo_finish(model, (i_k, psi_k)) inline
+        eps_end = wrap_angle(prev.eps + T * prev.w_0)  # I_{k−1}'s frame at its end
+        jumped = bool(d) and eps_end != eps_k  # the frame set on the flux at I_k (coasted)
+        if jumped:
+            rot_end = cmath.exp(-1j * eps_end)
+            i_e, psi_e = sample.i_s_ab * rot_end, psi_ab * rot_end
+        else:
+            i_e, psi_e = i_k, psi_k
+        # ω̂ at t_k and the rate there: _fo_finish(model, (i_e, psi_e)) inline
         _, w_k, tl_j, i_ref, rh, r1, f0, i_h, p_h, i_1, p_1 = model
-        i_h += 0.5 * (i_k - i_1)
-        p_h += 0.5 * (psi_k - p_1)
+        i_h += 0.5 * (i_e - i_1)
+        p_h += 0.5 * (psi_e - p_1)
         mu, beta, gamma_2, T_6 = self._mu, self._beta, self._gamma_2, self._T_6
         e_d, e_q = i_h.real - i_ref.real, i_h.imag - i_ref.imag
         w_o = (rh.psi_ref * p_h.imag + beta * (p_h.imag * e_d - p_h.real * e_q)) / gamma_2
         f_h = mu * (p_h.real * i_h.imag - p_h.imag * i_h.real) - tl_j + w_o  # (27), (32)
         i_ref = prev.i_ref1
-        e_d, e_q = i_k.real - i_ref.real, i_k.imag - i_ref.imag
-        w_o = (r1.psi_ref * psi_k.imag + beta * (psi_k.imag * e_d - psi_k.real * e_q)) / gamma_2
-        f_end = mu * (psi_k.real * i_k.imag - psi_k.imag * i_k.real) - tl_j + w_o
+        e_d, e_q = i_e.real - i_ref.real, i_e.imag - i_ref.imag
+        w_o = (r1.psi_ref * psi_e.imag + beta * (psi_e.imag * e_d - psi_e.real * e_q)) / gamma_2
+        f_end = mu * (psi_e.real * i_e.imag - psi_e.imag * i_e.real) - tl_j + w_o
         w_k = w_k + T_6 * (f0 + 4.0 * f_h + f_end)  # Simpson
         self.w_hat = w_k
         # (27), (32) at the end of an interval, against its end reference, is the rate at
@@ -873,7 +886,7 @@ class FullOrderSampledController(SampledController):
             r0 = win[2 * j]
             load = r0.T_L  # _same_number(load, load_end), inline
             model = self._fo_predict(c, i, psi, w, r0, win[2 * j + 1], win[2 * j + 2],
-                                     f_end if (c.i_ref0 is hist[j - 1].i_ref1
+                                     f_end if (c.i_ref0 is hist[j - 1].i_ref1 and not jumped
                                                and (load is load_end
                                                     or (load == load_end and load != 0.0)))
                                      else None)
@@ -893,15 +906,32 @@ class FullOrderSampledController(SampledController):
         last = hist[-1]
         # wrap_angle(last.eps + T·last.w_0), inline
         eps_app = (last.eps + T * last.w_0 + _PI) % TWO_PI - _PI if d else eps_k
+        turned = False
+        if self._coasted:  # the frame set on the flux (SampledController.step)
+            self._coasted = False
+            if d:
+                turn = cmath.phase(psi)
+                eps_app = wrap_angle(eps_app + turn)
+                # the held commands' current references were the stalled law's: the
+                # current error (28) over them is the hold's, not the estimate's, and (32)
+                # would read it as one; their references become the modelled current
+                if d == 1:
+                    hist[1] = hist[1]._replace(i_ref0=i_k, i_ref1=i)
+                i *= cmath.exp(-1j * turn)
+                psi = complex(abs(psi), 0.0)
+                turned = True
         # the command for I_{k+d} = (t0, t0 + T], t0 = (k + d)·T
         r0, rh, r1 = win[self._cmd_refs]
         T_L = r0.T_L
-        if self._k > d + 1:
+        if self._k > d + 1 and not turned:
             i_ref0 = last.i_ref1
             # (27), (32) at t0 with i_ref0 = the end reference of I_{k+d−1}: the rate the
             # model ended that interval with, when its load is this one (the same number)
             f0 = (f_end if T_L is load_end or (load_end == T_L and T_L != 0.0)  # _same_number
                   else self._fo_rate(psi, i, i_ref0, r0, T_L))
+        elif self._k > d + 1:  # the frame turned: the rate in it, from the current
+            i_ref0 = i
+            f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
         else:
             i_ref0 = complex(*self._currents(r0, w, T_L)[:2])
             f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
@@ -962,11 +992,16 @@ class FullOrderSampledController(SampledController):
         hist = self._hist
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        i0 = self._i_prev
+        f0 = (self._mu * (psi0.real * i0.imag - psi0.imag * i0.real)
+              - win[0].T_L / self._J)  # the mechanical copy of (27) alone
         i_k, psi_k, w_k, _ = self._fo_finish(
-            self._fo_model(prev, self._i_prev, psi0, self._w_prev, win[0], win[1], win[2]))
+            self._fo_predict(prev, i0, psi0, self._w_prev, win[0], win[1], win[2], f0),
+            adapt=False)
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot = cmath.exp(1j * eps_k)
         self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
+        self._coasted = True
         hist.append(self._held(hist[-1]))
         hist.popleft()
         self._base = None
