@@ -202,6 +202,9 @@ class SampledController:
         #: cycles coasted since the last step: the frame the drive held has drifted from
         #: the flux (the next command's frame is set on the flux again: step)
         self._coasted = False
+        #: the command whose frame was set on the flux, until the step whose past interval
+        #: ends where it starts (that interval's end is measured in its own frame)
+        self._turned: Interval | None = None
         #: the command before the last step's (what the drive holds if that one is withheld)
         self._base: Interval | None = None
         self._joining = False  # the identification is applied at this step (_join)
@@ -472,9 +475,10 @@ class SampledController:
         if psi0 is None:
             psi0 = psi_k * cmath.exp(1j * prev.w_0 * T)
         di_k = (sample.i_s_ab - i_end_ab) * to_k
-        eps_end = wrap_angle(prev.eps + T * prev.w_0)  # I_{k−1}'s frame at its end
-        if d and eps_end != eps_k:  # the frame was set on the flux at I_k's start (coasted)
-            to_end = cmath.exp(-1j * eps_end)
+        if self._turned is not None and hist[1] is self._turned:
+            # the frame was set on the flux at I_k's start: I_{k−1} ends in its own frame
+            self._turned = None
+            to_end = cmath.exp(-1j * wrap_angle(prev.eps + T * prev.w_0))
             psi_end, di_end = psi_ab * to_end, (sample.i_s_ab - i_end_ab) * to_end
         else:
             psi_end, di_end = psi_k, di_k
@@ -494,6 +498,7 @@ class SampledController:
                 i0 = self._current(c, terms)[1]
         last = hist[-1]
         eps_app = wrap_angle(last.eps + T * last.w_0) if d else eps_k
+        turned = False
         if self._coasted:
             # After cycles without a sample the frame the drive held at its ω0 has drifted
             # from the flux (the rotor's speed changed meanwhile): the frame of (15) is the
@@ -505,6 +510,7 @@ class SampledController:
                 turn = cmath.phase(psi)
                 eps_app = wrap_angle(eps_app + turn)
                 psi = complex(abs(psi), 0.0)
+                turned = True
         # the command for I_{k+d}: references and ω̂ at its midpoint
         r0, r = win[self._cmd_refs]
         T_L = r0.T_L  # the load the drive will apply
@@ -518,6 +524,8 @@ class SampledController:
         self._base = last
         hist.append(_new_tuple(Interval, (i_dq, u_dq, eps_app, w_0, 0j, 0j)))
         hist.popleft()
+        if turned:
+            self._turned = hist[-1]
         self._psi_prev = psi_k
         self._w_prev = w_k
         self._i_prev_ab = sample.i_s_ab
@@ -596,6 +604,9 @@ class SampledController:
         model of what it applies says so. Call once, right after the step."""
         if self._base is None:
             raise RuntimeError("withhold() follows a step(), once")
+        if self._hist[-1] is self._turned:  # the frame set on the flux is not sent: again
+            self._turned = None
+            self._coasted = True
         self._hist[-1] = self._held(self._base)
         self._base = None
 
@@ -855,10 +866,11 @@ class FullOrderSampledController(SampledController):
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         psi_k = psi_ab * rot_k
-        eps_end = wrap_angle(prev.eps + T * prev.w_0)  # I_{k−1}'s frame at its end
-        jumped = bool(d) and eps_end != eps_k  # the frame set on the flux at I_k (coasted)
+        # the frame set on the flux at I_k's start: I_{k−1} ends in its own frame
+        jumped = self._turned is not None and hist[1] is self._turned
         if jumped:
-            rot_end = cmath.exp(-1j * eps_end)
+            self._turned = None
+            rot_end = cmath.exp(-1j * wrap_angle(prev.eps + T * prev.w_0))
             i_e, psi_e = sample.i_s_ab * rot_end, psi_ab * rot_end
         else:
             i_e, psi_e = i_k, psi_k
@@ -973,6 +985,8 @@ class FullOrderSampledController(SampledController):
         self._base = last
         hist.append(_new_tuple(Interval, (target, u, eps_app, w_0, i_ref0, i_ref1)))
         hist.popleft()
+        if turned:
+            self._turned = hist[-1]
         self._psi_prev = psi_k
         self._i_prev = i_k
         self._w_prev = w_k
