@@ -53,9 +53,9 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
-from scipy.signal import lfilter
 
 from gateway.control.correction import SQRT3, SensorCorrection, phases
+from gateway.control.recursion import first_order
 
 
 class Refs(Protocol):
@@ -396,7 +396,7 @@ class StandstillIdentifier:
             R, o, lam, M = th[0], complex(th[1], th[2]), th[3], th[4]
             alpha = first.alpha * math.exp(th[5])
             e = math.exp(-alpha * T)
-            f = lfilter((1.0 - e,), (1.0, -e), x, axis=1)
+            f = first_order(x, e, 1.0 - e)
             F, F_b = f  # f_k(α)[i], f_k(α)[e_b]
             decay = np.exp(-alpha * Tk)
             flux_i = F - o * (1.0 - decay) - lam * F_b  # unit filter of i_true
@@ -408,7 +408,7 @@ class StandstillIdentifier:
             r = kr * (U - R * I_t - sigma * i_t) - M * flux_i
             # ∂f_k/∂α = e·∂f_{k−1}/∂α + T·e·(x_k − f_{k−1}): the same filter's recursion
             prev = np.concatenate((np.zeros((2, 1), dtype=complex), f[:, :-1]), axis=1)
-            G, G_b = lfilter((1.0,), (1.0, -e), T * e * (x - prev), axis=1)
+            G, G_b = first_order(T * e * (x - prev), e)
             q = kr * (R * Tk + sigma) + M * (1.0 - decay)
             p = kr * (R * E + sigma * e_b) + M * F_b
             d_kr = -L_lr / (M * M)

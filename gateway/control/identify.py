@@ -56,6 +56,7 @@ import numpy as np
 from dbc.modes import DriveMode
 from gateway.control.interface import Command, ControllerContext, Sample, checked_params
 from gateway.control.laws import Refs
+from gateway.control.recursion import first_order
 
 SQRT3 = math.sqrt(3.0)
 #: the controller's parameters (``--controller-params``) and their defaults
@@ -138,10 +139,8 @@ def _denoised(i: np.ndarray) -> np.ndarray:
 
 def _flux(i: np.ndarray, T: float, alpha: float) -> np.ndarray:
     """c_k of (I1): the rotor flux of the currents ``i`` held over each period, from 0."""
-    from scipy.signal import lfilter
-
     q = math.exp(-alpha * T)
-    return lfilter([1.0 - q], [1.0, -q], np.asarray(i, dtype=complex))
+    return first_order(np.asarray(i, dtype=complex), q, 1.0 - q)
 
 
 def _gain_direction(i: np.ndarray) -> np.ndarray:
