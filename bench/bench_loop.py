@@ -115,7 +115,9 @@ def lockstep(args: argparse.Namespace, transport: str, repeats: int) -> dict:
 
 
 def realtime(args: argparse.Namespace, transport: str, seconds: float) -> dict:
-    cfg = RunSpec(timing="realtime", duration=seconds, max_missed=10**9)
+    # the missed cycles are a figure here, not a reason to stop: a host whose virtual
+    # machine stalls for tens of ms when idle misses more than 20 % of some 100 ms windows
+    cfg = RunSpec(timing="realtime", duration=seconds, max_missed=10**9, max_miss_rate=1.0)
     with the_run(f"real-time run of {seconds:g} s"):
         summary, _sig = one_run(args, cfg, "rt", transport)
     run, t = summary["run"], summary["timing"]
