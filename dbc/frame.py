@@ -18,7 +18,7 @@ from __future__ import annotations
 import struct
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 __all__ = ["FLOAT_BITS", "MAX_BITS", "FrameLayout", "SignalSpec", "frame_layout"]
 
@@ -46,6 +46,8 @@ class SignalSpec:
     is_float: bool = False
     start: int | None = None
     big_endian: bool = False
+    #: the DBC's unit of the physical value (not part of the encoding: not compared)
+    unit: str = field(default="", compare=False)
 
     @property
     def lo(self) -> int | float:

@@ -533,14 +533,20 @@ def _int_range(var: Any) -> tuple[int, int]:
 
 def _check_dbc(prof: DriveProfile, names: list[str]) -> None:
     """The DBC loads and has the messages the profile names."""
-    from dbc import load_database
+    from dbc import load_database, parse_dbc
 
-    try:
-        db = load_database(prof.dbc)
-    except Exception as exc:
-        raise UserError(f"{prof.source}: the DBC {str(prof.dbc)!r} cannot be read "
-                        f"({type(exc).__name__}: {str(exc)[:200]}); give a DBC file") from None
-    known = {m.name for m in db.messages}
+    try:  # the codec's parse, kept on disk (dbc.diskcache): no cantools to import
+        known = set(parse_dbc(prof.dbc)[0])
+    except Exception:  # what the fast codec cannot take, cantools may: ask it
+        known = set()
+    if not set(names) <= known:
+        try:
+            db = load_database(prof.dbc)
+        except Exception as exc:
+            raise UserError(f"{prof.source}: the DBC {str(prof.dbc)!r} cannot be read "
+                            f"({type(exc).__name__}: {str(exc)[:200]}); give a DBC file"
+                            ) from None
+        known = {m.name for m in db.messages}
     unknown = [n for n in names if n not in known]
     if unknown:
         raise UserError(f"{prof.source}: [pdo] names {', '.join(unknown)}, which the DBC "

@@ -337,28 +337,24 @@ def quantisation(applied: bool = True, setpoint_message: str | None = None,
     whether the run's signals went through it (`simulate --no-quantize` or continuous
     time: false, ``reason`` says why). ``source``: the DBC's file name.
     """
-    from dbc import DBC_PATH, load_database
+    from dbc import DBC_PATH, parse_dbc
     from dbc.codec import INT_SIGNALS
 
     skip = {"RPDO2", "RPDO2_AB"} - {setpoint_message} if setpoint_message else set()
-    db = load_database(dbc or DBC_PATH)
+    parsed = parse_dbc(dbc or DBC_PATH)[0]  # the codec's parse, kept on disk: no cantools
     out: dict[str, Any] = {}
     for name in messages:
-        if name in skip:
+        if name in skip or name not in parsed:
             continue
-        try:
-            msg = db.get_message_by_name(name)
-        except KeyError:
-            continue
-        for sg in msg.signals:
+        for sg in parsed[name].signals:
             if sg.name in INT_SIGNALS:
                 continue
-            raw_lo = -(1 << (sg.length - 1)) if sg.is_signed else 0
-            raw_hi = (1 << (sg.length - 1)) - 1 if sg.is_signed else (1 << sg.length) - 1
-            out[sg.name] = {"message": name, "lsb": float(sg.scale),
-                            "unit": (sg.unit or "").replace("N.m", "N·m"),
-                            "bits": sg.length, "signed": bool(sg.is_signed),
-                            "min": raw_lo * float(sg.scale), "max": raw_hi * float(sg.scale)}
+            raw_lo = -(1 << (sg.bits - 1)) if sg.signed else 0
+            raw_hi = (1 << (sg.bits - 1)) - 1 if sg.signed else (1 << sg.bits) - 1
+            out[sg.name] = {"message": name, "lsb": sg.factor,
+                            "unit": sg.unit.replace("N.m", "N·m"),
+                            "bits": sg.bits, "signed": sg.signed,
+                            "min": raw_lo * sg.factor, "max": raw_hi * sg.factor}
     source = "dbc/drive.dbc" if dbc is None or Path(dbc) == DBC_PATH else Path(dbc).name
     q: dict[str, Any] = {"applied": bool(applied), "source": source}
     if not applied and reason:

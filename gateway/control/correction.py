@@ -258,10 +258,11 @@ class IdentifiedCorrection(CorrectedController):
                  turning: bool = True) -> None:
         super().__init__(inner, SensorCorrection(), period, delay, turning)
         self._waiting = True  # for the identification's result
+        self._none = False  # it came and corrects nothing: the samples pass unchanged
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         if not self._waiting:
-            if self.correction == SensorCorrection():
+            if self._none:
                 return self.inner.step(refs, sample)
             return super().step(refs, sample)
         self._sampled = self._turns.popleft()
@@ -273,6 +274,8 @@ class IdentifiedCorrection(CorrectedController):
         self._waiting = False
         correction = self.inner.commissioning.correction
         if correction is None:
+            self._none = True
             return cmd
         self.correction = correction
+        self._none = correction == SensorCorrection()
         return self._command(cmd)

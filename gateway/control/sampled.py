@@ -69,6 +69,7 @@ from gateway.control.interface import (
 )
 from gateway.control.laws import Refs
 from gateway.control.refwindow import ReferenceWindow
+from gateway.reference.signals import References, with_flux
 
 
 class Interval(NamedTuple):
@@ -263,6 +264,8 @@ class SampledController:
         def joined(t: float) -> Refs:
             r = refs_at(t)
             x = e * math.exp(-a * (t - t_k)) if t >= t_k else e
+            if type(r) is References:
+                return with_flux(r, r.psi_ref + x, r.dpsi_ref - a * x, r.ddpsi_ref + a * a * x)
             return replace(r, psi_ref=r.psi_ref + x, dpsi_ref=r.dpsi_ref - a * x,
                            ddpsi_ref=r.ddpsi_ref + a * a * x)
 

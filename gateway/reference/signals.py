@@ -86,6 +86,13 @@ def _make_references(
     return r
 
 
+def with_flux(r: References, psi: float, dpsi: float, ddpsi: float) -> References:
+    """``r`` with its flux references ψ*, ψ̇*, ψ̈* replaced (as ``dataclasses.replace``,
+    about ten times faster: a controller whose flux references are shifted calls it at
+    every reference it takes)."""
+    return _make_references(r.w_ref, r.dw_ref, r.ddw_ref, psi, dpsi, ddpsi, r.T_L, r.dT_L)
+
+
 @dataclass(frozen=True, slots=True)
 class Step:
     """One transition of a :class:`Signal`, SI units: from the previous value to ``value``,
