@@ -62,12 +62,13 @@ def _package_version(name: str) -> str:
     return f"{origin}:{st.st_size}:{st.st_mtime_ns}"
 
 
-def key(kind: str, files: Iterable[Path | None], code: Iterable[str],
-        packages: Iterable[str] = ()) -> str | None:
+def key(kind: str, files: Iterable[Path | None], code: Iterable[str | Path],
+        packages: Iterable[str] = (), extra: str = "") -> str | None:
     """The key of a value parsed from ``files`` (None: a file absent) by the modules whose
-    source files are ``code``; None when a file cannot be read."""
+    source files are ``code``, with the versions of ``packages`` and any ``extra`` input;
+    None when a file cannot be read."""
     h = hashlib.sha256()
-    h.update(f"{kind}\0{FORMAT}\0{sys.version}\0".encode())
+    h.update(f"{kind}\0{FORMAT}\0{sys.version}\0{extra}\0".encode())
     for name in packages:
         h.update(_package_version(name).encode() + b"\0")
     try:

@@ -65,6 +65,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from dbc import diskcache
 from dbc.codec import ab_companion
 from dbc.filecache import FileMemo, resolved
 from dbc.modes import DriveMode
@@ -278,9 +279,30 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
         if not path.is_file():
             raise UserError(f"{source}: [drive].{what} = {str(path)!r} does not exist; give the "
                             f"path of the drive's {what.upper()} file, relative to the profile")
-    _check_eds(prof)
-    _check_dbc(prof, list(prof.messages))
+    _check_files(prof)
     return prof
+
+
+def _check_files(prof: DriveProfile) -> None:
+    """The EDS and the DBC checks (:func:`_check_eds`, :func:`_check_dbc`), their verdict
+    kept on disk between processes (:mod:`dbc.diskcache`; reading the EDS imports
+    python-canopen: 0.17 s of a `simulate`), keyed by both files, the profile's [[sdo]]
+    writes and messages, and the checking code."""
+    here = Path(diskcache.__file__).parent  # dbc/ (its modules not imported for this)
+    companion = ab_companion(prof.dbc)
+    entry = diskcache.key(
+        "drive-check", [prof.eds, prof.dbc, companion if companion.is_file() else None],
+        [__file__, here / "edsfile.py", here / "codec.py", here / "frame.py"],
+        packages=("canopen", "cantools"),
+        extra=repr((sorted(prof.messages), [w.describe() for w in prof.sdo],
+                    [(w.index, w.sub, w.value) for w in prof.sdo])))
+
+    def check() -> bool:
+        _check_eds(prof)
+        _check_dbc(prof, list(prof.messages))
+        return True
+
+    diskcache.cached(entry, check)
 
 
 def _check_sections(data: dict[str, Any], source: str) -> None:

@@ -81,3 +81,34 @@ def test_the_dbc_from_the_cache_is_the_parsed_one_and_needs_no_cantools(cache):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, cwd=ROOT, env=env)
     assert out.stdout.strip() == "False"
+
+
+def test_a_drive_profile_checked_once_is_not_checked_again_until_a_file_changes(cache,
+                                                                              tmp_path):
+    """The drive profile's EDS and DBC checks (python-canopen's import and the EDS read)
+    are kept: a second process does not import canopen; a changed EDS is checked again."""
+    import shutil
+
+    from gateway.drive_profile import load_drive_profile
+    from gateway.errors import UserError
+
+    src = ROOT / "gateway" / "drives" / "emulator.toml"
+    for name in ("drive.eds", "drive.dbc", "drive_ab.dbc"):
+        if (DBC_PATH.parent / name).is_file():
+            shutil.copy(DBC_PATH.parent / name, tmp_path / name)
+    text = src.read_text().replace('"builtin:drive.eds"', '"drive.eds"').replace(
+        '"builtin:drive.dbc"', '"drive.dbc"')
+    prof = tmp_path / "drive.toml"
+    prof.write_text(text)
+    load_drive_profile(prof)
+    assert len(list(cache.glob("drive-check-*.pickle"))) == 1
+    code = ("import sys; from gateway.drive_profile import load_drive_profile; "
+            f"load_drive_profile({str(prof)!r}); print('canopen' in sys.modules)")
+    env = {**os.environ, "XDG_CACHE_HOME": str(cache.parent)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=ROOT, env=env)
+    assert out.stdout.strip() == "False"
+    eds = tmp_path / "drive.eds"  # the EDS loses the statusword: checked again, refused
+    eds.write_text(eds.read_text().replace("[6041]", "[6F41]"))
+    with pytest.raises(UserError, match="0x6041"):
+        load_drive_profile(prof)
