@@ -143,14 +143,16 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_fact
     ref.write_text(SLOW_HOLD)
     rc = gateway_run(emu, tmp_path, "--timing", "realtime", "--duration", "3s",
                      "--period", "2ms", "--reference", str(ref), "--max-missed", "500",
-                     "--max-miss-rate", "0.8", "--estimator", "drift-free")
+                     "--max-miss-rate", "1", "--estimator", "drift-free")
     s = json.loads((tmp_path / "summary.json").read_text())
     assert rc == 0, s["run"]
     run_ = s["run"]
     assert run_["cycles"] + run_["missed_cycles"] >= 1495 and run_["cycles"] > 0
     # How many cycles a loaded host misses is the host's to say (a quarter under stress-ng on
-    # 2 cores; BENCHMARKS.md has the idle figures). What must hold: one row per cycle run, at
-    # its cycle's time, with the misses counted so far: the gaps between rows are the misses.
+    # 2 cores; BENCHMARKS.md has the idle figures; a virtual machine that stops for 80 ms
+    # missed 41 of 50 in a row, so no miss rate stops this run). What must hold: one row
+    # per cycle run, at its cycle's time, with the misses counted so far: the gaps between
+    # rows are the misses.
     from gateway.report import read_csv
 
     sig = read_csv(tmp_path / "signals.csv")
