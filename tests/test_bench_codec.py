@@ -30,7 +30,10 @@ def test_quick_run_gives_its_figures() -> None:
     for msg in ("TPDO1", "RPDO2"):
         for op in ("encode", "decode"):
             fast, slow = data[f"{msg}_{op}_fast_us"], data[f"{msg}_{op}_fallback_us"]
-            assert 0 < fast < slow  # cantools costs more than one struct call
+            # both measured (which is faster is the benchmark's to say, BENCHMARKS.md: a
+            # virtual machine that stopped for tens of ms made the struct call's median
+            # 8.6 µs once, above cantools' 7.1 µs)
+            assert fast > 0 and slow > 0
             assert data[f"{msg}_{op}_ratio"] == slow / fast
     assert "TPDO1         7  encode" in p.stdout
 
