@@ -3,13 +3,11 @@ import were 0.3 s of every command that encodes frames)."""
 
 from __future__ import annotations
 
-import os
 import pickle
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from import_support import loaded_after
 
 from dbc import codec, diskcache
 from dbc.codec import DBC_PATH
@@ -76,11 +74,8 @@ def test_the_dbc_from_the_cache_is_the_parsed_one_and_needs_no_cantools(cache):
     kept = codec._parse_kept(DBC_PATH)  # parsed, and kept
     again = codec._parse_kept(DBC_PATH)  # from the disk
     assert pickle.dumps(again) == pickle.dumps(kept) == pickle.dumps(fresh)
-    code = "import sys; from dbc import codec; codec.parse_dbc(); print('cantools' in sys.modules)"
-    env = {**os.environ, "XDG_CACHE_HOME": str(cache.parent)}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, cwd=ROOT, env=env)
-    assert out.stdout.strip() == "False"
+    code = "from dbc import codec; codec.parse_dbc()"
+    assert loaded_after(code, ("cantools",), {"XDG_CACHE_HOME": str(cache.parent)}) == []
 
 
 def test_a_drive_profile_checked_once_is_not_checked_again_until_a_file_changes(cache,
@@ -102,12 +97,9 @@ def test_a_drive_profile_checked_once_is_not_checked_again_until_a_file_changes(
     prof.write_text(text)
     load_drive_profile(prof)
     assert len(list(cache.glob("drive-check-*.pickle"))) == 1
-    code = ("import sys; from gateway.drive_profile import load_drive_profile; "
-            f"load_drive_profile({str(prof)!r}); print('canopen' in sys.modules)")
-    env = {**os.environ, "XDG_CACHE_HOME": str(cache.parent)}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, cwd=ROOT, env=env)
-    assert out.stdout.strip() == "False"
+    code = ("from gateway.drive_profile import load_drive_profile; "
+            f"load_drive_profile({str(prof)!r})")
+    assert loaded_after(code, ("canopen",), {"XDG_CACHE_HOME": str(cache.parent)}) == []
     eds = tmp_path / "drive.eds"  # the EDS loses the statusword: checked again, refused
     eds.write_text(eds.read_text().replace("[6041]", "[6F41]"))
     with pytest.raises(UserError, match="0x6041"):
