@@ -294,8 +294,7 @@ def _check_files(prof: DriveProfile) -> None:
         "drive-check", [prof.eds, prof.dbc, companion if companion.is_file() else None],
         [__file__, here / "edsfile.py", here / "codec.py", here / "frame.py"],
         packages=("canopen", "cantools"),
-        extra=repr((sorted(prof.messages), [w.describe() for w in prof.sdo],
-                    [(w.index, w.sub, w.value) for w in prof.sdo])))
+        extra=repr((sorted(prof.messages), prof.sdo)))
 
     def check() -> bool:
         _check_eds(prof)

@@ -237,6 +237,21 @@ class SampledController:
         assert psi is not None
         return psi
 
+    def _end_frame(self, prev: Interval) -> complex:
+        """e^{−jε} of the frame ``prev`` ends in, for the step whose next interval is the
+        command :meth:`_on_flux` turned (the two frames differ by the turn): from then on
+        the frames are continuous again."""
+        self._turned = None
+        return cmath.exp(-1j * wrap_angle(prev.eps + self._T * prev.w_0))
+
+    @staticmethod
+    def _on_flux(eps_app: float, psi: complex) -> tuple[float, complex, float]:
+        """The first command after cycles without a sample: its frame ``eps_app`` turned
+        onto the flux ``psi`` predicted for its start (docs/sampled-control.md, "Cycles
+        without a sample"): (the frame, the flux in it, the turn)."""
+        turn = cmath.phase(psi)
+        return wrap_angle(eps_app + turn), complex(abs(psi), 0.0), turn
+
     def summary(self) -> dict[str, object] | None:
         """The standstill identification's result (``--identify``) for summary.json."""
         return None if self.commissioning is None else self.commissioning.describe()
@@ -435,10 +450,10 @@ class SampledController:
             psi_end = psi_end_meas
         if di:
             int_ci += int_psi.conjugate() * di
-        if not adapt:
-            return psi_end, w0 + (self._mu * int_ci.imag - self._T * T_L / self._J)
-        return psi_end, w0 + (self._mu * int_ci.imag - self._T * T_L / self._J
-                              + r_mid.psi_ref * int_psi.imag / self._gamma_1)
+        w_end = self._mu * int_ci.imag - self._T * T_L / self._J
+        if adapt:
+            w_end += r_mid.psi_ref * int_psi.imag / self._gamma_1
+        return psi_end, w0 + w_end
 
     # ------------------------------------------------------------------ a cycle
 
@@ -480,8 +495,7 @@ class SampledController:
         di_k = (sample.i_s_ab - i_end_ab) * to_k
         if self._turned is not None and hist[1] is self._turned:
             # the frame was set on the flux at I_k's start: I_{k−1} ends in its own frame
-            self._turned = None
-            to_end = cmath.exp(-1j * wrap_angle(prev.eps + T * prev.w_0))
+            to_end = self._end_frame(prev)
             psi_end, di_end = psi_ab * to_end, (sample.i_s_ab - i_end_ab) * to_end
         else:
             psi_end, di_end = psi_k, di_k
@@ -510,9 +524,7 @@ class SampledController:
             # speed error (docs/sampled-control.md, "Cycles without a sample").
             self._coasted = False
             if d:
-                turn = cmath.phase(psi)
-                eps_app = wrap_angle(eps_app + turn)
-                psi = complex(abs(psi), 0.0)
+                eps_app, psi, _ = self._on_flux(eps_app, psi)
                 turned = True
         # the command for I_{k+d}: references and ω̂ at its midpoint
         r0, r = win[self._cmd_refs]
@@ -872,8 +884,7 @@ class FullOrderSampledController(SampledController):
         # the frame set on the flux at I_k's start: I_{k−1} ends in its own frame
         jumped = self._turned is not None and hist[1] is self._turned
         if jumped:
-            self._turned = None
-            rot_end = cmath.exp(-1j * wrap_angle(prev.eps + T * prev.w_0))
+            rot_end = self._end_frame(prev)
             i_e, psi_e = sample.i_s_ab * rot_end, psi_ab * rot_end
         else:
             i_e, psi_e = i_k, psi_k
@@ -925,28 +936,26 @@ class FullOrderSampledController(SampledController):
         if self._coasted:  # the frame set on the flux (SampledController.step)
             self._coasted = False
             if d:
-                turn = cmath.phase(psi)
-                eps_app = wrap_angle(eps_app + turn)
+                eps_app, psi_turned, turn = self._on_flux(eps_app, psi)
                 # the held commands' current references were the stalled law's: the
                 # current error (28) over them is the hold's, not the estimate's, and (32)
                 # would read it as one; their references become the modelled current
                 if d == 1:
                     hist[1] = hist[1]._replace(i_ref0=i_k, i_ref1=i)
                 i *= cmath.exp(-1j * turn)
-                psi = complex(abs(psi), 0.0)
+                psi = psi_turned
                 turned = True
         # the command for I_{k+d} = (t0, t0 + T], t0 = (k + d)·T
         r0, rh, r1 = win[self._cmd_refs]
         T_L = r0.T_L
-        if self._k > d + 1 and not turned:
-            i_ref0 = last.i_ref1
-            # (27), (32) at t0 with i_ref0 = the end reference of I_{k+d−1}: the rate the
-            # model ended that interval with, when its load is this one (the same number)
-            f0 = (f_end if T_L is load_end or (load_end == T_L and T_L != 0.0)  # _same_number
+        if self._k > d + 1:
+            # i_ref0 = the end reference of I_{k+d−1} (the frame turned: the current), and
+            # (27), (32) at t0 with it: the rate the model ended that interval with, when its
+            # load is this one (the same number) and the frame did not turn
+            i_ref0 = i if turned else last.i_ref1
+            f0 = (f_end if not turned and (T_L is load_end
+                                           or (load_end == T_L and T_L != 0.0))  # _same_number
                   else self._fo_rate(psi, i, i_ref0, r0, T_L))
-        elif self._k > d + 1:  # the frame turned: the rate in it, from the current
-            i_ref0 = i
-            f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
         else:
             i_ref0 = complex(*self._currents(r0, w, T_L)[:2])
             f0 = self._fo_rate(psi, i, i_ref0, r0, T_L)
