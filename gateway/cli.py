@@ -206,7 +206,13 @@ def _drive_defaults(args: argparse.Namespace, drive: Any) -> None:
 
 
 def _add_control_options(p: argparse.ArgumentParser) -> None:
-    from gateway.control.controller import Discretisation, EstimatorKind, FluxSource, Law
+    from gateway.control.controller import (
+        Discretisation,
+        EstimatorKind,
+        FluxSource,
+        InertiaSource,
+        Law,
+    )
     from gateway.control.laws import Gains
 
     g = Gains()
@@ -260,6 +266,13 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "first moves) and use them from then on; summary.json says what was "
                         "found (docs/robustness.md §5). On by default in sampled runs; "
                         "--no-identify: the motor file's values throughout")
+    p.add_argument("--inertia", type=InertiaSource, choices=list(InertiaSource),
+                   default=InertiaSource.FILE,
+                   help="the rotor's inertia J in the laws: file (default: the motor file's "
+                        "J throughout, the paper) or tracked (estimated on line from the "
+                        "measured flux and applied once the data reject the file's J; "
+                        "current-fed law, sampled-data design, load known; "
+                        "docs/robustness.md §9)")
     p.add_argument("--commissioning", action=argparse.BooleanOptionalAction, default=None,
                    help="correct the current sensors' offsets and gain and the inverter's "
                         "dead time that the motor file's [commissioning] table holds "
@@ -402,7 +415,8 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
         law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=o.drive_mode,
         sampling=o.sampling, quantize=not args.no_quantize, gains=o.gains,
         duration=o.duration, discretisation=_design(args, load), plant=plant, load=load,
-        identify=args.identify, correction=o.correction, controller=o.controller,
+        identify=args.identify, inertia=args.inertia, correction=o.correction,
+        controller=o.controller,
     )
     if plant is not None and plant.bus_faults:
         _check_simulated_faults(spec, args.plant or plant.source)
@@ -680,7 +694,7 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
         plant=plant, load=load, discretisation=_design(args, load),
-        identify=args.identify, correction=_correction(args, True),
+        identify=args.identify, inertia=args.inertia, correction=_correction(args, True),
         controller=_controller_choice(args, controller_params),
     )
 

@@ -22,6 +22,7 @@ from gateway.control.controller import (
     Discretisation,
     EstimatorKind,
     FluxSource,
+    InertiaSource,
     Law,
     LoadSource,
     as_enum,
@@ -83,7 +84,7 @@ def default_discretisation(load: LoadSource | str) -> Discretisation:
 _ENUMS = (("law", Law, "law"), ("flux", FluxSource, "flux source"),
           ("estimator", EstimatorKind, "estimator"), ("drive_mode", DriveMode, "drive mode"),
           ("timing", Timing, "timing"), ("discretisation", Discretisation, "discretisation"),
-          ("load", LoadSource, "load mode"))
+          ("load", LoadSource, "load mode"), ("inertia", InertiaSource, "inertia"))
 
 
 @dataclass(frozen=True)
@@ -96,8 +97,10 @@ class RunSpec:
     drift-free estimator's corner, rad/s), ``discretisation`` (EXACT, the sampled-data
     design of docs/sampled-control.md, or EULER), ``load`` (:class:`LoadSource`: the T_L the
     laws are told), ``identify`` (R_s, R_r from the standstill magnetisation; None: in every
-    sampled run, :attr:`identifies`), ``correction`` (the commissioning's sensor offsets,
-    gain and dead time, corrected around the controller; None: none), and the
+    sampled run, :attr:`identifies`), ``inertia`` (:class:`InertiaSource`: the motor
+    file's J, the default, or tracked on line by the sampled-data design), ``correction`` (the
+    commissioning's sensor offsets, gain and dead time, corrected around the controller;
+    None: none), and the
     controller's state at t = 0: ``w_hat_0`` (rad/s), ``eps_0`` (rad).
 
     The drive and the sampling: ``drive_mode`` (:class:`DriveMode`); ``sampling`` (period,
@@ -126,6 +129,7 @@ class RunSpec:
     discretisation: Discretisation = Discretisation.EXACT
     load: LoadSource = LoadSource.KNOWN
     identify: bool | None = None
+    inertia: InertiaSource = InertiaSource.FILE
     correction: SensorCorrection | None = None
     w_hat_0: float = 0.0
     eps_0: float = 0.0
@@ -244,7 +248,7 @@ class RunSpec:
             sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
             discretisation=self.discretisation, current_lag=current_lag,
             load=self.load, **load_config(self.load, self.drive_mode),
-            identify=self.identifies)
+            identify=self.identifies, inertia=self.inertia)
 
     def describe(self) -> dict[str, Any]:
         """A JSON-able description (summary.json's configuration)."""

@@ -80,6 +80,17 @@ class LoadSource(StrEnum):
     UNTOLD = "untold"
 
 
+class InertiaSource(StrEnum):
+    """FILE: the laws take the motor file's J (the paper); TRACKED: the sampled-data design
+    estimates J/J_true on line from the measured flux and applies it once the data reject
+    the file's J (:mod:`gateway.control.inertia_tracker`, docs/robustness.md §9): the
+    current-fed law, the load known only (an untold or observed load would read as
+    inertia)."""
+
+    FILE = "file"
+    TRACKED = "tracked"
+
+
 def untold(refs: Refs) -> RefsWithLoad:
     """``refs`` with T_L = dT_L/dt = 0: what the laws get when they are not told the load."""
     return RefsWithLoad(refs.w_ref, refs.dw_ref, refs.ddw_ref, refs.psi_ref, refs.dpsi_ref,
@@ -135,6 +146,7 @@ class ControllerConfig:
         (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).
     identify: identify R_s and R_r during the standstill magnetisation and use them from the
         first sample the speed reference moves (:mod:`gateway.control.commissioning`).
+    inertia: :class:`InertiaSource` (the exact design; the Euler design takes the file's).
     """
 
     law: Law = Law.CURRENT_FED
@@ -150,6 +162,7 @@ class ControllerConfig:
     load_speed_gain: float = 300.0
     load_current_rise: float = 0.0
     identify: bool = False
+    inertia: InertiaSource = InertiaSource.FILE
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "law", as_enum(Law, self.law, "law"))
@@ -159,6 +172,7 @@ class ControllerConfig:
         object.__setattr__(self, "discretisation",
                            as_enum(Discretisation, self.discretisation, "discretisation"))
         object.__setattr__(self, "load", as_enum(LoadSource, self.load, "load mode"))
+        object.__setattr__(self, "inertia", as_enum(InertiaSource, self.inertia, "inertia"))
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
 

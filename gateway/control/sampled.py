@@ -52,6 +52,7 @@ from gateway.control.controller import (
     Discretisation,
     EstimatorKind,
     FluxSource,
+    InertiaSource,
     Law,
     LoadSource,
     law_flux,
@@ -60,6 +61,7 @@ from gateway.control.controller import (
     wrap_angle,
 )
 from gateway.control.estimator import IntervalFluxEstimator, IntervalRsAdaptiveFluxEstimator
+from gateway.control.inertia_tracker import InertiaTracker
 from gateway.control.interface import (
     Command,
     ControllerContext,
@@ -136,12 +138,57 @@ class SampledController:
 
     # slots: a step reads some forty of them; an instance dict of that size loses CPython's
     # fast attribute access (its shared keys hold 30). "__dict__": others may add their own.
-    __slots__ = ("_J", "_M", "_R_s", "_T", "__dict__", "_aM", "_ab", "_alpha", "_base", "_beta",
-                 "_cmd_refs", "_constant_current", "_d", "_di_prev", "_exp_0", "_from_sample",
-                 "_g", "_gamma_1", "_half_T", "_hist", "_i_max2", "_i_prev_ab", "_joined",
-                 "_joining", "_k", "_k_r", "_k_w_warped", "_kept", "_lag", "_mu", "_phi_0",
-                 "_psi_prev", "_refs", "_sigma", "_true_flux", "_w_prev", "commissioning",
-                 "config", "eps_0", "estimator", "motor", "refs_at", "w_hat")
+    __slots__ = (
+        "_J",
+        "_M",
+        "_R_s",
+        "_T",
+        "__dict__",
+        "_aM",
+        "_a_int",
+        "_ab",
+        "_alpha",
+        "_base",
+        "_beta",
+        "_cmd_refs",
+        "_constant_current",
+        "_d",
+        "_di_prev",
+        "_e_hat",
+        "_exp_0",
+        "_from_sample",
+        "_g",
+        "_gamma_1",
+        "_half_T",
+        "_hist",
+        "_i_max2",
+        "_i_prev_ab",
+        "_joined",
+        "_joining",
+        "_k",
+        "_k_r",
+        "_k_w_warped",
+        "_kept",
+        "_lag",
+        "_measured",
+        "_mu",
+        "_phi_0",
+        "_psi_prev",
+        "_refs",
+        "_rho",
+        "_sigma",
+        "_true_flux",
+        "_w_mid",
+        "_w_prev",
+        "commissioning",
+        "config",
+        "eps_0",
+        "estimator",
+        "inertia",
+        "motor",
+        "refs_at",
+        "w_hat",
+    )
     signals = PAPER_SIGNALS
     #: reference instants n·T/2 a step reads, beyond 2(k − 1) … 2(k + d) + 1
     _lookahead = 0
@@ -171,6 +218,15 @@ class SampledController:
         self._from_sample = self._lag > 0.0
         # (d, q) setpoints from an ideal source: one constant term, i(τ) = I (_interval_dq)
         self._constant_current = not self._ab and self._lag == 0.0
+        # J/J_true applied to (15), (16) (1: the motor file's J) and its tracker
+        # (config.inertia; the load known only: an untold one would read as inertia)
+        self._rho = 1.0
+        self.inertia = (InertiaTracker() if config.inertia is InertiaSource.TRACKED
+                        and config.load is LoadSource.KNOWN else None)
+        self._w_mid = 0.0  # ω̂ at the midpoint of the interval the last _advance modelled
+        self._a_int = 0.0  # and its mechanical copy's ∫dω̂/dt (without (20))
+        self._e_hat = 0.0  # and the measured flux's reading of its error, (I1)
+        self._measured = False  # the last step's flux was measured (not a coast's model)
         self._set_motor(motor)
         # what depends on the period and the gains only
         self._half_T = 0.5 * T
@@ -292,14 +348,36 @@ class SampledController:
         self.motor = motor
         self._alpha = motor.alpha
         self._M = motor.M
-        self._J = motor.J
+        self._J = motor.J / self._rho
         self._R_s = motor.R_s
-        self._mu = motor.mu
+        self._mu = motor.mu * self._rho
         self._sigma = motor.sigma
         self._beta = motor.beta
         self._aM = motor.alpha * motor.M
         self._k_r = motor.beta * motor.sigma  # M/L_r
         self._kept: tuple | None = None  # a model of the old motor: not for the next step
+
+    def _track_inertia(self, A: float, psi_k: complex | None) -> float | None:
+        """The inertia tracker's step over the interval just ended (``A``: ∫dω̂/dt of the
+        mechanical copy with the applied J, rad/s; ``psi_k``: the measured flux at its end,
+        None where it is not a measurement of that interval): applies its ρ and returns the
+        speed ω̂ takes where the tracker has just rejected the file's J (else None)."""
+        tracker = self.inertia
+        assert tracker is not None
+        rho_applied = self._rho
+        if psi_k is None:
+            rho = tracker.coast(A / rho_applied)
+        else:
+            rho = tracker.update(self._w_mid, self._e_hat, A / rho_applied,
+                                 psi_k.real * psi_k.real + psi_k.imag * psi_k.imag)
+        if rho != rho_applied:
+            self._rho = rho
+            self._J = self.motor.J / rho
+            self._mu = self.motor.mu * rho
+        if tracker.reset:
+            tracker.reset = False
+            return tracker.speed
+        return None
 
     # ------------------------------------------------------------------ the model
 
@@ -432,6 +510,7 @@ class SampledController:
         kept = self._kept
         if adapt and kept is not None and kept[0] is c and kept[1] is psi0 and kept[2] is w0:
             psi_end, int_psi, int_ci = kept[3]
+            self._w_mid = kept[4]
         else:
             i = c.i_dq  # the speed at the midpoint, with dω̂/dt of (16), (20) (_rate, inline)
             v = r_mid.psi_ref * psi0.imag / self._gamma_1 if adapt else 0.0
@@ -440,10 +519,14 @@ class SampledController:
             model = (self._interval_dq(i, c.w_0, psi0, w_m) if terms is None
                      else self._interval(c, psi0, w_m, terms))
             if keep:
-                self._kept = (c, psi0, w0, model)
+                self._kept = (c, psi0, w0, model, w_m)
+            self._w_mid = w_m
             psi_end, int_psi, int_ci = model
         if psi_end_meas is not None:
             delta = psi_end_meas - psi_end
+            if self.inertia is not None and int_psi:
+                # (I1): the measured flux turned from the model's by −j(ω̂_m − ω)∫ψ
+                self._e_hat = -(delta / int_psi).imag
             int_psi += self._half_T * delta
             int_ci += self._half_T * delta.conjugate() * (c.i_dq if terms is None
                                                           else terms[0][0])
@@ -451,6 +534,7 @@ class SampledController:
         if di:
             int_ci += int_psi.conjugate() * di
         w_end = self._mu * int_ci.imag - self._T * T_L / self._J
+        self._a_int = w_end
         if adapt:
             w_end += r_mid.psi_ref * int_psi.imag / self._gamma_1
         return psi_end, w0 + w_end
@@ -486,6 +570,11 @@ class SampledController:
             psi_ab = law_flux(True, sample, psi_ab)
         to_k = cmath.exp(-1j * eps_k)
         psi_k = psi_ab * to_k
+        # the flux at t_k measures I_{k−1} (the inertia tracker): not at the sample that
+        # switches from the standstill's current model to the voltage model, nor while the
+        # current model holds the frame, nor from a coast's modelled start
+        measured = (self._measured and not self._joining
+                    and (self.commissioning is None or not self.commissioning.pending))
         if self._joining:
             self._join(psi_k.real - refs.psi_ref, k)
         # ω̂ at t_k: (16), (20) integrated over I_{k−1}, model corrected by the measured end
@@ -497,12 +586,18 @@ class SampledController:
             # the frame was set on the flux at I_k's start: I_{k−1} ends in its own frame
             to_end = self._end_frame(prev)
             psi_end, di_end = psi_ab * to_end, (sample.i_s_ab - i_end_ab) * to_end
+            measured = False
         else:
             psi_end, di_end = psi_k, di_k
         di = 0.5 * (self._di_prev + di_end)
         self._di_prev = di_k
         _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms, psi_end,
                                di, False)
+        if self.inertia is not None:
+            w_reset = self._track_inertia(self._a_int, psi_k if measured else None)
+            if w_reset is not None:
+                w_k = w_reset
+        self._measured = True
         self.w_hat = w_k
         # predict through the committed intervals I_k … I_{k+d−1}
         psi, w, i0 = psi_k, w_k, sample.i_s_ab
@@ -670,6 +765,9 @@ class SampledController:
             psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms,
                                        adapt=False)
             i_end_ab = self._current(prev, terms)[1]
+        if self.inertia is not None:
+            self._track_inertia(self._a_int, None)
+        self._measured = False
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
         self._i_prev_ab = i_end_ab
@@ -736,6 +834,10 @@ class FullOrderSampledController(SampledController):
                                    eps_0, w_hat)
         self.config = config
         self._from_sample = True  # the voltage drive's trajectory from the measured current
+        # the inertia tracker is the current-fed law's (docs/robustness.md §9): here its
+        # reading of the flux, on the voltage drive's trajectory, rejected the file's J on
+        # a 10 mA offset
+        self.inertia = None
         g = self._g
         self._gamma_2 = g.gamma_2
         self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
