@@ -149,7 +149,10 @@ def test_sync_jitter_without_a_counter_is_not_a_foreign_sync(foreign, tmp_path, 
                  "--duration", "0.5s", "--max-miss-rate", "1")
     assert len(held) > 10
     assert s["run"]["stop"] != "FOREIGN_SYNC", s["run"]
-    assert rc == 0, s["run"]
+    # a host that stops the process for tens of ms in the speed step (a VM's stall) can
+    # leave a real speed error the divergence guard stops: that is timing, not this test's
+    # question; any other end is a failure
+    assert rc == 0 or s["run"]["stop"] == "DIVERGED", s["run"]
 
 
 @pytest.mark.timing
