@@ -348,14 +348,18 @@ class SampledController:
         self.motor = motor
         self._alpha = motor.alpha
         self._M = motor.M
-        self._J = motor.J / self._rho
+        self._scale_inertia()
         self._R_s = motor.R_s
-        self._mu = motor.mu * self._rho
         self._sigma = motor.sigma
         self._beta = motor.beta
         self._aM = motor.alpha * motor.M
         self._k_r = motor.beta * motor.sigma  # M/L_r
         self._kept: tuple | None = None  # a model of the old motor: not for the next step
+
+    def _scale_inertia(self) -> None:
+        """J and μ of the laws with the applied ρ = J_file/J (1: the motor file's)."""
+        self._J = self.motor.J / self._rho
+        self._mu = self.motor.mu * self._rho
 
     def _track_inertia(self, A: float, psi_k: complex | None) -> float | None:
         """The inertia tracker's step over the interval just ended (``A``: ∫dω̂/dt of the
@@ -372,8 +376,7 @@ class SampledController:
                                  psi_k.real * psi_k.real + psi_k.imag * psi_k.imag)
         if rho != rho_applied:
             self._rho = rho
-            self._J = self.motor.J / rho
-            self._mu = self.motor.mu * rho
+            self._scale_inertia()
         if tracker.reset:
             tracker.reset = False
             return tracker.speed
@@ -830,14 +833,14 @@ class FullOrderSampledController(SampledController):
                  eps_0: float = 0.0, w_hat: float = 0.0) -> None:
         if config.law is not Law.FULL_ORDER:
             raise ValueError("FullOrderSampledController implements the full-order law only")
-        SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED), refs_at,
-                                   eps_0, w_hat)
-        self.config = config
-        self._from_sample = True  # the voltage drive's trajectory from the measured current
         # the inertia tracker is the current-fed law's (docs/robustness.md §9): here its
         # reading of the flux, on the voltage drive's trajectory, rejected the file's J on
         # a 10 mA offset
-        self.inertia = None
+        SampledController.__init__(
+            self, motor, replace(config, law=Law.CURRENT_FED, inertia=InertiaSource.FILE),
+            refs_at, eps_0, w_hat)
+        self.config = config
+        self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
         self._gamma_2 = g.gamma_2
         self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
