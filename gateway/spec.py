@@ -100,8 +100,7 @@ class RunSpec:
     sampled run, :attr:`identifies`), ``inertia`` (:class:`InertiaSource`: the motor
     file's J, the default, or tracked on line by the sampled-data design), ``correction`` (the
     commissioning's sensor offsets, gain and dead time, corrected around the controller;
-    None: none), and the
-    controller's state at t = 0: ``w_hat_0`` (rad/s), ``eps_0`` (rad).
+    None: none), and the controller's state at t = 0: ``w_hat_0`` (rad/s), ``eps_0`` (rad).
 
     The drive and the sampling: ``drive_mode`` (:class:`DriveMode`); ``sampling`` (period,
     delay, setpoint frame; None: continuous time, in-process simulation of the paper's laws

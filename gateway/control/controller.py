@@ -146,7 +146,8 @@ class ControllerConfig:
         (p in rad/s, k_s in 1/s, ρ; see :mod:`gateway.control.load_observer`).
     identify: identify R_s and R_r during the standstill magnetisation and use them from the
         first sample the speed reference moves (:mod:`gateway.control.commissioning`).
-    inertia: :class:`InertiaSource` (the exact design; the Euler design takes the file's).
+    inertia: :class:`InertiaSource` (the current-fed law's exact design; the other designs
+        take the file's J).
     """
 
     law: Law = Law.CURRENT_FED
