@@ -267,12 +267,13 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                         "found (docs/robustness.md §5). On by default in sampled runs; "
                         "--no-identify: the motor file's values throughout")
     p.add_argument("--inertia", type=InertiaSource, choices=list(InertiaSource),
-                   default=InertiaSource.FILE,
-                   help="the rotor's inertia J in the laws: file (default: the motor file's "
-                        "J throughout, the paper) or tracked (estimated on line from the "
-                        "measured flux and applied once the data reject the file's J; "
-                        "current-fed law, sampled-data design, load known; "
-                        "docs/robustness.md §9)")
+                   default=InertiaSource.TRACKED,
+                   help="the rotor's inertia J in the laws: tracked (default: estimated on "
+                        "line from the measured flux and applied once the data reject the "
+                        "motor file's J; current-fed law, sampled-data design, load known, "
+                        "not with the R_s adaptation; elsewhere the file's J, and "
+                        "summary.json says why) or file (the motor file's J throughout, the "
+                        "paper); docs/robustness.md §9")
     p.add_argument("--commissioning", action=argparse.BooleanOptionalAction, default=None,
                    help="correct the current sensors' offsets and gain and the inverter's "
                         "dead time that the motor file's [commissioning] table holds "

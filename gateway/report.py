@@ -310,6 +310,10 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
         return (f"rotating test ({ident['samples']} samples): J {v['J']['value']:.4g} kg·m² "
                 f"± {v['J']['std']:.2g}, friction {v['friction_viscous']['value']:.3g} N·m·s "
                 f"viscous, {v['friction_coulomb']['value']:.3g} N·m Coulomb")
+    inertia = inertia_line(ident.get("inertia"))
+    if "accepted" not in ident and "reason" not in ident:  # the inertia tracker alone
+        return inertia
+    inertia = f"; {inertia}" if inertia else ""
     if ident.get("accepted"):
         sensors = ""
         if ident.get("sensors_corrected"):
@@ -318,8 +322,23 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
                        f"phase b's gain {ident['gain_b']:.4f}")
         return (f"identified at standstill ({ident['samples']} samples): R_s "
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s)"
-                f"{sensors}, used from the end of the magnetisation")
-    return f"standstill identification not applied: {ident.get('reason', '')}"
+                f"{sensors}, used from the end of the magnetisation{inertia}")
+    return f"standstill identification not applied: {ident.get('reason', '')}{inertia}"
+
+
+def inertia_line(found: Mapping[str, Any] | None) -> str:
+    """What the inertia tracker found (``identification.inertia`` of summary.json), or ""."""
+    if not found:
+        return ""
+    stopped = (", readings stopped after a coast of lost samples" if found.get("stopped")
+               else "")
+    if found.get("applied"):
+        return (f"J tracked on line: {found['J']:.4g} kg·m² from {found['at']:.3f} s "
+                f"(motor file {found['J_file']:.4g}{stopped})")
+    if "reason" in found:
+        return f"the motor file's J {found['J_file']:.4g} kg·m² ({found['reason']})"
+    return (f"the motor file's J {found['J_file']:.4g} kg·m² kept (on line J_file/J = "
+            f"{found['ratio']:.4f} ± {found['ratio_std']:.4f}{stopped})")
 
 
 #: The bus signals the loop uses, by message (the setpoint message depends on the frame).

@@ -128,7 +128,7 @@ class RunSpec:
     discretisation: Discretisation = Discretisation.EXACT
     load: LoadSource = LoadSource.KNOWN
     identify: bool | None = None
-    inertia: InertiaSource = InertiaSource.FILE
+    inertia: InertiaSource = InertiaSource.TRACKED
     correction: SensorCorrection | None = None
     w_hat_0: float = 0.0
     eps_0: float = 0.0

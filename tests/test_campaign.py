@@ -544,7 +544,9 @@ def test_report_of_a_campaign_is_one_page_with_its_points_criteria_and_figures(t
     import html as html_lib
     import re
 
-    camp = write(tmp_path / "small.toml", SMALL.replace('"< 0.2"', '"< 1.5"'))
+    # the motor file's J held (J tracked on line, all four points would pass)
+    camp = write(tmp_path / "small.toml", SMALL.replace('"< 0.2"', '"< 1.5"').replace(
+        'estimator = "drift-free"', 'estimator = "drift-free"\ninertia = "file"'))
     out = tmp_path / "out"
     main(["campaign", str(camp), "--out", str(out), "--in-process"])
     rows = pq.read_table(out / "results.parquet").to_pylist()

@@ -159,7 +159,11 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_fact
     assert len(sig["t"]) == run_["cycles"]
     steps = np.rint(np.diff(sig["t"]) / 2e-3).astype(int)
     np.testing.assert_array_equal(steps - 1, np.diff(sig["missed"]))
-    assert sig["missed"][-1] <= run_["missed_cycles"] <= sig["missed"][-1] + 1
+    # the misses after the last row (a host that stalls at the end: 36 of them once under
+    # load) are the cycles left in the run after it
+    trailing = run_["missed_cycles"] - sig["missed"][-1]
+    assert trailing >= 0
+    assert sig["t"][-1] + trailing * 2e-3 <= 3.0 + 2e-3 + 1e-9, (sig["t"][-1], trailing)
     assert 2.9 < run_["wall_time_s"] < 8.0  # paced by the clock, not as fast as possible
     t = s["timing"]
     assert t["sync_period"]["median"] == pytest.approx(2e-3, rel=0.05)

@@ -85,7 +85,8 @@ class InertiaSource(StrEnum):
     estimates J/J_true on line from the measured flux and applies it once the data reject
     the file's J (:mod:`gateway.control.inertia_tracker`, docs/robustness.md §9): the
     current-fed law, the load known only (an untold or observed load would read as
-    inertia)."""
+    inertia), not with the R_s adaptation. A run's default (:class:`gateway.spec.RunSpec`)
+    is TRACKED; this config's is FILE, like its other paper defaults."""
 
     FILE = "file"
     TRACKED = "tracked"

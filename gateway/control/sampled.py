@@ -163,6 +163,8 @@ class SampledController:
         "_hist",
         "_i_max2",
         "_i_prev_ab",
+        "_inertia_off",
+        "_int_psi",
         "_joined",
         "_joining",
         "_k",
@@ -176,6 +178,7 @@ class SampledController:
         "_psi_prev",
         "_refs",
         "_rho",
+        "_rho_at",
         "_sigma",
         "_true_flux",
         "_w_mid",
@@ -219,13 +222,23 @@ class SampledController:
         # (d, q) setpoints from an ideal source: one constant term, i(τ) = I (_interval_dq)
         self._constant_current = not self._ab and self._lag == 0.0
         # J/J_true applied to (15), (16) (1: the motor file's J) and its tracker
-        # (config.inertia; the load known only: an untold one would read as inertia)
+        # (config.inertia; docs/robustness.md §9): the load known only (an untold or
+        # observed one reads as inertia), and not with the R_s adaptation (its law moves
+        # the flux estimate on the same mismatch the tracker reads: measured, it rejected
+        # the file's J on the nominal motor and at zero speed)
         self._rho = 1.0
+        self._rho_at: int | None = None  # the sample the tracker's ρ̂ was first applied
+        self._inertia_off = (
+            None if config.inertia is not InertiaSource.TRACKED
+            else "the load is not known" if config.load is not LoadSource.KNOWN
+            else "the R_s adaptation moves the flux it reads"
+            if config.estimator is EstimatorKind.RS_ADAPTIVE else None)
         self.inertia = (InertiaTracker() if config.inertia is InertiaSource.TRACKED
-                        and config.load is LoadSource.KNOWN else None)
+                        and self._inertia_off is None else None)
         self._w_mid = 0.0  # ω̂ at the midpoint of the interval the last _advance modelled
         self._a_int = 0.0  # and its mechanical copy's ∫dω̂/dt (without (20))
         self._e_hat = 0.0  # and the measured flux's reading of its error, (I1)
+        self._int_psi = 0j  # and the model's ∫ψ dτ over it
         self._measured = False  # the last step's flux was measured (not a coast's model)
         self._set_motor(motor)
         # what depends on the period and the gains only
@@ -309,8 +322,24 @@ class SampledController:
         return wrap_angle(eps_app + turn), complex(abs(psi), 0.0), turn
 
     def summary(self) -> dict[str, object] | None:
-        """The standstill identification's result (``--identify``) for summary.json."""
-        return None if self.commissioning is None else self.commissioning.describe()
+        """For summary.json's ``identification``: the standstill identification's result
+        (``--identify``) and, under ``inertia``, what the inertia tracker found (J applied,
+        the motor file's, ρ̂ = J_file/J with its standard deviation, and the time it was
+        applied, None while the file's J stands)."""
+        found = None if self.commissioning is None else dict(self.commissioning.describe())
+        tracker = self.inertia
+        if tracker is not None:
+            found = found if found is not None else {}
+            found["inertia"] = {
+                "J": self._J, "J_file": self.motor.J, "applied": tracker.switched,
+                "ratio": tracker.rho, "ratio_std": tracker.rho_std,
+                "at": None if self._rho_at is None else self._rho_at * self._T,
+                "stopped": tracker.frozen}
+        elif self._inertia_off is not None:
+            found = found if found is not None else {}
+            found["inertia"] = {"J": self._J, "J_file": self.motor.J, "applied": False,
+                                "reason": f"not tracked: {self._inertia_off}"}
+        return found
 
     def _join(self, e: float, k: int) -> None:
         """At the sample t_k that applies the standstill identification: the flux
@@ -361,19 +390,31 @@ class SampledController:
         self._J = self.motor.J / self._rho
         self._mu = self.motor.mu * self._rho
 
-    def _track_inertia(self, A: float, psi_k: complex | None) -> float | None:
+    def _track_inertia(self, A: float, psi_k: complex | None, eps_k: float = 0.0,
+                       lost: bool = False) -> float | None:
         """The inertia tracker's step over the interval just ended (``A``: ∫dω̂/dt of the
-        mechanical copy with the applied J, rad/s; ``psi_k``: the measured flux at its end,
-        None where it is not a measurement of that interval): applies its ρ and returns the
-        speed ω̂ takes where the tracker has just rejected the file's J (else None)."""
+        mechanical copy with the applied J, rad/s; ``psi_k``: the measured flux at its end in
+        the frame of ``eps_k``, None where it is not a measurement of that interval): applies
+        its ρ and returns the speed ω̂ takes where the tracker has just rejected the file's J
+        (else None). ``lost``: the controller coasted through the interval (a lost sample)."""
         tracker = self.inertia
         assert tracker is not None
         rho_applied = self._rho
-        if psi_k is None:
+        if lost:
             rho = tracker.coast(A / rho_applied)
+        elif psi_k is None:
+            rho = tracker.update(0.0, 0.0, A / rho_applied, 0.0)
         else:
+            # (I3): a flux error D constant in (a, b), D·e^{−jε_k} in the frame, left by the
+            # model's own rotation over the interval: y gains Im(g·D)
+            int_psi = self._int_psi
+            g = (cmath.exp(-1j * eps_k) * (1.0 - cmath.exp(complex(-self._alpha, self._w_mid)
+                                                            * self._T)) / int_psi
+                 if int_psi else 0j)
             rho = tracker.update(self._w_mid, self._e_hat, A / rho_applied,
-                                 psi_k.real * psi_k.real + psi_k.imag * psi_k.imag)
+                                 psi_k.real * psi_k.real + psi_k.imag * psi_k.imag, g)
+            if tracker.reset:
+                self._rho_at = self._k
         if rho != rho_applied:
             self._rho = rho
             self._scale_inertia()
@@ -530,6 +571,7 @@ class SampledController:
             if self.inertia is not None and int_psi:
                 # (I1): the measured flux turned from the model's by −j(ω̂_m − ω)∫ψ
                 self._e_hat = -(delta / int_psi).imag
+                self._int_psi = int_psi
             int_psi += self._half_T * delta
             int_ci += self._half_T * delta.conjugate() * (c.i_dq if terms is None
                                                           else terms[0][0])
@@ -597,7 +639,7 @@ class SampledController:
         _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms, psi_end,
                                di, False)
         if self.inertia is not None:
-            w_reset = self._track_inertia(self._a_int, psi_k if measured else None)
+            w_reset = self._track_inertia(self._a_int, psi_k if measured else None, eps_k)
             if w_reset is not None:
                 w_k = w_reset
         self._measured = True
@@ -769,7 +811,7 @@ class SampledController:
                                        adapt=False)
             i_end_ab = self._current(prev, terms)[1]
         if self.inertia is not None:
-            self._track_inertia(self._a_int, None)
+            self._track_inertia(self._a_int, None, lost=True)
         self._measured = False
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
@@ -835,11 +877,13 @@ class FullOrderSampledController(SampledController):
             raise ValueError("FullOrderSampledController implements the full-order law only")
         # the inertia tracker is the current-fed law's (docs/robustness.md §9): here its
         # reading of the flux, on the voltage drive's trajectory, rejected the file's J on
-        # a 10 mA offset
+        # a 10 mA offset (with (I2) alone)
         SampledController.__init__(
             self, motor, replace(config, law=Law.CURRENT_FED, inertia=InertiaSource.FILE),
             refs_at, eps_0, w_hat)
         self.config = config
+        if config.inertia is InertiaSource.TRACKED:
+            self._inertia_off = "the full-order law keeps the motor file's J"
         self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
         self._gamma_2 = g.gamma_2
