@@ -246,17 +246,17 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--discretisation", type=Discretisation, choices=list(Discretisation),
                    help="sampled controller: exact (the sampled-data design of "
                         "docs/sampled-control.md) or euler (the continuous laws stepped with "
-                        "forward Euler, the earlier design); default exact, euler with "
-                        "an observed load (the exact design has no load observer); the "
+                        "forward Euler, the earlier design); default exact; the "
                         "full-order law has an exact design for voltage-fed "
                         "(d, q) drives only")
     p.add_argument("--motor", metavar="FILE", help="motor parameters (TOML, SI units; template: "
                    "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     p.add_argument("--load", choices=("known", "observed", "untold"),
                    help="the load torque for the laws: known (the profile's T_L, the paper, "
-                        "docs/paper.md §E6), observed (estimated by the load observer; "
-                        "current-fed law; exact plants only so far, see BENCHMARKS.md) or "
-                        "untold (the laws assume none: T_L = 0); default: the plant "
+                        "docs/paper.md §E6), observed (estimated on line, current-fed law: "
+                        "in the exact design from the measured flux with the inertia, "
+                        "docs/robustness.md §10; in the Euler design by its load observer, "
+                        "§2) or untold (the laws assume none: T_L = 0); default: the plant "
                         "scenario's [load].known, else known where the drive applies the "
                         "profile's load (the emulator, a drive profile with a T_L signal) and "
                         "untold where it cannot")
@@ -292,13 +292,12 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="current-vector limit of the setpoints, A (%(default)s)")
 
 
-def _design(args: argparse.Namespace, load: str) -> Any:
-    """--discretisation, else :func:`gateway.spec.default_discretisation`."""
-    from gateway.spec import default_discretisation
+def _design(args: argparse.Namespace) -> Any:
+    """--discretisation, else the sampled-data design (it has every estimator and load
+    mode)."""
+    from gateway.control.controller import Discretisation
 
-    if args.discretisation is not None:
-        return args.discretisation
-    return default_discretisation(load)
+    return Discretisation.EXACT if args.discretisation is None else args.discretisation
 
 
 def _load_mode(args: argparse.Namespace, plant: Any, drive: Any = None) -> str:
@@ -415,7 +414,7 @@ def simulate_inputs(args: argparse.Namespace, plant: Any = None,
     spec = RunSpec(
         law=args.law, flux=args.flux, estimator=args.estimator, drive_mode=o.drive_mode,
         sampling=o.sampling, quantize=not args.no_quantize, gains=o.gains,
-        duration=o.duration, discretisation=_design(args, load), plant=plant, load=load,
+        duration=o.duration, discretisation=_design(args), plant=plant, load=load,
         identify=args.identify, inertia=args.inertia, correction=o.correction,
         controller=o.controller,
     )
@@ -694,7 +693,7 @@ def _run_spec(args: argparse.Namespace, drive: Any, plant: Any = None,
                     else 5),
         max_miss_rate=args.max_miss_rate,
         duration=args.duration and parse_duration(args.duration, "--duration"),
-        plant=plant, load=load, discretisation=_design(args, load),
+        plant=plant, load=load, discretisation=_design(args),
         identify=args.identify, inertia=args.inertia, correction=_correction(args, True),
         controller=_controller_choice(args, controller_params),
     )

@@ -186,9 +186,10 @@ def _spec(where: Where, controller: str, params: Mapping[str, Any] | None, scena
           options: dict[str, Any]) -> Any:
     """The run's :class:`RunSpec`, with the CLI's defaults for what is not given."""
     from dbc.timing import Sampling
+    from gateway.control.controller import Discretisation
     from gateway.control.interface import ControllerChoice, controller_factory
     from gateway.sim import emulator_rate
-    from gateway.spec import RunSpec, default_discretisation, default_drive_mode, default_load
+    from gateway.spec import RunSpec, default_drive_mode, default_load
     from gateway.units import parse_duration, parse_period
 
     controller_factory(controller)  # found, or a UserError naming those registered
@@ -201,7 +202,7 @@ def _spec(where: Where, controller: str, params: Mapping[str, Any] | None, scena
         duration = parse_duration(duration, "duration")
     return RunSpec(controller=ControllerChoice(controller, dict(params or {})),
                    drive_mode=mode, sampling=sampling, duration=duration, load=load,
-                   discretisation=options.pop("discretisation", default_discretisation(load)),
+                   discretisation=options.pop("discretisation", Discretisation.EXACT),
                    plant=scenario if where is not Where.VCAN else None, **options)
 
 

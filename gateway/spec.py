@@ -26,7 +26,6 @@ from gateway.control.controller import (
     Law,
     LoadSource,
     as_enum,
-    euler_only,
 )
 from gateway.control.correction import SensorCorrection
 from gateway.control.interface import ControllerChoice
@@ -66,19 +65,13 @@ def default_load(plant: PlantModel | None, drive_applies_load: bool | None = Non
     load (``drive_applies_load`` True: a drive profile that maps a T_L signal, a
     dynamometer the gateway commands; None: the emulator) and untold where it cannot ("not
     told against a real drive": the laws then assume no load rather than feed forward one
-    the shaft may not carry). Not told does not mean observed: the load observer runs away
-    with a 10 mA offset or R_s +10 % even unloaded (docs/robustness.md §2), so it stays
-    opt-in."""
+    the shaft may not carry). A scenario that does not tell its load is observed: in the
+    sampled-data design from the measured flux (docs/robustness.md §10), bounded on every
+    plant of the robustness matrix; a real drive's stays untold until that observer has met
+    real drives (at zero stator frequency under load it is not observable: §10)."""
     if plant is not None and not plant.known(True):
         return LoadSource.OBSERVED
     return LoadSource.UNTOLD if drive_applies_load is False else LoadSource.KNOWN
-
-
-def default_discretisation(load: LoadSource | str) -> Discretisation:
-    """The controller's design when the run does not say: exact, or Euler where only it has
-    what is asked for (the load observer; every estimator exists in both designs)."""
-    observed = as_enum(LoadSource, load, "load mode") is LoadSource.OBSERVED
-    return Discretisation.EULER if observed else Discretisation.EXACT
 
 
 _ENUMS = (("law", Law, "law"), ("flux", FluxSource, "flux source"),
@@ -160,7 +153,6 @@ class RunSpec:
         try:
             for name, enum, what in _ENUMS:
                 object.__setattr__(self, name, as_enum(enum, getattr(self, name), what))
-            euler_only(self.discretisation, self.load)
         except ValueError as exc:
             raise UserError(str(exc)) from None
         self._check_controller()

@@ -563,7 +563,7 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     def send(msg: can.Message, timeout: float | None = None) -> None:
         if msg.arbitration_id == 0x301:
             n_rpdo2[0] += 1
-            if n_rpdo2[0] == 300:
+            if n_rpdo2[0] == 150:
                 held.append(msg)  # until the next SYNC has gone out
                 return
         real_send(msg, timeout)
@@ -578,8 +578,10 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
         s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
     finally:
         bus.shutdown()
-    assert not held and n_rpdo2[0] > 300
     assert s["run"]["stop"] == "END_OF_PROFILE", s["run"]["stop_reason"]
+    # the 150th RPDO2 (a cycle of 600: a loaded host that misses half of them still sends
+    # it; the 300th was once not reached, 174 sent)
+    assert not held and n_rpdo2[0] > 150, (n_rpdo2[0], s["run"]["missed_cycles"])
     assert s["run"]["rpdo_after_sync"] >= 1
     # the rows say which cycles' setpoints were withheld (late by the clock), as many as counted
     withheld = read_csv(tmp_path / "signals.csv")["withheld"]

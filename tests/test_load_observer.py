@@ -160,7 +160,9 @@ def test_sim_over_canopen_with_observed_load_equals_simulate(tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["configuration"]["load"] == "observed"
     bus = read_csv(out / "signals.csv")
+    assert s["configuration"]["discretisation"] == "exact"  # the sampled-data design's
     ref = run(paper_profile(), MOTOR, sim_config(duration=0.7, load="observed",
+                                                discretisation="exact",
                                                 plant=resolve_scenario("unknown-load"))).arrays()
     for col in ("i_sa", "i_sb", "u_sa", "u_sb", "i_sq_ref", "w_hat", "eps_0"):
         np.testing.assert_array_equal(bus[col], ref[col], err_msg=col)

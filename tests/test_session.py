@@ -58,8 +58,8 @@ def test_the_spec_refuses_what_cannot_run():
         RunSpec(max_miss_rate=1.5)
     with pytest.raises(UserError, match="unknown law"):
         RunSpec(law="fast")
-    with pytest.raises(UserError, match="Euler"):
-        RunSpec(load="observed")  # the exact design has no load observer
+    with pytest.raises(UserError, match="R_s adaptation"):  # it moves the flux read
+        RunSpec(load="observed", estimator="rs-adaptive")
 
 
 def test_the_spec_describes_itself_as_json():

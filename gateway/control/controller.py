@@ -109,14 +109,6 @@ class Discretisation(StrEnum):
 TWO_PI = 2.0 * math.pi
 
 
-def euler_only(discretisation: Discretisation, load: LoadSource) -> None:
-    """The exact design has no load observer: ValueError saying what to choose (both designs
-    have every estimator)."""
-    if discretisation is Discretisation.EXACT and load is LoadSource.OBSERVED:
-        raise ValueError("--load observed works with the Euler design only "
-                         "(docs/robustness.md): add --discretisation euler")
-
-
 def as_enum(enum: type[StrEnum], value: object, what: str) -> StrEnum:
     """``value`` as a member of ``enum``; ValueError naming ``what`` and the choices."""
     try:
@@ -177,6 +169,11 @@ class ControllerConfig:
         object.__setattr__(self, "inertia", as_enum(InertiaSource, self.inertia, "inertia"))
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
+        if (self.load is LoadSource.OBSERVED and self.discretisation is Discretisation.EXACT
+                and self.estimator is EstimatorKind.RS_ADAPTIVE):
+            raise ValueError("--load observed in the sampled-data design reads the flux the "
+                             "R_s adaptation moves: use --estimator open-loop or drift-free "
+                             "(the identification takes R_s), or --discretisation euler")
 
     @property
     def holds_current(self) -> bool:

@@ -76,7 +76,10 @@ class InertiaTuning:
     (a, b)-constant error D (Wb²) and its process noise per sample; p_d_lost: D's variance
     after an interval the controller coasted through; max_coast: the coasted intervals in a
     row after which the tracker stops (an unknown late latch after 113 of them shifted the
-    estimator's integral by 0.45 Wb, beyond what (I3) holds to first order)."""
+    estimator's integral by 0.45 Wb, beyond what (I3) holds to first order). p_l, q_l: the
+    prior variance of ℓ ((rad/s²)²) and its process noise ((rad/s²)² per second: per sample
+    q_l·T), with the load observed; k_s: the pull of ω̂ towards the filter's speed then,
+    1/s ((I4))."""
 
     z: float = 4.0
     persist: int = 1
@@ -90,28 +93,47 @@ class InertiaTuning:
     q_d: float = 1e-8
     p_d_lost: float = 1e-4
     max_coast: int = 3
+    p_l: float = 1e4
+    q_l: float = 1e4
+    k_s: float = 500.0
+    z_load: float = 4.0
+    hold: int = 100
 
 
 class InertiaTracker:
-    """The Kalman filter (I2), (I3) on x = (ω, ρ, D_a, D_b) and the test that applies ρ̂
-    (module docstring). Written out by element: the covariance's ten entries are floats."""
+    """The Kalman filter (I2)–(I4) on x = (ω, ρ, ℓ, D_a, D_b) and the test that applies ρ̂
+    (module docstring). ``load``: ℓ, the load the laws are not told, is a state ((I4):
+    ``--load observed``); else it is held at 0. ``inertia``: ρ is a state; else held at 1
+    (``--inertia file`` with the load observed). ``T``: the period, s. Written out by
+    element: the covariance's fifteen entries are floats, and a state held is one whose
+    entries stay exact zeros (the same numbers, bit for bit, as a filter without it)."""
 
     __slots__ = (
+        "_T",
         "_coasts",
         "_da",
         "_db",
         "_e_prev",
+        "_hold",
+        "_l",
         "_n",
         "_p00",
         "_p01",
         "_p02",
         "_p03",
+        "_p04",
         "_p11",
         "_p12",
         "_p13",
+        "_p14",
         "_p22",
         "_p23",
+        "_p24",
         "_p33",
+        "_p34",
+        "_p44",
+        "_q_l",
+        "_q_rho",
         "_r",
         "_run",
         "_w",
@@ -123,14 +145,22 @@ class InertiaTracker:
         "tuning",
     )
 
-    def __init__(self, tuning: InertiaTuning | None = None) -> None:
+    def __init__(self, tuning: InertiaTuning | None = None, *, T: float = 1e-3,
+                 load: bool = False, inertia: bool = True) -> None:
         self.tuning = t = tuning or InertiaTuning()
+        self._T = T
         self._w = 0.0  # ω at t_k, rad/s
         self.rho = 1.0  # the filter's ρ̂
+        self._l = 0.0  # ℓ̂, rad/s²
         self._da = self._db = 0.0  # D, Wb
-        self._p00, self._p01, self._p02, self._p03 = 1e4, 0.0, 0.0, 0.0
-        self._p11, self._p12, self._p13 = t.p_rho, 0.0, 0.0
-        self._p22, self._p23, self._p33 = t.p_d, 0.0, t.p_d
+        self._p00, self._p01, self._p02, self._p03, self._p04 = 1e4, 0.0, 0.0, 0.0, 0.0
+        self._p11 = t.p_rho if inertia else 0.0
+        self._p12 = self._p13 = self._p14 = 0.0
+        self._p22 = t.p_l if load else 0.0
+        self._p23 = self._p24 = 0.0
+        self._p33, self._p34, self._p44 = t.p_d, 0.0, t.p_d
+        self._q_rho = t.q_rho if inertia else 0.0
+        self._q_l = t.q_l * T if load else 0.0
         self._r = t.r0  # the measurement's variance × |ψ|²
         self._n = 0  # differences seen
         self._e_prev: float | None = None
@@ -145,11 +175,17 @@ class InertiaTracker:
         #: no more readings (a long coast): the applied ρ is kept
         self.frozen = False
         self._coasts = 0  # coasted intervals in a row
+        self._hold = 0  # readings left that hold ρ (after a load step)
 
     @property
     def speed(self) -> float:
         """The filter's rotor speed at the last sample, rad/s."""
         return self._w
+
+    @property
+    def load(self) -> float:
+        """ℓ̂: the deceleration of the load the laws are not told, T_L/J, rad/s²."""
+        return self._l
 
     @property
     def flux_error(self) -> complex:
@@ -165,19 +201,20 @@ class InertiaTracker:
                g: complex = 0j) -> float:
         """One interval: the model's midpoint speed ``w_mid`` and the flux's measure of its
         error ``e_hat`` (y = w_mid − e_hat, (I1)), the model's ∫a dτ ``A`` with the file's J
-        (rad/s), the flux's |ψ|² ``weight`` (Wb²; 0: no measurement this interval, only the
-        prediction), and ``g``, what an (a, b)-constant flux error D adds to y: Im(g·D)
-        ((I3), rad/s per Wb). Returns the ρ to apply."""
+        and the told load (rad/s), the flux's |ψ|² ``weight`` (Wb²; 0: no measurement this
+        interval, only the prediction), and ``g``, what an (a, b)-constant flux error D adds
+        to y: Im(g·D) ((I3), rad/s per Wb). Returns the ρ to apply."""
         t = self.tuning
         if self.frozen:
             return self.applied
+        T = self._T
+        w, rho, lam, da, db = self._w, self.rho, self._l, self._da, self._db
+        p00, p01, p02, p03, p04 = self._p00, self._p01, self._p02, self._p03, self._p04
+        p11, p12, p13, p14 = self._p11, self._p12, self._p13, self._p14
+        p22, p23, p24 = self._p22, self._p23, self._p24
+        p33, p34, p44 = self._p33, self._p34, self._p44
         if weight > 0.0:
             self._coasts = 0
-        w, rho, da, db = self._w, self.rho, self._da, self._db
-        p00, p01, p02, p03 = self._p00, self._p01, self._p02, self._p03
-        p11, p12, p13 = self._p11, self._p12, self._p13
-        p22, p23, p33 = self._p22, self._p23, self._p33
-        if weight > 0.0:
             e_prev = self._e_prev
             if e_prev is not None:  # the noise's variance from successive differences
                 self._n += 1
@@ -185,43 +222,71 @@ class InertiaTracker:
                 d = e_hat - e_prev
                 self._r += gain * (0.5 * d * d * weight - self._r)
             self._e_prev = e_hat
-            # y = ω + ρ·A/2 + Im(g)·D_a + Re(g)·D_b: H = (1, h1, h2, h3)  ((I2), (I3))
-            h1, h2, h3 = 0.5 * A, g.imag, g.real
-            ph0 = p00 + h1 * p01 + h2 * p02 + h3 * p03
-            ph1 = p01 + h1 * p11 + h2 * p12 + h3 * p13
-            ph2 = p02 + h1 * p12 + h2 * p22 + h3 * p23
-            ph3 = p03 + h1 * p13 + h2 * p23 + h3 * p33
-            s = ph0 + h1 * ph1 + h2 * ph2 + h3 * ph3 + max(self._r, t.r_min) / weight
-            k0, k1, k2, k3 = ph0 / s, ph1 / s, ph2 / s, ph3 / s
-            nu = (w_mid - e_hat) - (w + h1 * rho + h2 * da + h3 * db)
+            # y = ω + ρ·A/2 − ℓ·T/2 + Im(g)·D_a + Re(g)·D_b: H = (1, h1, h2, h3, h4)
+            h1, h2, h3, h4 = 0.5 * A, -0.5 * T, g.imag, g.real
+            ph0 = p00 + h1 * p01 + h2 * p02 + h3 * p03 + h4 * p04
+            ph1 = p01 + h1 * p11 + h2 * p12 + h3 * p13 + h4 * p14
+            ph2 = p02 + h1 * p12 + h2 * p22 + h3 * p23 + h4 * p24
+            ph3 = p03 + h1 * p13 + h2 * p23 + h3 * p33 + h4 * p34
+            ph4 = p04 + h1 * p14 + h2 * p24 + h3 * p34 + h4 * p44
+            s = (ph0 + h1 * ph1 + h2 * ph2 + h3 * ph3 + h4 * ph4
+                 + max(self._r, t.r_min) / weight)
+            nu = (w_mid - e_hat) - (w + h1 * rho + h2 * lam + h3 * da + h4 * db)
+            if self._q_l and nu * nu > t.z_load * t.z_load * s:
+                # a load step, not a random walk: ℓ's variance reopens (its prior), so
+                # that the jump goes to ℓ rather than to ρ or D, and ρ is held meanwhile
+                p22 += t.p_l
+                ph2 += t.p_l * h2
+                s += t.p_l * h2 * h2
+                self._hold = t.hold
+            k0, k1, k2, k3, k4 = ph0 / s, ph1 / s, ph2 / s, ph3 / s, ph4 / s
+            held = self._hold > 0
+            if held:  # ρ a "consider" state (Schmidt): not updated, its covariance kept
+                self._hold -= 1
+                k1 = 0.0
             w += k0 * nu
             rho += k1 * nu
-            da += k2 * nu
-            db += k3 * nu
+            lam += k2 * nu
+            da += k3 * nu
+            db += k4 * nu
             p00 -= k0 * ph0
             p01 -= k0 * ph1
             p02 -= k0 * ph2
             p03 -= k0 * ph3
-            p11 -= k1 * ph1
-            p12 -= k1 * ph2
-            p13 -= k1 * ph3
+            p04 -= k0 * ph4
+            if held:
+                p12 -= k2 * ph1
+                p13 -= k3 * ph1
+                p14 -= k4 * ph1
+            else:
+                p11 -= k1 * ph1
+                p12 -= k1 * ph2
+                p13 -= k1 * ph3
+                p14 -= k1 * ph4
             p22 -= k2 * ph2
             p23 -= k2 * ph3
+            p24 -= k2 * ph4
             p33 -= k3 * ph3
+            p34 -= k3 * ph4
+            p44 -= k4 * ph4
         else:
             self._e_prev = None
-        # to the interval's end: ω += ρ·A
-        w += rho * A
-        p00 += 2.0 * A * p01 + A * A * p11 + t.q_w
-        p01 += A * p11
-        p02 += A * p12
-        p03 += A * p13
-        p11 += t.q_rho
-        self._w, self.rho, self._da, self._db = w, rho, da, db
-        self._p00, self._p01, self._p02, self._p03 = p00, p01, p02, p03
-        self._p11, self._p12, self._p13 = p11, p12, p13
-        self._p22, self._p23, self._p33 = p22 + t.q_d, p23, p33 + t.q_d
-        if weight > 0.0 and not self.switched:
+        # to the interval's end: ω += ρ·A − ℓ·T  (F = I + e0·(0, A, −T, 0, 0)ᵀ)
+        # (the terms of a held state are exact zeros, which leave each sum as it was)
+        w += rho * A - lam * T
+        p00 += (2.0 * A * p01 + A * A * p11 - 2.0 * T * (p02 + A * p12) + T * T * p22
+                + t.q_w)
+        p01 += A * p11 - T * p12
+        p02 += A * p12 - T * p22
+        p03 += A * p13 - T * p23
+        p04 += A * p14 - T * p24
+        self._w, self.rho, self._l, self._da, self._db = w, rho, lam, da, db
+        self._p00, self._p01, self._p02, self._p03, self._p04 = p00, p01, p02, p03, p04
+        self._p11, self._p12, self._p13, self._p14 = p11 + self._q_rho, p12, p13, p14
+        self._p22, self._p23, self._p24 = p22 + self._q_l, p23, p24
+        self._p33, self._p34, self._p44 = p33 + t.q_d, p34, p44 + t.q_d
+        p11 = self._p11
+        if weight > 0.0 and not self.switched and self._hold == 0:
             if abs(rho - 1.0) > t.z * max(p11, 0.0) ** 0.5:
                 self._run += 1
                 if self._run >= t.persist:
@@ -245,7 +310,8 @@ class InertiaTracker:
         if self._coasts >= self.tuning.max_coast:
             self.frozen = True
         p_d = self.tuning.p_d_lost
-        self._p02 = self._p03 = self._p12 = self._p13 = self._p23 = 0.0
-        self._p22 = max(self._p22, p_d)
+        self._p03 = self._p04 = self._p13 = self._p14 = self._p23 = self._p24 = 0.0
+        self._p34 = 0.0
         self._p33 = max(self._p33, p_d)
+        self._p44 = max(self._p44, p_d)
         return applied

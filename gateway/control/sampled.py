@@ -143,6 +143,7 @@ class SampledController:
         "_M",
         "_R_s",
         "_T",
+        "_T_hat",
         "__dict__",
         "_aM",
         "_a_int",
@@ -172,6 +173,7 @@ class SampledController:
         "_k_w_warped",
         "_kept",
         "_lag",
+        "_load_observed",
         "_measured",
         "_mu",
         "_phi_0",
@@ -230,11 +232,16 @@ class SampledController:
         self._rho_at: int | None = None  # the sample the tracker's ρ̂ was first applied
         self._inertia_off = (
             None if config.inertia is not InertiaSource.TRACKED
-            else "the load is not known" if config.load is not LoadSource.KNOWN
+            else "the load is not told" if config.load is LoadSource.UNTOLD
             else "the R_s adaptation moves the flux it reads"
             if config.estimator is EstimatorKind.RS_ADAPTIVE else None)
-        self.inertia = (InertiaTracker() if config.inertia is InertiaSource.TRACKED
-                        and self._inertia_off is None else None)
+        # the load observed (docs/robustness.md §10): ℓ = T_L/J a state of the same filter,
+        # T̂_L = ℓ̂·J in (15), (16) in place of the profile's, ω̂ pulled towards its speed
+        self._load_observed = config.load is LoadSource.OBSERVED  # (not with rs-adaptive)
+        track_j = config.inertia is InertiaSource.TRACKED and self._inertia_off is None
+        self.inertia = (InertiaTracker(T=T, load=self._load_observed, inertia=track_j)
+                        if track_j or self._load_observed else None)
+        self._T_hat = 0.0  # T̂_L, N·m (the load observed; else 0)
         self._w_mid = 0.0  # ω̂ at the midpoint of the interval the last _advance modelled
         self._a_int = 0.0  # and its mechanical copy's ∫dω̂/dt (without (20))
         self._e_hat = 0.0  # and the measured flux's reading of its error, (I1)
@@ -335,6 +342,8 @@ class SampledController:
                 "ratio": tracker.rho, "ratio_std": tracker.rho_std,
                 "at": None if self._rho_at is None else self._rho_at * self._T,
                 "stopped": tracker.frozen}
+            if self._load_observed:
+                found["inertia"]["T_L_observed"] = self._T_hat
         elif self._inertia_off is not None:
             found = found if found is not None else {}
             found["inertia"] = {"J": self._J, "J_file": self.motor.J, "applied": False,
@@ -636,12 +645,19 @@ class SampledController:
             psi_end, di_end = psi_k, di_k
         di = 0.5 * (self._di_prev + di_end)
         self._di_prev = di_k
-        _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms, psi_end,
-                               di, False)
+        T_hat = self._T_hat  # the load observed: the laws' T_L over I_{k−1}
+        _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L + T_hat, terms,
+                               psi_end, di, False)
         if self.inertia is not None:
-            w_reset = self._track_inertia(self._a_int, psi_k if measured else None, eps_k)
+            # the filter's model takes the told load only: A without the observed one
+            A = self._a_int + T * T_hat / self._J if T_hat else self._a_int
+            w_reset = self._track_inertia(A, psi_k if measured else None, eps_k)
             if w_reset is not None:
                 w_k = w_reset
+            if self._load_observed and measured:  # (I4)
+                tracker = self.inertia
+                T_hat = self._T_hat = tracker.load * self._J
+                w_k += tracker.tuning.k_s * T * (tracker.speed - w_k)
         self._measured = True
         self.w_hat = w_k
         # predict through the committed intervals I_k … I_{k+d−1}
@@ -649,8 +665,8 @@ class SampledController:
         for j in range(1, d + 1):
             c = hist[j]
             terms = None if constant else self._terms(c, i0)
-            psi, w = self._advance(c, psi, w, win[2 * j + 1], win[2 * j].T_L, terms, None, 0j,
-                                   j == 1)
+            psi, w = self._advance(c, psi, w, win[2 * j + 1], win[2 * j].T_L + T_hat, terms,
+                                   None, 0j, j == 1)
             if self._lag > 0.0:
                 i0 = self._current(c, terms)[1]
         last = hist[-1]
@@ -668,7 +684,7 @@ class SampledController:
                 turned = True
         # the command for I_{k+d}: references and ω̂ at its midpoint
         r0, r = win[self._cmd_refs]
-        T_L = r0.T_L  # the load the drive will apply
+        T_L = r0.T_L + T_hat  # the load the drive will apply (and the one observed)
         w_mid, i_sd, i_sq, limited = self._midpoint(psi, w, r, T_L)
         w_0 = w_mid + self._aM * i_sq / r.psi_ref  # (15) at the midpoint
         R_s, sigma, k_r = self._R_s, self._sigma, self._k_r
@@ -802,16 +818,20 @@ class SampledController:
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         if self._constant_current:
-            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, None,
+            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1],
+                                       win[0].T_L + self._T_hat, None,
                                        adapt=False)
             i_end_ab = self._current_dq(prev)[1]
         else:
             terms = self._terms(prev, self._i_prev_ab)
-            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L, terms,
+            psi_k, w_k = self._advance(prev, psi0, self._w_prev, win[1],
+                                       win[0].T_L + self._T_hat, terms,
                                        adapt=False)
             i_end_ab = self._current(prev, terms)[1]
         if self.inertia is not None:
-            self._track_inertia(self._a_int, None, lost=True)
+            T_hat = self._T_hat
+            self._track_inertia(self._a_int + self._T * T_hat / self._J if T_hat
+                                else self._a_int, None, lost=True)
         self._measured = False
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
@@ -1201,8 +1221,9 @@ def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], 
     ``config.load`` UNTOLD the sampled-data design's references lose their load here; the
     Euler design drops it in its step.
     """
-    if config.load is LoadSource.UNTOLD:  # the laws assume no load, whatever the profile's
-        refs_at = _untold_at(refs_at)
+    if config.load is LoadSource.UNTOLD or (config.load is LoadSource.OBSERVED
+                                            and config.discretisation is Discretisation.EXACT):
+        refs_at = _untold_at(refs_at)  # no load told (observed: the filter's T̂_L instead)
     if config.discretisation is Discretisation.EXACT:
         if config.law is Law.CURRENT_FED:
             return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)
