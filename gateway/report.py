@@ -332,13 +332,15 @@ def inertia_line(found: Mapping[str, Any] | None) -> str:
         return ""
     stopped = (", readings stopped after a coast of lost samples" if found.get("stopped")
                else "")
+    load = (f"; load observed, {found['T_L_observed']:.3g} N·m at the end"
+            if "T_L_observed" in found else "")
     if found.get("applied"):
         return (f"J tracked on line: {found['J']:.4g} kg·m² from {found['at']:.3f} s "
-                f"(motor file {found['J_file']:.4g}{stopped})")
+                f"(motor file {found['J_file']:.4g}{stopped}){load}")
     if "reason" in found:
         return f"the motor file's J {found['J_file']:.4g} kg·m² ({found['reason']})"
     return (f"the motor file's J {found['J_file']:.4g} kg·m² kept (on line J_file/J = "
-            f"{found['ratio']:.4f} ± {found['ratio_std']:.4f}{stopped})")
+            f"{found['ratio']:.4f} ± {found['ratio_std']:.4f}{stopped}){load}")
 
 
 #: The bus signals the loop uses, by message (the setpoint message depends on the frame).

@@ -72,9 +72,14 @@ def _paper(plant: str, **kw):
 def test_the_paper_profile_with_its_load_observed_completes(plant, bound):
     """No guard stop and the RMS bounded (measured 0.065, 0.081, 0.42, 0.048 rad/s; with the
     load told 0.0019 on the nominal motor, untold a guard stop)."""
-    rms, reason, n, _ = _paper(plant, load="observed")
+    rms, reason, n, result = _paper(plant, load="observed")
     assert reason is None and n == 2500
     assert rms <= bound, rms
+    found = result.identification["inertia"]
+    # the paper's profile ends at 0.5 N·m (untold-load: and a further 5.8 from 1.2 s)
+    end = 6.3 if plant == "untold-load" else 0.5
+    assert found["T_L_observed"] == pytest.approx(end, abs=0.3), found
+    assert found["applied"] == (plant == "inertia-double")
 
 
 @pytest.mark.slow
@@ -96,3 +101,11 @@ def test_the_r_s_adaptation_with_the_load_observed_is_refused_in_the_exact_desig
                            discretisation="exact")
     RunSpec.from_words(1e-3, load="observed", estimator="rs-adaptive",
                        discretisation="euler")  # the Euler design's observer takes it
+
+
+def test_the_full_order_law_with_the_load_observed_is_refused_in_either_design():
+    from gateway.control.controller import ControllerConfig
+
+    for design in ("exact", "euler"):
+        with pytest.raises(ValueError, match="current-fed law only"):
+            ControllerConfig(law="full-order", load="observed", discretisation=design)

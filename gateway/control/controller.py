@@ -169,6 +169,10 @@ class ControllerConfig:
         object.__setattr__(self, "inertia", as_enum(InertiaSource, self.inertia, "inertia"))
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
+        if self.load is LoadSource.OBSERVED and self.law is Law.FULL_ORDER:
+            raise ValueError("the load is observed for the current-fed law only (the "
+                             "full-order law was not found stable with an observer): use "
+                             "--load known or untold")
         if (self.load is LoadSource.OBSERVED and self.discretisation is Discretisation.EXACT
                 and self.estimator is EstimatorKind.RS_ADAPTIVE):
             raise ValueError("--load observed in the sampled-data design reads the flux the "

@@ -253,7 +253,7 @@ def tuning(drive_mode: str) -> tuple[float, float, float]:
     except KeyError:
         raise ValueError(
             f"the load observer runs with the current-fed law on an ideal or current-loop "
-            f"drive; with a {drive_mode!r} drive (full-order law) it was not found stable: "
+            f"drive; with a '{drive_mode}' drive (full-order law) it was not found stable: "
             f"use --load known") from None
 
 

@@ -654,7 +654,7 @@ class SampledController:
             w_reset = self._track_inertia(A, psi_k if measured else None, eps_k)
             if w_reset is not None:
                 w_k = w_reset
-            if self._load_observed and measured:  # (I4)
+            if self._load_observed and measured and not self.inertia.frozen:  # (I4)
                 tracker = self.inertia
                 T_hat = self._T_hat = tracker.load * self._J
                 w_k += tracker.tuning.k_s * T * (tracker.speed - w_k)
@@ -1218,8 +1218,9 @@ def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], 
 
     The sampled-data full-order law models a voltage-fed drive with (d, q) setpoints; with a
     current-loop drive or (a, b) setpoints the full-order law runs the Euler design. With
-    ``config.load`` UNTOLD the sampled-data design's references lose their load here; the
-    Euler design drops it in its step.
+    ``config.load`` UNTOLD (or OBSERVED: the filter's T̂_L takes its place) the sampled-data
+    design's references lose their load here; the Euler design drops it in its step (or its
+    load observer replaces it).
     """
     if config.load is LoadSource.UNTOLD or (config.load is LoadSource.OBSERVED
                                             and config.discretisation is Discretisation.EXACT):
