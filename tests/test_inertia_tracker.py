@@ -162,3 +162,16 @@ def test_a_motor_with_the_files_j_is_the_files_bit_for_bit(plant):
     _, _, _, file = _paper(plant, "file")
     for name in ("w_m", "w_hat", "i_sq_ref", "u_sa"):
         assert np.array_equal(tracked[name], file[name]), name
+
+
+def test_a_settled_inertia_stops_the_filter_unless_the_load_is_observed():
+    """J is constant: once σ_ρ < 0.002 the filter stops and a later reading, however wild
+    (an untold load step read as inertia), changes nothing; with the load observed it goes
+    on (the load is not constant)."""
+    tracker = InertiaTracker()
+    _feed(tracker, 1.0, 0.03, 400)
+    assert tracker.settled and tracker.frozen and tracker.rho_std < 0.002
+    assert tracker.update(500.0, -500.0, 0.5, 1.0) == 1.0 and not tracker.switched
+    observed = InertiaTracker(T=1e-3, load=True)
+    _feed(observed, 1.0, 0.03, 400)
+    assert not observed.settled and not observed.frozen

@@ -79,7 +79,9 @@ class InertiaTuning:
     estimator's integral by 0.45 Wb, beyond what (I3) holds to first order). p_l, q_l: the
     prior variance of ℓ ((rad/s²)²) and its process noise ((rad/s²)² per second: per sample
     q_l·T), with the load observed; k_s: the pull of ω̂ towards the filter's speed then,
-    1/s ((I4))."""
+    1/s ((I4)); z_load, hold: the innovation (in standard deviations) taken as a load step,
+    and the readings ρ is held for after one. settle: the standard deviation of ρ̂ at which
+    the filter stops when the load is not observed (J is constant)."""
 
     z: float = 4.0
     persist: int = 1
@@ -98,6 +100,7 @@ class InertiaTuning:
     k_s: float = 500.0
     z_load: float = 4.0
     hold: int = 100
+    settle: float = 0.002
 
 
 class InertiaTracker:
@@ -141,6 +144,7 @@ class InertiaTracker:
         "frozen",
         "reset",
         "rho",
+        "settled",
         "switched",
         "tuning",
     )
@@ -172,8 +176,10 @@ class InertiaTracker:
         #: set at the sample the test rejects ρ = 1: the controller takes :attr:`speed` as
         #: ω̂ and clears it
         self.reset = False
-        #: no more readings (a long coast): the applied ρ is kept
+        #: no more readings (a long coast, or ρ settled): the applied ρ is kept
         self.frozen = False
+        #: ρ is known within :attr:`InertiaTuning.settle` (one standard deviation)
+        self.settled = False
         self._coasts = 0  # coasted intervals in a row
         self._hold = 0  # readings left that hold ρ (after a load step)
 
@@ -296,6 +302,10 @@ class InertiaTracker:
         if self.switched:
             lo, hi = RHO_RANGE
             self.applied = min(hi, max(lo, rho))
+        if not self._q_l and p11 < t.settle * t.settle and weight > 0.0:
+            # J is a constant of the machine: known this well, the filter stops (and with it
+            # the exposure of the decision to biased readings, and its cost per step)
+            self.frozen = self.settled = True
         return self.applied
 
     def coast(self, A: float) -> float:

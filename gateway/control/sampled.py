@@ -227,14 +227,17 @@ class SampledController:
         # (config.inertia; docs/robustness.md §9): the load known only (an untold or
         # observed one reads as inertia), and not with the R_s adaptation (its law moves
         # the flux estimate on the same mismatch the tracker reads: measured, it rejected
-        # the file's J on the nominal motor and at zero speed)
+        # the file's J on the nominal motor and at zero speed), nor without the standstill
+        # identification (R_s +10 %: J read 28–75 % high, and the run stopped)
         self._rho = 1.0
         self._rho_at: int | None = None  # the sample the tracker's ρ̂ was first applied
         self._inertia_off = (
             None if config.inertia is not InertiaSource.TRACKED
             else "the load is not told" if config.load is LoadSource.UNTOLD
             else "the R_s adaptation moves the flux it reads"
-            if config.estimator is EstimatorKind.RS_ADAPTIVE else None)
+            if config.estimator is EstimatorKind.RS_ADAPTIVE
+            else "no standstill identification: the flux it reads carries the motor file's "
+                 "R_s error" if not config.identify and not self._true_flux else None)
         # the load observed (docs/robustness.md §10): ℓ = T_L/J a state of the same filter,
         # T̂_L = ℓ̂·J in (15), (16) in place of the profile's, ω̂ pulled towards its speed
         self._load_observed = config.load is LoadSource.OBSERVED  # (not with rs-adaptive)
@@ -341,7 +344,7 @@ class SampledController:
                 "J": self._J, "J_file": self.motor.J, "applied": tracker.switched,
                 "ratio": tracker.rho, "ratio_std": tracker.rho_std,
                 "at": None if self._rho_at is None else self._rho_at * self._T,
-                "stopped": tracker.frozen}
+                "settled": tracker.settled, "stopped": tracker.frozen and not tracker.settled}
             if self._load_observed:
                 found["inertia"]["T_L_observed"] = self._T_hat
         elif self._inertia_off is not None:
@@ -408,6 +411,8 @@ class SampledController:
         (else None). ``lost``: the controller coasted through the interval (a lost sample)."""
         tracker = self.inertia
         assert tracker is not None
+        if tracker.frozen:  # a long coast, or ρ settled: nothing more to learn
+            return None
         rho_applied = self._rho
         if lost:
             rho = tracker.coast(A / rho_applied)
@@ -577,7 +582,7 @@ class SampledController:
             psi_end, int_psi, int_ci = model
         if psi_end_meas is not None:
             delta = psi_end_meas - psi_end
-            if self.inertia is not None and int_psi:
+            if self.inertia is not None and int_psi and not self.inertia.frozen:
                 # (I1): the measured flux turned from the model's by −j(ω̂_m − ω)∫ψ
                 self._e_hat = -(delta / int_psi).imag
                 self._int_psi = int_psi
