@@ -293,11 +293,11 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
 
 
 def _design(args: argparse.Namespace) -> Any:
-    """--discretisation, else the sampled-data design (it has every estimator and load
-    mode)."""
-    from gateway.control.controller import Discretisation
+    """--discretisation, else :class:`gateway.spec.RunSpec`'s (the sampled-data design: it
+    has every estimator and load mode)."""
+    from gateway.spec import RunSpec
 
-    return Discretisation.EXACT if args.discretisation is None else args.discretisation
+    return RunSpec.discretisation if args.discretisation is None else args.discretisation
 
 
 def _load_mode(args: argparse.Namespace, plant: Any, drive: Any = None) -> str:

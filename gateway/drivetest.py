@@ -186,7 +186,6 @@ def _spec(where: Where, controller: str, params: Mapping[str, Any] | None, scena
           options: dict[str, Any]) -> Any:
     """The run's :class:`RunSpec`, with the CLI's defaults for what is not given."""
     from dbc.timing import Sampling
-    from gateway.control.controller import Discretisation
     from gateway.control.interface import ControllerChoice, controller_factory
     from gateway.sim import emulator_rate
     from gateway.spec import RunSpec, default_drive_mode, default_load
@@ -202,7 +201,6 @@ def _spec(where: Where, controller: str, params: Mapping[str, Any] | None, scena
         duration = parse_duration(duration, "duration")
     return RunSpec(controller=ControllerChoice(controller, dict(params or {})),
                    drive_mode=mode, sampling=sampling, duration=duration, load=load,
-                   discretisation=options.pop("discretisation", Discretisation.EXACT),
                    plant=scenario if where is not Where.VCAN else None, **options)
 
 

@@ -90,8 +90,8 @@ class RunSpec:
     drift-free estimator's corner, rad/s), ``discretisation`` (EXACT, the sampled-data
     design of docs/sampled-control.md, or EULER), ``load`` (:class:`LoadSource`: the T_L the
     laws are told), ``identify`` (R_s, R_r from the standstill magnetisation; None: in every
-    sampled run, :attr:`identifies`), ``inertia`` (:class:`InertiaSource`: the motor
-    file's J, the default, or tracked on line by the sampled-data design), ``correction`` (the
+    sampled run, :attr:`identifies`), ``inertia`` (:class:`InertiaSource`: tracked on
+    line by the sampled-data design, the default, or the motor file's J), ``correction`` (the
     commissioning's sensor offsets, gain and dead time, corrected around the controller;
     None: none), and the controller's state at t = 0: ``w_hat_0`` (rad/s), ``eps_0`` (rad).
 

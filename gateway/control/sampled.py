@@ -402,17 +402,21 @@ class SampledController:
         self._J = self.motor.J / self._rho
         self._mu = self.motor.mu * self._rho
 
-    def _track_inertia(self, A: float, psi_k: complex | None, eps_k: float = 0.0,
+    def _track_inertia(self, psi_k: complex | None, eps_k: float = 0.0,
                        lost: bool = False) -> float | None:
-        """The inertia tracker's step over the interval just ended (``A``: ∫dω̂/dt of the
-        mechanical copy with the applied J, rad/s; ``psi_k``: the measured flux at its end in
-        the frame of ``eps_k``, None where it is not a measurement of that interval): applies
-        its ρ and returns the speed ω̂ takes where the tracker has just rejected the file's J
-        (else None). ``lost``: the controller coasted through the interval (a lost sample)."""
+        """The inertia tracker's step over the interval just ended (``psi_k``: the measured
+        flux at its end in the frame of ``eps_k``, None where it is not a measurement of that
+        interval; the model's ∫dω̂/dt over it is :attr:`_a_int`, with the applied J and the
+        observed load :attr:`_T_hat`): applies its ρ and returns the speed ω̂ takes where the
+        tracker has just rejected the file's J (else None). ``lost``: the controller coasted
+        through the interval (a lost sample)."""
         tracker = self.inertia
         assert tracker is not None
         if tracker.frozen:  # a long coast, or ρ settled: nothing more to learn
             return None
+        # the filter's model takes the told load only: A without the observed one
+        T_hat = self._T_hat
+        A = self._a_int + self._T * T_hat / self._J if T_hat else self._a_int
         rho_applied = self._rho
         if lost:
             rho = tracker.coast(A / rho_applied)
@@ -654,9 +658,7 @@ class SampledController:
         _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L + T_hat, terms,
                                psi_end, di, False)
         if self.inertia is not None:
-            # the filter's model takes the told load only: A without the observed one
-            A = self._a_int + T * T_hat / self._J if T_hat else self._a_int
-            w_reset = self._track_inertia(A, psi_k if measured else None, eps_k)
+            w_reset = self._track_inertia(psi_k if measured else None, eps_k)
             if w_reset is not None:
                 w_k = w_reset
             if self._load_observed and measured and not self.inertia.frozen:  # (I4)
@@ -834,9 +836,7 @@ class SampledController:
                                        adapt=False)
             i_end_ab = self._current(prev, terms)[1]
         if self.inertia is not None:
-            T_hat = self._T_hat
-            self._track_inertia(self._a_int + self._T * T_hat / self._J if T_hat
-                                else self._a_int, None, lost=True)
+            self._track_inertia(None, lost=True)
         self._measured = False
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         self.estimator.set_rotor_flux(psi_k * cmath.exp(1j * eps_k), i_end_ab)
