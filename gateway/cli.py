@@ -290,6 +290,12 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    help="current-error gain ke of (32), 1/s (%(default)s)")
     p.add_argument("--i-max", type=float, default=g.i_max,
                    help="current-vector limit of the setpoints, A (%(default)s)")
+    p.add_argument("--k-w-t-max", type=float, default=g.k_w_T_max,
+                   help="full-order law, sampled-data design: kω is lowered to this over "
+                        "the period where kω·T would exceed it (the sampled speed loop "
+                        "through the current loop is stable for kω·T < 1; 450 1/s at 2 ms, "
+                        "the paper's 800 at 1 ms and faster; docs/robustness.md §11). inf: "
+                        "the paper's kω at every period (%(default)s)")
 
 
 def _design(args: argparse.Namespace) -> Any:
@@ -324,7 +330,7 @@ def _gains(args: argparse.Namespace):
                             "positive number")
     try:
         return Gains(k_w=args.k_w, gamma_1=args.gamma_1, gamma_2=args.gamma_2, k_e=args.k_e,
-                     i_max=args.i_max)
+                     i_max=args.i_max, k_w_T_max=args.k_w_t_max)
     except ValueError as exc:
         raise UserError(f"{exc}; all gains must be positive numbers") from exc
 

@@ -272,6 +272,9 @@ def summary_table(summary: Mapping[str, Any]) -> str:
     ident = identification_line(summary.get("identification"))
     if ident:
         text += "\n" + ident
+    gain = speed_gain_line(summary.get("identification"))
+    if gain:
+        text += "\n" + gain
     q = summary.get("quantisation")
     if q and q.get("applied"):
         sig = q["signals"]
@@ -324,6 +327,17 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s)"
                 f"{sensors}, used from the end of the magnetisation{inertia}")
     return f"standstill identification not applied: {ident.get('reason', '')}{inertia}"
+
+
+def speed_gain_line(ident: Mapping[str, Any] | None) -> str:
+    """The kω the full-order law used where the period bounded it
+    (``identification.speed_gain`` of summary.json), or ""."""
+    found = (ident or {}).get("speed_gain")
+    if not found:
+        return ""
+    return (f"speed gain kω {found['applied']:.4g} 1/s (asked {found['k_w']:.4g}: kω·T kept "
+            f"≤ {found['k_w_T_max']:g} at T = {1e3 * found['T']:g} ms, where the sampled speed "
+            "loop through the current loop stays stable; --k-w-t-max inf: the asked kω)")
 
 
 def inertia_line(found: Mapping[str, Any] | None) -> str:

@@ -73,6 +73,12 @@ class Gains:
     i_max: current-vector limit of the setpoints, A (§E11: (15) divides by μψ*, and at
         ψ* = 0.001 Wb any speed-estimate error asks for thousands of amperes). The d current
         (magnetising) has priority; i_sq* is clipped to √(i_max² − i_sd*²).
+    k_w_T_max: the bound on kω·T of the full-order law's sampled-data design, where T is
+        the period (docs/robustness.md §11): there the speed error reaches the torque
+        through the current loop (34), and the sampled loop is stable only for kω·T < 1
+        (the paper's kω at 2 ms: 1.6, a divergence). kω is lowered to k_w_T_max/T at
+        periods that would exceed it (450 s⁻¹ at 2 ms); at 1 ms and faster the paper's
+        kω stands. inf: the paper's kω at every period.
     """
 
     k_w: float = 800.0
@@ -80,9 +86,10 @@ class Gains:
     gamma_2: float = 0.1
     k_e: float = 600.0
     i_max: float = 20.0
+    k_w_T_max: float = 0.9
 
     def __post_init__(self) -> None:
-        for name in ("k_w", "gamma_1", "gamma_2", "k_e", "i_max"):
+        for name in ("k_w", "gamma_1", "gamma_2", "k_e", "i_max", "k_w_T_max"):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"gain {name} = {getattr(self, name)!r} must be > 0")
 

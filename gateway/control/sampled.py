@@ -170,6 +170,7 @@ class SampledController:
         "_joining",
         "_k",
         "_k_r",
+        "_k_w",
         "_k_w_warped",
         "_kept",
         "_lag",
@@ -256,6 +257,7 @@ class SampledController:
         self._phi_0 = phi(0j, T)  # ∫_0^T e^{0·τ} dτ
         self._exp_0 = cmath.exp(0j * T)  # e^{0·T}
         self._k_w_warped = 2.0 / T * math.tanh(0.5 * g.k_w * T)  # kω pre-warped (_midpoint)
+        self._k_w = g.k_w  # kω of (25) (the full-order law bounds kω·T)
         self._gamma_1 = g.gamma_1
         self._i_max2 = g.i_max * g.i_max
         self._refs = ReferenceWindow(refs_at, T, 2 * self._d + 4 + self._lookahead)
@@ -761,7 +763,7 @@ class SampledController:
         psi_ref = r.psi_ref
         s = math.tanh(w_hat - r.w_ref)  # sat = tanh (laws.sat_tanh, §E7)
         i_sd = psi_ref / self._M + r.dpsi_ref / self._aM
-        i_sq = (-self._g.k_w * s + T_L / self._J + r.dw_ref) / (self._mu * psi_ref)
+        i_sq = (-self._k_w * s + T_L / self._J + r.dw_ref) / (self._mu * psi_ref)
         q2 = self._i_max2 - i_sd * i_sd
         q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
         limited = abs(i_sq) > q_max
@@ -911,6 +913,10 @@ class FullOrderSampledController(SampledController):
             self._inertia_off = "the full-order law keeps the motor file's J"
         self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
+        if g.k_w * self._T > g.k_w_T_max:
+            # the speed loop through the current loop (34): stable for kω·T < 1 only
+            # (docs/robustness.md §11, (S1)–(S3))
+            self._k_w = g.k_w_T_max / self._T
         self._gamma_2 = g.gamma_2
         self._decay = math.exp(-g.k_e * self._T)  # e^{−ke·T}
         self._decay_gain = (1.0 - self._decay) / g.k_e  # (1 − e^{−ke·T})/ke
@@ -918,6 +924,17 @@ class FullOrderSampledController(SampledController):
         self._i_prev = 0j  # measured current at t_{k−1}, frame at t_{k−1}
         self._eps_k: float | None = None  # ε_k of the last step and its e^{−jε_k}
         self._rot_k = 1 + 0j
+
+    def summary(self) -> dict[str, object] | None:
+        """:meth:`SampledController.summary`, and under ``speed_gain`` the kω the law used
+        where the period bounded it (``Gains.k_w_T_max``)."""
+        found = SampledController.summary(self)
+        g = self._g
+        if self._k_w != g.k_w:
+            found = found if found is not None else {}
+            found["speed_gain"] = {"k_w": g.k_w, "applied": self._k_w,
+                                   "k_w_T_max": g.k_w_T_max, "T": self._T}
+        return found
 
     def _set_motor(self, motor) -> None:
         super()._set_motor(motor)
@@ -1136,7 +1153,7 @@ class FullOrderSampledController(SampledController):
         # i_sd*, i_sq* of (25) at the end, ω̂ extrapolated: _currents(r1, w + T·f0, T_L) inline
         psi_ref = r1.psi_ref
         i_sd1 = psi_ref / self._M + r1.dpsi_ref / self._aM
-        i_sq1 = ((-self._g.k_w * math.tanh(w + T * f0 - r1.w_ref) + T_L / self._J + r1.dw_ref)
+        i_sq1 = ((-self._k_w * math.tanh(w + T * f0 - r1.w_ref) + T_L / self._J + r1.dw_ref)
                  / (self._mu * psi_ref))
         q2 = self._i_max2 - i_sd1 * i_sd1
         q_max = math.sqrt(q2) if q2 > 0.0 else 0.0
