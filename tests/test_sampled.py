@@ -22,8 +22,8 @@ from gateway.control.controller import (
     Sample,
     wrap_angle,
 )
-from gateway.control.laws import Gains
 from gateway.control.estimator import IntervalFluxEstimator, OpenLoopFluxEstimator
+from gateway.control.laws import Gains
 from gateway.control.sampled import (
     FullOrderSampledController,
     SampledController,

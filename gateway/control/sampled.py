@@ -905,12 +905,9 @@ class FullOrderSampledController(SampledController):
         # the inertia tracker is the current-fed law's (docs/robustness.md §9): here its
         # reading of the flux, on the voltage drive's trajectory, rejected the file's J on
         # a 10 mA offset (with (I2) alone)
-        SampledController.__init__(
-            self, motor, replace(config, law=Law.CURRENT_FED, inertia=InertiaSource.FILE),
-            refs_at, eps_0, w_hat)
+        SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED),
+                                   refs_at, eps_0, w_hat)
         self.config = config
-        if config.inertia is InertiaSource.TRACKED:
-            self._inertia_off = "the full-order law keeps the motor file's J"
         self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
         if g.k_w * self._T > g.k_w_T_max:
@@ -1033,6 +1030,31 @@ class FullOrderSampledController(SampledController):
 
     # ------------------------------------------------------------------ a cycle
 
+    def _fo_track(self, model, i_e: complex, psi_e: complex, psi_k: complex, eps_k: float,
+                  jumped: bool) -> float | None:
+        """The inertia tracker over the interval just ended (docs/robustness.md §9): (I1)
+        from the measured flux at its end against the model's, the model's mechanical
+        ∫dω̂/dt by Simpson's rule on the trajectory corrected by the measured end."""
+        _, w0, tl_j, _, _, _, _, i_h, p_h, i_1, p_1 = model
+        psi0, i0 = self._psi_prev, self._i_prev
+        measured = self._measured and psi0 is not None and not jumped
+        if measured:
+            mu = self._mu
+            int_psi = self._T_6 * (psi0 + 4.0 * p_h + p_1)
+            delta = psi_e - p_1
+            self._w_mid = w0 + self._half_T * model[6]
+            if int_psi and not self.inertia.frozen:
+                self._e_hat = -(delta / int_psi).imag
+                self._int_psi = int_psi
+            i_h = i_h + 0.5 * (i_e - i_1)
+            p_h = p_h + 0.5 * delta
+            self._a_int = self._T_6 * (
+                mu * (psi0.real * i0.imag - psi0.imag * i0.real)
+                + 4.0 * mu * (p_h.real * i_h.imag - p_h.imag * i_h.real)
+                + mu * (psi_e.real * i_e.imag - psi_e.imag * i_e.real)) - self._T * tl_j
+        self._measured = True
+        return self._track_inertia(psi_k if measured else None, eps_k)
+
     def step(self, refs: Refs, sample: Sample) -> Command:
         """One sample at t_k (see the class docstring)."""
         T = self._T
@@ -1092,6 +1114,10 @@ class FullOrderSampledController(SampledController):
         w_o = (r1.psi_ref * psi_e.imag + beta * (psi_e.imag * e_d - psi_e.real * e_q)) / gamma_2
         f_end = mu * (psi_e.real * i_e.imag - psi_e.imag * i_e.real) - tl_j + w_o
         w_k = w_k + T_6 * (f0 + 4.0 * f_h + f_end)  # Simpson
+        if self.inertia is not None:
+            w_reset = self._fo_track(model, i_e, psi_e, psi_k, eps_k, jumped)
+            if w_reset is not None:
+                w_k = w_reset
         self.w_hat = w_k
         # (27), (32) at the end of an interval, against its end reference, is the rate at
         # the start of the next against that one's start reference (the same reference
@@ -1215,6 +1241,10 @@ class FullOrderSampledController(SampledController):
         i_k, psi_k, w_k, _ = self._fo_finish(
             self._fo_predict(prev, i0, psi0, self._w_prev, win[0], win[1], win[2], f0),
             adapt=False)
+        if self.inertia is not None:
+            self._a_int = w_k - self._w_prev  # the mechanical copy's ∫dω̂/dt over it
+            self._track_inertia(None, lost=True)
+        self._measured = False
         eps_k = wrap_angle(prev.eps + T * prev.w_0)
         rot = cmath.exp(1j * eps_k)
         self.estimator.set_rotor_flux(psi_k * rot, i_k * rot)
