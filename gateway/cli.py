@@ -270,8 +270,9 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    default=InertiaSource.TRACKED,
                    help="the rotor's inertia J in the laws: tracked (default: estimated on "
                         "line from the measured flux and applied once the data reject the "
-                        "motor file's J; current-fed law, sampled-data design, load known, "
-                        "not with the R_s adaptation; elsewhere the file's J, and "
+                        "motor file's J; sampled-data design, either law, load known (or "
+                        "observed), not with the R_s adaptation nor without the standstill "
+                        "identification; elsewhere the file's J, and "
                         "summary.json says why) or file (the motor file's J throughout, the "
                         "paper); docs/robustness.md §9")
     p.add_argument("--commissioning", action=argparse.BooleanOptionalAction, default=None,
