@@ -329,6 +329,9 @@ def _gains(args: argparse.Namespace):
         if not math.isfinite(getattr(args, name)):
             raise UserError(f"--{name.replace('_', '-')} {getattr(args, name)}: give a finite "
                             "positive number")
+    if not args.k_w_t_max > 0.0:
+        raise UserError(f"--k-w-t-max {args.k_w_t_max}: give a positive number, the bound on "
+                        "kω·T (inf: the asked kω at every period)")
     try:
         return Gains(k_w=args.k_w, gamma_1=args.gamma_1, gamma_2=args.gamma_2, k_e=args.k_e,
                      i_max=args.i_max, k_w_T_max=args.k_w_t_max)

@@ -119,6 +119,7 @@ def test_simulate_sampled_summary_shows_delay(tmp_path):
         (["simulate", "--period", "continuous", "--drive", "current-loop"], "continuous time"),
         (["simulate", "--out", "/proc/forbidden/run"], "cannot write the run directory"),
         (["simulate", "--k-w", "-3"], "must be > 0"),
+        (["simulate", "--k-w-t-max", "0"], "--k-w-t-max 0.0: give a positive number"),
         (["profile", "check", "README.md"], "README.md"),
     ],
 )
