@@ -38,6 +38,7 @@ import argparse
 import math
 import sys
 import time
+import tomllib
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -48,6 +49,7 @@ sys.path.insert(0, str(ROOT))
 from _common import Figures, add_json_option, failed_text  # noqa: E402
 from robustness import run_campaign  # noqa: E402
 
+from gateway.campaign import tomltext  # noqa: E402
 from gateway.campaign.model import load_campaign  # noqa: E402
 from gateway.campaign.points import every_point  # noqa: E402
 
@@ -193,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="append", choices=BLOCKS,
                     help="run only this block (repeatable)")
     ap.add_argument("--png", metavar="FILE", help="also draw the matrix into FILE")
+    ap.add_argument("--over", choices=("simulate", "sim"), default="simulate",
+                    help="simulate: the loop in process (default); sim: over CANopen against "
+                         "the emulator, lockstep (the same numbers: the PDOs carry the "
+                         "same INT16 signals)")
     ap.add_argument("--out", metavar="DIR",
                     help="the campaign's directory (default runs/bench-matrix-<time>)")
     where = ap.add_mutually_exclusive_group()
@@ -205,7 +211,14 @@ def main(argv: list[str] | None = None) -> int:
         f"bench-matrix-{datetime.now():%Y%m%d-%H%M%S}")
     fig = Figures()
     t0 = time.perf_counter()
-    path, status = run_campaign(args, out, CAMPAIGN)
+    campaign = CAMPAIGN
+    if args.over != "simulate":  # the same campaign with another command
+        data = tomllib.loads(CAMPAIGN.read_text(encoding="utf-8"))
+        data["campaign"]["command"] = args.over
+        campaign = out.with_name(f"{out.name}-{args.over}.toml")
+        campaign.parent.mkdir(parents=True, exist_ok=True)
+        campaign.write_text(tomltext.dumps(data), encoding="utf-8")
+    path, status = run_campaign(args, out, campaign)
     if not (out / "results.parquet").exists():
         print(f"the campaign did not run (exit status {status}); see above", file=sys.stderr)
         return 1
