@@ -348,6 +348,9 @@ def inertia_line(found: Mapping[str, Any] | None) -> str:
                else "")
     load = (f"; load observed, {found['T_L_observed']:.3g} N·m at the end"
             if "T_L_observed" in found else "")
+    if found.get("load_rejected_at") is not None:
+        load = (f"; the told load rejected at {found['load_rejected_at']:.3f} s, a further "
+                f"{found['T_L_observed']:.3g} N·m observed at the end")
     if found.get("applied"):
         return (f"J tracked on line: {found['J']:.4g} kg·m² from {found['at']:.3f} s "
                 f"(motor file {found['J_file']:.4g}{stopped}){load}")

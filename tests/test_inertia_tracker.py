@@ -196,3 +196,55 @@ def test_a_settled_inertia_stops_the_filter_unless_the_load_is_observed():
     observed = InertiaTracker(T=1e-3, load=True)
     _feed(observed, 1.0, 0.03, 400)
     assert not observed.settled and not observed.frozen
+
+
+def test_a_told_load_that_is_wrong_is_rejected_once_j_is_settled():
+    """(I5): after ρ settled with the load told, the filter watches the readings on (ω, D)
+    alone; a rotor at the told load is never rejected, and one that a 5.8 N·m load the laws
+    are not told decelerates (773 rad/s² on the paper's J) is rejected at the third reading,
+    after which the filter observes that load as with ``--load observed``."""
+    tracker = InertiaTracker()
+    _feed(tracker, 1.0, 0.03, 400)
+    assert tracker.frozen and tracker.settled
+    w = tracker.speed  # the rotor's speed at the end of the acceleration
+    rnd = random.Random(3)
+    for _ in range(2000):  # at the told load: 2000 noisy readings, none rejects it
+        e = rnd.gauss(0.0, 0.03)
+        assert not tracker.watch(w + 0.3 + e, 0.3 + e, 0.0, 1.16 ** 2)
+    assert tracker.frozen and tracker.applied == 1.0
+    a, T = 773.0, 1e-3
+    rejected = []
+    for _k in range(300):
+        e = rnd.gauss(0.0, 0.03)
+        y = w - 0.5 * a * T  # the rotor's mean speed over the interval
+        if tracker.frozen:
+            rejected.append(tracker.watch(y + 0.3 + e, 0.3 + e, 0.0, 1.16 ** 2))
+        else:
+            tracker.update(y + 0.3 + e, 0.3 + e, 0.0, 1.16 ** 2)
+        w -= a * T
+    assert rejected == [False, False, True]  # three readings beyond 4σ, one sign
+    assert tracker.load == pytest.approx(a, rel=0.02)
+    assert tracker.speed == pytest.approx(w, abs=0.1)
+    assert tracker.applied == 1.0  # J as it settled
+
+
+@pytest.mark.slow
+def test_the_untold_load_plant_with_its_load_told_completes_by_default():
+    """The shipped untold-load scenario tells the profile's load, and the shaft carries a
+    further 5.8 N·m from 1.2 s: the default run rejects the told load within 10 ms and
+    completes (the motor file's J: stopped by the guard, there being no tracker)."""
+    profile = paper_profile()
+    watch = DivergenceWatch(profile_envelope(profile, MOTOR, 14.0))
+    spec = sim_config(plant=resolve_scenario("untold-load"), discretisation="exact",
+                      identify=True)
+    rec = run(profile, MOTOR, spec, watch=watch)
+    sig = rec.arrays()
+    e = sig["w_m"] - sig["w_ref"]
+    assert watch.reason is None and len(e) == 2500
+    assert float(np.sqrt(np.mean(e ** 2))) <= 0.25  # measured 0.166
+    found = rec.identification["inertia"]
+    assert 1.2 < found["load_rejected_at"] < 1.21
+    assert found["T_L_observed"] == pytest.approx(5.8, abs=0.1)
+    assert not found["applied"]  # J kept: the file's
+    _, reason_file, _, _ = _paper("untold-load", "file")
+    assert reason_file is not None

@@ -53,6 +53,12 @@ Lost samples: the controller coasts through them on its model (:meth:`InertiaTra
 the estimator's integral over them may take an unknown constant, so D's prior reopens, and
 after a few in a row the tracker stops reading and keeps the ρ it applies.
 
+The load. Where the laws are not told it (``--load observed``), ℓ = T_L/J is a state (I4).
+Where they are told it, the filter stops once ρ is known (J is constant) and then watches
+(:meth:`InertiaTracker.watch`, (I5)): (ω, D) alone, each innovation tested, outliers
+counted and not taken; three in a row of one sign reject the told load, and the filter
+runs again with ℓ a state, the load the told one leaves out (docs/robustness.md §10).
+
 Pure module: no I/O, no clock, no global state.
 """
 
@@ -81,7 +87,10 @@ class InertiaTuning:
     q_l·T), with the load observed; k_s: the pull of ω̂ towards the filter's speed then,
     1/s ((I4)); z_load, hold: the innovation (in standard deviations) taken as a load step,
     and the readings ρ is held for after one. settle: the standard deviation of ρ̂ at which
-    the filter stops when the load is not observed (J is constant)."""
+    the filter stops when the load is not observed (J is constant). persist_load: with the
+    load told, the readings in a row, each beyond z_load standard deviations on the same
+    side, that reject the told load once the filter has stopped (:meth:`InertiaTracker.watch`,
+    (I5))."""
 
     z: float = 4.0
     persist: int = 1
@@ -101,6 +110,7 @@ class InertiaTuning:
     z_load: float = 4.0
     hold: int = 100
     settle: float = 0.002
+    persist_load: int = 3
 
 
 class InertiaTracker:
@@ -139,6 +149,7 @@ class InertiaTracker:
         "_q_rho",
         "_r",
         "_run",
+        "_run_load",
         "_w",
         "applied",
         "frozen",
@@ -182,6 +193,7 @@ class InertiaTracker:
         self.settled = False
         self._coasts = 0  # coasted intervals in a row
         self._hold = 0  # readings left that hold ρ (after a load step)
+        self._run_load = 0  # readings in a row that reject the told load (watch), signed
 
     @property
     def speed(self) -> float:
@@ -307,6 +319,73 @@ class InertiaTracker:
             # the exposure of the decision to biased readings, and its cost per step)
             self.frozen = self.settled = True
         return self.applied
+
+    def watch(self, w_mid: float, e_hat: float, A: float, weight: float,
+              g: complex = 0j) -> bool:
+        """After the filter stopped with ρ settled and the load told (I5): the filter of
+        (I3) on (ω, D_a, D_b) alone, ρ held as it settled, and a test of its innovations
+        against the told load (the arguments are :meth:`update`'s; ``weight`` 0: no
+        reading, the prediction alone). Returns True at the reading that rejects it —
+        :attr:`InertiaTuning.persist_load` innovations in a row beyond ``z_load`` standard
+        deviations, all of one sign (a load the laws are not told decelerates the rotor
+        steadily) — and from then on the filter runs again with ℓ a state, as with the load
+        observed (ρ held as after a load step)."""
+        t = self.tuning
+        w, da, db = self._w, self._da, self._db
+        p00, p03, p04 = self._p00, self._p03, self._p04
+        p33, p34, p44 = self._p33, self._p34, self._p44
+        rejected = False
+        if weight > 0.0:
+            e_prev = self._e_prev
+            if e_prev is not None:  # the noise's variance, as in update
+                self._n += 1
+                gain = max(1.0 / (self._n + t.n0), 0.02)
+                d = e_hat - e_prev
+                self._r += gain * (0.5 * d * d * weight - self._r)
+            self._e_prev = e_hat
+            h3, h4 = g.imag, g.real  # H = (1, h3, h4) on (ω, D_a, D_b)
+            ph0 = p00 + h3 * p03 + h4 * p04
+            ph3 = p03 + h3 * p33 + h4 * p34
+            ph4 = p04 + h3 * p34 + h4 * p44
+            s = ph0 + h3 * ph3 + h4 * ph4 + max(self._r, t.r_min) / weight
+            nu = (w_mid - e_hat) - (w + 0.5 * A * self.rho + h3 * da + h4 * db)
+            run = self._run_load
+            if nu * nu > t.z_load * t.z_load * s:
+                # an outlier: counted, not taken (the states stay the told load's for the
+                # filter that takes over if the load is rejected)
+                step = 1 if nu > 0.0 else -1
+                run = run + step if run * step >= 0 else step
+                self._run_load = run
+                rejected = abs(run) >= t.persist_load
+            else:
+                self._run_load = 0
+                k0, k3, k4 = ph0 / s, ph3 / s, ph4 / s
+                w += k0 * nu
+                da += k3 * nu
+                db += k4 * nu
+                p00 -= k0 * ph0
+                p03 -= k0 * ph3
+                p04 -= k0 * ph4
+                p33 -= k3 * ph3
+                p34 -= k3 * ph4
+                p44 -= k4 * ph4
+        else:
+            self._e_prev = None
+        self._w, self._da, self._db = w + self.rho * A, da, db
+        self._p00, self._p03, self._p04 = p00 + t.q_w, p03, p04
+        self._p33, self._p34, self._p44 = p33 + t.q_d, p34, p44 + t.q_d
+        if rejected:  # the load the laws are not told becomes a state
+            # the readings gated out left ω off by about the last innovation: its variance
+            # reopens by ν², so that the filter takes that error as ω's, not as ℓ's
+            self._p00 += nu * nu
+            self.frozen = False
+            self._q_l = t.q_l * self._T
+            self._p22 = t.p_l
+            self._p01 = self._p02 = self._p12 = self._p13 = self._p14 = 0.0
+            self._p23 = self._p24 = 0.0
+            self._hold = t.hold
+            self._run_load = 0
+        return rejected
 
     def coast(self, A: float) -> float:
         """An interval the controller coasted through on its model (a lost sample): the

@@ -174,7 +174,9 @@ class SampledController:
         "_k_w_warped",
         "_kept",
         "_lag",
+        "_load_at",
         "_load_observed",
+        "_load_watch",
         "_measured",
         "_mu",
         "_phi_0",
@@ -245,6 +247,10 @@ class SampledController:
         track_j = config.inertia is InertiaSource.TRACKED and self._inertia_off is None
         self.inertia = (InertiaTracker(T=T, load=self._load_observed, inertia=track_j)
                         if track_j or self._load_observed else None)
+        # the load told: once J is settled the filter watches the readings against it, and
+        # observes the load from the reading that rejects it on ((I5), §10)
+        self._load_watch = track_j and config.load is LoadSource.KNOWN
+        self._load_at: int | None = None  # the sample the told load was rejected at
         self._T_hat = 0.0  # T̂_L, N·m (the load observed; else 0)
         self._w_mid = 0.0  # ω̂ at the midpoint of the interval the last _advance modelled
         self._a_int = 0.0  # and its mechanical copy's ∫dω̂/dt (without (20))
@@ -349,6 +355,8 @@ class SampledController:
                 "settled": tracker.settled, "stopped": tracker.frozen and not tracker.settled}
             if self._load_observed:
                 found["inertia"]["T_L_observed"] = self._T_hat
+            if self._load_at is not None:
+                found["inertia"]["load_rejected_at"] = self._load_at * self._T
         elif self._inertia_off is not None:
             found = found if found is not None else {}
             found["inertia"] = {"J": self._J, "J_file": self.motor.J, "applied": False,
@@ -415,6 +423,8 @@ class SampledController:
         tracker = self.inertia
         assert tracker is not None
         if tracker.frozen:  # a long coast, or ρ settled: nothing more to learn
+            if self._load_watch and tracker.settled:  # but the told load is watched (I5)
+                self._watch_load(psi_k, eps_k, lost)
             return None
         # the filter's model takes the told load only: A without the observed one
         T_hat = self._T_hat
@@ -442,6 +452,24 @@ class SampledController:
             tracker.reset = False
             return tracker.speed
         return None
+
+    def _watch_load(self, psi_k: complex | None, eps_k: float, lost: bool) -> None:
+        """(I5): the settled filter's speed against the readings; where they reject the
+        told load, the load the laws are not told is observed from the next sample on (T̂_L
+        = ℓ̂·J added to the profile's in (15), (16), as with ``--load observed``)."""
+        tracker = self.inertia
+        A = self._a_int / self._rho
+        if lost or psi_k is None:
+            tracker.watch(0.0, 0.0, A, 0.0)
+            return
+        int_psi = self._int_psi
+        g = (cmath.exp(-1j * eps_k) * (1.0 - cmath.exp(complex(-self._alpha, self._w_mid)
+                                                        * self._T)) / int_psi
+             if int_psi else 0j)
+        if tracker.watch(self._w_mid, self._e_hat, A,
+                         psi_k.real * psi_k.real + psi_k.imag * psi_k.imag, g):
+            self._load_observed = True
+            self._load_at = self._k
 
     # ------------------------------------------------------------------ the model
 
@@ -588,7 +616,8 @@ class SampledController:
             psi_end, int_psi, int_ci = model
         if psi_end_meas is not None:
             delta = psi_end_meas - psi_end
-            if self.inertia is not None and int_psi and not self.inertia.frozen:
+            if (self.inertia is not None and int_psi
+                    and (not self.inertia.frozen or self._load_watch)):
                 # (I1): the measured flux turned from the model's by −j(ω̂_m − ω)∫ψ
                 self._e_hat = -(delta / int_psi).imag
                 self._int_psi = int_psi
@@ -908,6 +937,7 @@ class FullOrderSampledController(SampledController):
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED),
                                    refs_at, eps_0, w_hat)
         self.config = config
+        self._load_watch = False  # (I5) is the current-fed law's: this law takes no T̂_L
         self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
         if g.k_w * self._T > g.k_w_T_max:
