@@ -931,9 +931,8 @@ class FullOrderSampledController(SampledController):
                  eps_0: float = 0.0, w_hat: float = 0.0) -> None:
         if config.law is not Law.FULL_ORDER:
             raise ValueError("FullOrderSampledController implements the full-order law only")
-        # the inertia tracker is the current-fed law's (docs/robustness.md §9): here its
-        # reading of the flux, on the voltage drive's trajectory, rejected the file's J on
-        # a 10 mA offset (with (I2) alone)
+        # J tracked as the current-fed law's (docs/robustness.md §9), its reading from this
+        # law's joint (i, ψ) interval model (_fo_track)
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED),
                                    refs_at, eps_0, w_hat)
         self.config = config
@@ -1064,7 +1063,13 @@ class FullOrderSampledController(SampledController):
                   jumped: bool) -> float | None:
         """The inertia tracker over the interval just ended (docs/robustness.md §9): (I1)
         from the measured flux at its end against the model's, the model's mechanical
-        ∫dω̂/dt by Simpson's rule on the trajectory corrected by the measured end."""
+        ∫dω̂/dt by Simpson's rule on the trajectory corrected by the measured end. Unlike
+        the current-fed law's, it reads from the first sample on, the standstill included
+        (the current model's flux then: they hold the filter's ω and D at rest; measured,
+        J × 2 0.011 rad/s RMS with them, 0.020 without)."""
+        if self.inertia.frozen:  # ρ settled, or a long coast: no reading to take
+            self._measured = True
+            return None
         _, w0, tl_j, _, _, _, _, i_h, p_h, i_1, p_1 = model
         psi0, i0 = self._psi_prev, self._i_prev
         measured = self._measured and psi0 is not None and not jumped
@@ -1073,7 +1078,7 @@ class FullOrderSampledController(SampledController):
             int_psi = self._T_6 * (psi0 + 4.0 * p_h + p_1)
             delta = psi_e - p_1
             self._w_mid = w0 + self._half_T * model[6]
-            if int_psi and not self.inertia.frozen:
+            if int_psi:
                 self._e_hat = -(delta / int_psi).imag
                 self._int_psi = int_psi
             i_h = i_h + 0.5 * (i_e - i_1)
