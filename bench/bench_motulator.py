@@ -50,7 +50,9 @@ status 1 (bench/_common.py). motulator not installed is not a failure (ours only
 null), ``motulator_note`` (why not, or ""), ``ours_x_real_time`` (median sim s / wall s),
 ``ours_x_real_time_runs``; per motulator configuration ``<c>`` (``motulator_250us_ZOH``,
 ``motulator_125us_PWM``) ``<c>_x_real_time``, ``<c>_x_real_time_runs``, ``<c>_ours_over_it``,
-``<c>_points_per_sim_s``; and ``failed``.
+``<c>_points_per_sim_s``; ``ratio``, the headline: ``<c>_ours_over_it`` of the first
+configuration (motulator's default, 250 µs ZOH, or ``--T-s``'s; null without motulator);
+and ``failed``.
 """
 
 from __future__ import annotations
@@ -295,6 +297,15 @@ def main(argv: list[str] | None = None) -> int:
         ratio = "" if m_ours is None else f"{m_ours / m:>8.1f}x"
         print(f"{label(*c):<24}{m:>22.3f}{min(xs):>8.3f}{max(xs):>8.3f}"
               f"{ratio:>9}{points[c] / t_sim:>14.0f}")
+    # the headline: ours over motulator in its default configuration (or --T-s's)
+    head = f"{key(configs[0])}_ours_over_it" if configs else None
+    if head is None:
+        fig.put("ratio", None)  # motulator not installed: motulator_note says why
+    elif head in fig.failed:
+        fig.fail("ratio", fig.failed[head])
+    else:
+        fig.put("ratio", fig.values[head])
+        print(f"ratio ours / {label(*configs[0])}: {fig.values[head]:.1f}x (target >= 40x)")
     fig.report_failures()
     fig.emit(args.json)
     return fig.exit_status()
