@@ -109,6 +109,23 @@ def test_bench_loop_quick_run_gives_its_figures(bench):
     assert "realtime_cycles" not in data
 
 
+def test_bench_motulator_quick_run_gives_its_ratio(bench):
+    """`--quick --json`: ours measured and the headline ``ratio`` key — ours over motulator
+    in its default configuration, or null with the reason in ``motulator_note`` where
+    motulator is not installed (it is not a dependency: installed by hand)."""
+    p = bench("bench/bench_motulator.py", "--quick", "--t-sim", "0.02", "--repeats", "1",
+              "--json")
+    out = p.stdout + p.stderr
+    assert p.returncode == 0, out
+    assert "Traceback" not in out, out
+    data = _json_line(p.stdout)
+    assert data["failed"] == {} and data["ours_x_real_time"] > 0
+    if data["motulator"] is None:
+        assert data["ratio"] is None and "install" in data["motulator_note"]
+    else:
+        assert data["ratio"] == data["motulator_250us_ZOH_ours_over_it"] > 0
+
+
 PLANT_FAILS = textwrap.dedent("""
     import sys
     sys.path.insert(0, "bench")
