@@ -50,9 +50,11 @@ def _row(block: str, plant: str, **cells: Cell) -> Row:
     (_row("low speed/zero-speed", "rs+10", defaults=Cell(0.1, 1.01), true_flux=Cell(0, 0)),
      False),
     (_row("load", "nominal", told=Cell(0.1, 1), observed=Cell(0.19, 1),
-          not_told=Cell(0.2, 1)), True),
-    (_row("load", "nominal", told=Cell(0.1, 1), observed=Cell(0.19, 1),
-          not_told=Cell(0.21, 1)), False),
+          not_told=Cell(9.0, 50, stopped=True)), True),  # --load untold: shown, not held
+    (_row("load", "nominal", told=Cell(0.1, 1), observed=Cell(0.21, 1),
+          not_told=Cell(0.1, 1)), False),
+    (_row("load", "nominal", told=Cell(0.1, 1), observed=Cell(0.19, 1, stopped=True),
+          not_told=Cell(0.1, 1)), False),
     (_row("current-fed", "real-drive", defaults=Cell(0.03, 0.2), true_flux=Cell(0.03, 0.2)),
      True),
 ])
