@@ -82,3 +82,15 @@ def test_one_block_through_the_campaign(tmp_path):
     assert 0.0 < cell["rms"] < cell["max"] <= 1.0 and cell["stopped"] is False
     assert "4 of 4 rows meet their target" in p.stdout
     assert (tmp_path / "m.png").stat().st_size > 10_000
+
+
+def test_a_load_row_is_held_to_the_load_told_on_the_nominal_motor():
+    """The untold-load plant's "told" run is told the profile's load only (the shaft
+    carries more): its observed run is held to twice the nominal motor's told run, not to
+    twice that one."""
+    row = _row("load", "untold-load", told=Cell(0.166, 3.4), observed=Cell(0.081, 1.1),
+               not_told=Cell(14.2, 55, stopped=True))
+    assert target(row)[1] is True  # against its own told run: a loophole
+    row.told_ref = Cell(0.00188, 0.006)
+    text, ok = target(row)
+    assert ok is False and "0.00376" in text

@@ -56,8 +56,9 @@ after a few in a row the tracker stops reading and keeps the ρ it applies.
 The load. Where the laws are not told it (``--load observed``), ℓ = T_L/J is a state (I4).
 Where they are told it, the filter stops once ρ is known (J is constant) and then watches
 (:meth:`InertiaTracker.watch`, (I5)): (ω, D) alone, each innovation tested, outliers
-counted and not taken; three in a row of one sign reject the told load, and the filter
-runs again with ℓ a state, the load the told one leaves out (docs/robustness.md §10).
+counted and not taken; three or more in a row of one sign that grow reject the told load,
+and the filter runs again with ℓ a state, the load the told one leaves out
+(docs/robustness.md §10).
 
 Pure module: no I/O, no clock, no global state.
 """
@@ -89,8 +90,10 @@ class InertiaTuning:
     and the readings ρ is held for after one. settle: the standard deviation of ρ̂ at which
     the filter stops when the load is not observed (J is constant). persist_load: with the
     load told, the readings in a row, each beyond z_load standard deviations on the same
-    side, that reject the told load once the filter has stopped (:meth:`InertiaTracker.watch`,
-    (I5))."""
+    side (and growing), that may reject the told load once the filter has stopped
+    (:meth:`InertiaTracker.watch`, (I5)); max_gate: the outliers in a row after which, not
+    grown, they are a jump of the reading, taken; settle_told: how long after the told load
+    last moved outliers are not counted, s (the drive's own response to it)."""
 
     z: float = 4.0
     persist: int = 1
@@ -111,6 +114,8 @@ class InertiaTuning:
     hold: int = 100
     settle: float = 0.002
     persist_load: int = 3
+    max_gate: int = 10
+    settle_told: float = 0.02
 
 
 class InertiaTracker:
@@ -130,6 +135,7 @@ class InertiaTracker:
         "_hold",
         "_l",
         "_n",
+        "_nu_first",
         "_p00",
         "_p01",
         "_p02",
@@ -151,6 +157,7 @@ class InertiaTracker:
         "_run",
         "_run_load",
         "_w",
+        "_watch_off",
         "applied",
         "frozen",
         "reset",
@@ -194,6 +201,8 @@ class InertiaTracker:
         self._coasts = 0  # coasted intervals in a row
         self._hold = 0  # readings left that hold ρ (after a load step)
         self._run_load = 0  # readings in a row that reject the told load (watch), signed
+        self._nu_first = 0.0  # the first innovation of that run
+        self._watch_off = False  # the watch stopped (a long coast)
 
     @property
     def speed(self) -> float:
@@ -321,21 +330,40 @@ class InertiaTracker:
         return self.applied
 
     def watch(self, w_mid: float, e_hat: float, A: float, weight: float,
-              g: complex = 0j) -> bool:
+              g: complex = 0j, lost: bool = False, count: bool = True) -> bool:
         """After the filter stopped with ρ settled and the load told (I5): the filter of
         (I3) on (ω, D_a, D_b) alone, ρ held as it settled, and a test of its innovations
         against the told load (the arguments are :meth:`update`'s; ``weight`` 0: no
-        reading, the prediction alone). Returns True at the reading that rejects it —
-        :attr:`InertiaTuning.persist_load` innovations in a row beyond ``z_load`` standard
-        deviations, all of one sign (a load the laws are not told decelerates the rotor
-        steadily) — and from then on the filter runs again with ℓ a state, as with the load
-        observed (ρ held as after a load step)."""
+        reading, the prediction alone; ``lost``: an interval the controller coasted
+        through, as in :meth:`coast`). An innovation beyond ``z_load`` standard deviations
+        is an outlier: counted, not taken. :attr:`InertiaTuning.persist_load` of them or more
+        in a row, of one sign, reject the told load where they grow — the last beyond the
+        first by ``z_load`` standard deviations of a difference. A load the laws are not
+        told decelerates the rotor steadily, and the model, not taking the readings, falls
+        further behind each period. The method then returns True: from then on the filter
+        runs again with ℓ a state, as with the load observed (ρ held as after a load step).
+        A run of :attr:`InertiaTuning.max_gate` outliers that has not grown is a jump of
+        the reading (a bias that the told load's own step leaves with an imperfect drive
+        model): the last one is taken, with ω's variance reopened by ν². ``count`` False
+        (the told load moving, or just moved): outliers are taken so, never counted."""
         t = self.tuning
+        if self._watch_off:
+            return False
+        if lost:
+            self._coasts += 1
+            if self._coasts >= t.max_coast:  # the estimator's integral is not known now
+                self._watch_off = True
+                return False
+            # D's prior reopens (coast)
+            self._p03 = self._p04 = self._p34 = 0.0
+            self._p33 = max(self._p33, t.p_d_lost)
+            self._p44 = max(self._p44, t.p_d_lost)
         w, da, db = self._w, self._da, self._db
         p00, p03, p04 = self._p00, self._p03, self._p04
         p33, p34, p44 = self._p33, self._p34, self._p44
         rejected = False
         if weight > 0.0:
+            self._coasts = 0
             e_prev = self._e_prev
             if e_prev is not None:  # the noise's variance, as in update
                 self._n += 1
@@ -349,16 +377,31 @@ class InertiaTracker:
             ph4 = p04 + h3 * p34 + h4 * p44
             s = ph0 + h3 * ph3 + h4 * ph4 + max(self._r, t.r_min) / weight
             nu = (w_mid - e_hat) - (w + 0.5 * A * self.rho + h3 * da + h4 * db)
-            run = self._run_load
-            if nu * nu > t.z_load * t.z_load * s:
-                # an outlier: counted, not taken (the states stay the told load's for the
-                # filter that takes over if the load is rejected)
+            take = True
+            z2 = t.z_load * t.z_load
+            if nu * nu > z2 * s:  # an outlier
                 step = 1 if nu > 0.0 else -1
-                run = run + step if run * step >= 0 else step
+                run = self._run_load
+                if run * step > 0:
+                    run += step
+                else:
+                    run, self._nu_first = step, nu
+                take = False
+                grown = (nu - self._nu_first) * step
+                if (count and abs(run) >= t.persist_load and grown > 0.0
+                        and grown * grown > 2.0 * z2 * s):
+                    rejected = True
+                elif not count or abs(run) >= t.max_gate:
+                    # a jump, not a load (or the told load moving): taken, ω's variance
+                    # reopened by ν²
+                    p00 += nu * nu
+                    ph0 += nu * nu
+                    s += nu * nu
+                    run, take = 0, True
                 self._run_load = run
-                rejected = abs(run) >= t.persist_load
             else:
                 self._run_load = 0
+            if take:
                 k0, k3, k4 = ph0 / s, ph3 / s, ph4 / s
                 w += k0 * nu
                 da += k3 * nu

@@ -185,6 +185,7 @@ class SampledController:
         "_rho",
         "_rho_at",
         "_sigma",
+        "_told_moved",
         "_true_flux",
         "_w_mid",
         "_w_prev",
@@ -248,9 +249,15 @@ class SampledController:
         self.inertia = (InertiaTracker(T=T, load=self._load_observed, inertia=track_j)
                         if track_j or self._load_observed else None)
         # the load told: once J is settled the filter watches the readings against it, and
-        # observes the load from the reading that rejects it on ((I5), §10)
-        self._load_watch = track_j and config.load is LoadSource.KNOWN
+        # observes the load from the reading that rejects it on ((I5), §10); on a drive that
+        # holds the current only (the ideal source): on a PI current loop the load
+        # observed (I4) it would hand over to is not robust (the untold-load plant stops
+        # with it), and a sensor's gain error makes the speed ripple by up to 3 rad/s,
+        # which the watch took for a load
+        self._load_watch = (track_j and config.load is LoadSource.KNOWN
+                            and not self._from_sample)
         self._load_at: int | None = None  # the sample the told load was rejected at
+        self._told_moved = -(1 << 30)  # the last sample whose interval the told load moved in
         self._T_hat = 0.0  # T̂_L, N·m (the load observed; else 0)
         self._w_mid = 0.0  # ω̂ at the midpoint of the interval the last _advance modelled
         self._a_int = 0.0  # and its mechanical copy's ∫dω̂/dt (without (20))
@@ -460,14 +467,18 @@ class SampledController:
         tracker = self.inertia
         A = self._a_int / self._rho
         if lost or psi_k is None:
-            tracker.watch(0.0, 0.0, A, 0.0)
+            tracker.watch(0.0, 0.0, A, 0.0, lost=lost)
             return
         int_psi = self._int_psi
         g = (cmath.exp(-1j * eps_k) * (1.0 - cmath.exp(complex(-self._alpha, self._w_mid)
                                                         * self._T)) / int_psi
              if int_psi else 0j)
+        # the told load moving (or within settle_told of it): the drive's response to it
+        # is not the model's to the period (a current loop's lag, a load applied within the
+        # period): outliers then are not counted
+        count = (self._k - self._told_moved) * self._T > tracker.tuning.settle_told
         if tracker.watch(self._w_mid, self._e_hat, A,
-                         psi_k.real * psi_k.real + psi_k.imag * psi_k.imag, g):
+                         psi_k.real * psi_k.real + psi_k.imag * psi_k.imag, g, count=count):
             self._load_observed = True
             self._load_at = self._k
 
@@ -686,6 +697,8 @@ class SampledController:
         di = 0.5 * (self._di_prev + di_end)
         self._di_prev = di_k
         T_hat = self._T_hat  # the load observed: the laws' T_L over I_{k−1}
+        if self._load_watch and (win[0].T_L != win[2].T_L or win[1].dT_L):
+            self._told_moved = k  # the told load moves: (I5) does not count these readings
         _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L + T_hat, terms,
                                psi_end, di, False)
         if self.inertia is not None:
