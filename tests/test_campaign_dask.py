@@ -79,16 +79,19 @@ def table(out: Path) -> list[dict]:
 def test_monte_carlo_on_a_local_cluster_survives_ctrl_c_and_a_killed_worker(tmp_path):
     out = tmp_path / "mc"
     first = campaign(str(MC), "--out", str(out), "--workers", "2", log=tmp_path / "1.log")
-    wait_for_rows(out, 150, first)
+    wait_for_rows(out, 100, first)
+    seen = rows_in_parts(out)
     first.send_signal(signal.SIGINT)
-    assert finish(first) == 130
+    status = finish(first)
     err = (tmp_path / "1.err").read_text()
+    assert status == 130, (f"Ctrl-C sent with {seen} rows in the parts; the campaign ended "
+                           f"{status}:\n{err[-3000:]}")
     assert "Traceback" not in err
     assert "interrupted" in err and "run the same command again" in err
     assert "points/s" in err and "left" in err  # the progress bar: rate and time left
     assert "dashboard: http://127.0.0.1:" in (tmp_path / "1.log").read_text()
     before = table(out)
-    assert 150 <= len(before) < 1000
+    assert 100 <= len(before) < 1000
     assert len({r["hash"] for r in before}) == len(before)
     assert not list((out / "parts").glob("*.parquet"))  # compacted on the way out
 
