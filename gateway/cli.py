@@ -253,7 +253,10 @@ def _add_control_options(p: argparse.ArgumentParser) -> None:
                    "gateway/motors/paper.toml); default: the paper's 0.6 kW motor")
     p.add_argument("--load", choices=("known", "observed", "untold"),
                    help="the load torque for the laws: known (the profile's T_L, the paper, "
-                        "docs/paper.md §E6), observed (estimated on line, current-fed law: "
+                        "docs/paper.md §E6; with J tracked on an ideal current source, "
+                        "watched once J is known: a told load the readings reject is "
+                        "corrected by the load observed, docs/robustness.md §10), observed "
+                        "(estimated on line, current-fed law: "
                         "in the exact design from the measured flux with the inertia, "
                         "docs/robustness.md §10; in the Euler design by its load observer, "
                         "§2) or untold (the laws assume none: T_L = 0); default: the plant "
