@@ -128,7 +128,13 @@ def only(blocks: list[str], out: Path, campaign: Path = CAMPAIGN) -> Path:
     data["grid"] = [g for g in data["grid"]
                     if g["block"][0]["label"].partition("/")[0] in blocks
                     or g["block"][0]["label"] in blocks]
-    path = out.with_name(f"{out.name}-campaign.toml")
+    return campaign_beside(data, out, "campaign")
+
+
+def campaign_beside(data: dict, out: Path, tag: str) -> Path:
+    """The campaign ``data`` (a parsed campaign file, changed) written beside ``out`` as
+    ``<out>-<tag>.toml``, for the campaign command to run."""
+    path = out.with_name(f"{out.name}-{tag}.toml")
     out.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomltext.dumps(data), encoding="utf-8")
     return path

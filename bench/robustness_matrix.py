@@ -49,9 +49,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from _common import Figures, add_json_option, failed_text  # noqa: E402
-from robustness import run_campaign  # noqa: E402
+from robustness import campaign_beside, run_campaign  # noqa: E402
 
-from gateway.campaign import tomltext  # noqa: E402
 from gateway.campaign.model import load_campaign  # noqa: E402
 from gateway.campaign.points import every_point  # noqa: E402
 
@@ -228,9 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.over != "simulate":  # the same campaign with another command
         data = tomllib.loads(CAMPAIGN.read_text(encoding="utf-8"))
         data["campaign"]["command"] = args.over
-        campaign = out.with_name(f"{out.name}-{args.over}.toml")
-        campaign.parent.mkdir(parents=True, exist_ok=True)
-        campaign.write_text(tomltext.dumps(data), encoding="utf-8")
+        campaign = campaign_beside(data, out, args.over)
     path, status = run_campaign(args, out, campaign)
     if not (out / "results.parquet").exists():
         print(f"the campaign did not run (exit status {status}); see above", file=sys.stderr)

@@ -242,13 +242,7 @@ class InertiaTracker:
         p33, p34, p44 = self._p33, self._p34, self._p44
         if weight > 0.0:
             self._coasts = 0
-            e_prev = self._e_prev
-            if e_prev is not None:  # the noise's variance from successive differences
-                self._n += 1
-                gain = max(1.0 / (self._n + t.n0), 0.02)
-                d = e_hat - e_prev
-                self._r += gain * (0.5 * d * d * weight - self._r)
-            self._e_prev = e_hat
+            self._learn_noise(e_hat, weight)
             # y = ω + ρ·A/2 − ℓ·T/2 + Im(g)·D_a + Re(g)·D_b: H = (1, h1, h2, h3, h4)
             h1, h2, h3, h4 = 0.5 * A, -0.5 * T, g.imag, g.real
             ph0 = p00 + h1 * p01 + h2 * p02 + h3 * p03 + h4 * p04
@@ -354,23 +348,14 @@ class InertiaTracker:
             if self._coasts >= t.max_coast:  # the estimator's integral is not known now
                 self._watch_off = True
                 return False
-            # D's prior reopens (coast)
-            self._p03 = self._p04 = self._p34 = 0.0
-            self._p33 = max(self._p33, t.p_d_lost)
-            self._p44 = max(self._p44, t.p_d_lost)
+            self._reopen_flux_error()
         w, da, db = self._w, self._da, self._db
         p00, p03, p04 = self._p00, self._p03, self._p04
         p33, p34, p44 = self._p33, self._p34, self._p44
         rejected = False
         if weight > 0.0:
             self._coasts = 0
-            e_prev = self._e_prev
-            if e_prev is not None:  # the noise's variance, as in update
-                self._n += 1
-                gain = max(1.0 / (self._n + t.n0), 0.02)
-                d = e_hat - e_prev
-                self._r += gain * (0.5 * d * d * weight - self._r)
-            self._e_prev = e_hat
+            self._learn_noise(e_hat, weight)
             h3, h4 = g.imag, g.real  # H = (1, h3, h4) on (ω, D_a, D_b)
             ph0 = p00 + h3 * p03 + h4 * p04
             ph3 = p03 + h3 * p33 + h4 * p34
@@ -441,9 +426,26 @@ class InertiaTracker:
         self._coasts += 1
         if self._coasts >= self.tuning.max_coast:
             self.frozen = True
+        self._reopen_flux_error()
+        return applied
+
+    def _learn_noise(self, e_hat: float, weight: float) -> None:
+        """A reading's part in the estimate of its noise's variance (× |ψ|²): half the
+        squared difference of successive readings (the error moves slowly, the noise does
+        not)."""
+        e_prev = self._e_prev
+        if e_prev is not None:
+            self._n += 1
+            gain = max(1.0 / (self._n + self.tuning.n0), 0.02)
+            d = e_hat - e_prev
+            self._r += gain * (0.5 * d * d * weight - self._r)
+        self._e_prev = e_hat
+
+    def _reopen_flux_error(self) -> None:
+        """After a lost interval: D's prior reopens to :attr:`InertiaTuning.p_d_lost`, its
+        cross terms dropped (the estimator's integral took an unknown constant)."""
         p_d = self.tuning.p_d_lost
         self._p03 = self._p04 = self._p13 = self._p14 = self._p23 = self._p24 = 0.0
         self._p34 = 0.0
         self._p33 = max(self._p33, p_d)
         self._p44 = max(self._p44, p_d)
-        return applied

@@ -442,14 +442,9 @@ class SampledController:
         elif psi_k is None:
             rho = tracker.update(0.0, 0.0, A / rho_applied, 0.0)
         else:
-            # (I3): a flux error D constant in (a, b), D·e^{−jε_k} in the frame, left by the
-            # model's own rotation over the interval: y gains Im(g·D)
-            int_psi = self._int_psi
-            g = (cmath.exp(-1j * eps_k) * (1.0 - cmath.exp(complex(-self._alpha, self._w_mid)
-                                                            * self._T)) / int_psi
-                 if int_psi else 0j)
             rho = tracker.update(self._w_mid, self._e_hat, A / rho_applied,
-                                 psi_k.real * psi_k.real + psi_k.imag * psi_k.imag, g)
+                                 psi_k.real * psi_k.real + psi_k.imag * psi_k.imag,
+                                 self._flux_error_gain(eps_k))
             if tracker.reset:
                 self._rho_at = self._k
         if rho != rho_applied:
@@ -460,6 +455,15 @@ class SampledController:
             return tracker.speed
         return None
 
+    def _flux_error_gain(self, eps_k: float) -> complex:
+        """g of (I3) for the interval just read: a flux error D constant in (a, b),
+        D·e^{−jε_k} in the frame, left by the model's own rotation over the interval, adds
+        Im(g·D) to the reading (rad/s per Wb; 0 without the model's ∫ψ)."""
+        int_psi = self._int_psi
+        return (cmath.exp(-1j * eps_k) * (1.0 - cmath.exp(complex(-self._alpha, self._w_mid)
+                                                          * self._T)) / int_psi
+                if int_psi else 0j)
+
     def _watch_load(self, psi_k: complex | None, eps_k: float, lost: bool) -> None:
         """(I5): the settled filter's speed against the readings; where they reject the
         told load, the load the laws are not told is observed from the next sample on (T̂_L
@@ -469,10 +473,7 @@ class SampledController:
         if lost or psi_k is None:
             tracker.watch(0.0, 0.0, A, 0.0, lost=lost)
             return
-        int_psi = self._int_psi
-        g = (cmath.exp(-1j * eps_k) * (1.0 - cmath.exp(complex(-self._alpha, self._w_mid)
-                                                        * self._T)) / int_psi
-             if int_psi else 0j)
+        g = self._flux_error_gain(eps_k)
         # the told load moving (or within settle_told of it): the drive's response to it
         # is not the model's to the period (a current loop's lag, a load applied within the
         # period): outliers then are not counted
