@@ -55,7 +55,7 @@ from gateway.control.controller import PAPER_SIGNALS
 from gateway.control.interface import DriveController
 from gateway.cycle import BUS_COLUMNS, ControlCycle, ReferenceProfile, row_type
 from gateway.guard import DivergenceWatch, Envelope, Plausibility
-from gateway.process_data import ProcessData
+from gateway.process_data import Pdo, ProcessData
 from gateway.report import Record
 from gateway.stop import StopReason
 
@@ -159,6 +159,8 @@ class LoopStats:
     #: SYNC slots the real-time SYNC thread skipped, held up past them (each also missed)
     skipped_syncs: int = 0
     error_frames: int = 0  #: error frames received
+    #: lockstep: TPDOs that came before the echo of the SYNC they answer (held for its cycle)
+    tpdo_before_echo: int = 0
     last_good_cycle: int = 0  #: the last cycle completed and sent
     wall_time: float = 0.0
 
@@ -217,6 +219,8 @@ class CycleLoop:
         self._late_names: set[str] = set()  # those of the previous cycle, if it was missed
         self._echo_seen = False  # this cycle's counter echo has arrived
         self._suspects: set[str] = set()  # frames that may be the previous cycle's
+        #: TPDOs received while the SYNC sent was not yet echoed (see _on_tpdo)
+        self._early: list[tuple[int, bytes, float]] = []
         self._tpdo_time = 0.0
         self._k = 0  # cycles opened (SYNCs seen)
         self._k_done = 0  # cycles completed
@@ -267,6 +271,12 @@ class CycleLoop:
                              "producer on the bus; there must be one")
                 return
             self._open_locked(timestamp, k)
+            early, self._early = self._early, []
+            for can_id, data, t_frame in early:  # they answer this SYNC: its cycle's now
+                if self._done.is_set():
+                    break
+                self._tpdo_locked(self._ids[can_id], can_id, data, t_frame,
+                                  time.perf_counter())
 
     def _foreign_sync(self, k: int, data: bytes) -> str:
         """Why the SYNC received as the ``k``-th is not the gateway's, or '' when it is ours.
@@ -448,55 +458,83 @@ class CycleLoop:
             return
         with self._lock:
             self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
-            if len(data) != pdo.length:
-                self.stats.tpdo_events[f"{pdo.name} wrong length"] += 1
-                self._finish(StopReason.BAD_FRAME,
-                             f"{pdo.name} (COB-ID 0x{can_id:03X}) of {len(data)} bytes, "
-                             f"expected {pdo.length}: not decoded (a wrong PDO mapping on the "
-                             "drive, or another node on this COB-ID)")
+            if (self._k <= self._k_done and self._sync_in_flight()
+                    and len(data) == pdo.length):
+                # Lockstep: the cycle open is complete, the next SYNC is sent, its echo has
+                # not come back, and a TPDO is here. On an in-process bus that hands a frame
+                # to each receiver in turn (python-can's virtual) the drive can answer before
+                # the sender's own copy is queued; on a real bus the echo comes first. Held,
+                # and taken when the echo opens the cycle, as if after it (dropped as late,
+                # the cycle waited for the 2 s backstop and was missed). A frame of another
+                # cycle is told there as after the echo (counter echo, late, duplicate).
+                self._early.append((can_id, bytes(data), timestamp))
+                self.stats.tpdo_before_echo += 1
                 return
-            if self._k <= self._k_done:
-                # after its cycle (late) or before the first SYNC (early)
-                self.stats.tpdo_events[f"{pdo.name} {'late' if self._k else 'early'}"] += 1
-                return
-            if pdo is self._echo and self.cfg.sync_counter:
-                counter = pdo.codec.decode(data)["sync_counter"]
-                self._stale = counter != sync_counter(self._k)
-            if self._stale:
-                # the answer to an earlier SYNC, arriving in this cycle: not ours
-                self.stats.tpdo_events[f"{pdo.name} stale"] += 1
-                return
-            name = pdo.name
-            if pdo is self._echo:
-                self._echo_seen = True
-            elif name in self._late_names and not self._echo_seen:
-                # A TPDO the missed cycle lacked, before this cycle's echo: the drive answers
-                # SYNCs in order, so it is the missed cycle's if this cycle's comes after
-                # it. The cycle waits for a second one, or for one after the echo, and
-                # never mixes the samples of two SYNCs (a voltage of the interval before
-                # with the currents of this one threw the flux estimate off, at 10 ms).
-                if name in self._suspects:
-                    self._suspects.discard(name)  # the second: the first was late
-                    self.stats.tpdo_events[f"{name} late"] += 1
-                elif name not in self._frames:
-                    self._suspects.add(name)
-            else:
-                if name in self._suspects:
-                    self.stats.tpdo_events[f"{name} late"] += 1
-                elif name in self._frames:
-                    self.stats.tpdo_events[f"{name} duplicate"] += 1
-                    return  # the first one counts
-                self._suspects.discard(name)
-            self._frames[name] = bytes(data)
-            if len(self._frames) < len(self._expected) or self._suspects:
-                return
-            self._tpdo_time = timestamp
-            try:
-                self._cycle(t_arrival)
-            except Exception as exc:  # the receive thread must not die silently
-                self._error = exc
-                log.exception("error in control cycle %d", self._k)
-                self._finish(StopReason.CONTROL_ERROR, f"error in the control cycle: {exc!r}")
+            self._tpdo_locked(pdo, can_id, bytes(data), timestamp, t_arrival)
+
+    def _sync_in_flight(self) -> bool:
+        """Lockstep: the gateway's SYNC is sent and its echo not yet received (lock held).
+
+        Only in lockstep, where the SYNC goes out once the cycle before is complete or
+        missed. In real time the answers to earlier SYNCs still arrive after the next was
+        sent (late, stale); held for the next cycle they mixed two SYNCs' samples there
+        (measured: the held-up-SYNC-thread run at 5 ms diverged 4 times in 20, never
+        without), and a frame before the echo is the open cycle's by the bus's order."""
+        return (self.own_echo and self.cfg.timing is Timing.LOCKSTEP
+                and self._syncs_sent > self._k)
+
+    def _tpdo_locked(self, pdo: Pdo, can_id: int, data: bytes, timestamp: float,
+                     t_arrival: float) -> None:
+        """A TPDO in the cycle open now (lock held): :meth:`_on_tpdo`."""
+        if len(data) != pdo.length:
+            self.stats.tpdo_events[f"{pdo.name} wrong length"] += 1
+            self._finish(StopReason.BAD_FRAME,
+                         f"{pdo.name} (COB-ID 0x{can_id:03X}) of {len(data)} bytes, "
+                         f"expected {pdo.length}: not decoded (a wrong PDO mapping on the "
+                         "drive, or another node on this COB-ID)")
+            return
+        if self._k <= self._k_done:
+            # after its cycle (late) or before the first SYNC (early)
+            self.stats.tpdo_events[f"{pdo.name} {'late' if self._k else 'early'}"] += 1
+            return
+        if pdo is self._echo and self.cfg.sync_counter:
+            counter = pdo.codec.decode(data)["sync_counter"]
+            self._stale = counter != sync_counter(self._k)
+        if self._stale:
+            # the answer to an earlier SYNC, arriving in this cycle: not ours
+            self.stats.tpdo_events[f"{pdo.name} stale"] += 1
+            return
+        name = pdo.name
+        if pdo is self._echo:
+            self._echo_seen = True
+        elif name in self._late_names and not self._echo_seen:
+            # A TPDO the missed cycle lacked, before this cycle's echo: the drive answers
+            # SYNCs in order, so it is the missed cycle's if this cycle's comes after
+            # it. The cycle waits for a second one, or for one after the echo, and
+            # never mixes the samples of two SYNCs (a voltage of the interval before
+            # with the currents of this one threw the flux estimate off, at 10 ms).
+            if name in self._suspects:
+                self._suspects.discard(name)  # the second: the first was late
+                self.stats.tpdo_events[f"{name} late"] += 1
+            elif name not in self._frames:
+                self._suspects.add(name)
+        else:
+            if name in self._suspects:
+                self.stats.tpdo_events[f"{name} late"] += 1
+            elif name in self._frames:
+                self.stats.tpdo_events[f"{name} duplicate"] += 1
+                return  # the first one counts
+            self._suspects.discard(name)
+        self._frames[name] = bytes(data)
+        if len(self._frames) < len(self._expected) or self._suspects:
+            return
+        self._tpdo_time = timestamp
+        try:
+            self._cycle(t_arrival)
+        except Exception as exc:  # the receive thread must not die silently
+            self._error = exc
+            log.exception("error in control cycle %d", self._k)
+            self._finish(StopReason.CONTROL_ERROR, f"error in the control cycle: {exc!r}")
 
     # ------------------------------------------------------------------ the cycle
 

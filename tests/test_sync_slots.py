@@ -126,3 +126,55 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp)
     end = sig["t"] >= sig["t"][-1] - 0.1
     assert float(np.sqrt(np.mean(e[end] ** 2))) < 1.5, e[end]
+
+
+def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_path):
+    """python-can's virtual bus queues a frame for each receiver in turn: the drive (created
+    first) can answer a SYNC before the gateway's own copy of it is queued. Made to happen
+    every cycle here (the gateway's echo of each SYNC is queued only once the drive's three
+    TPDOs are in): each answer is held and taken when the echo opens its cycle. Dropped as
+    late, every cycle waited for the 2 s backstop and the run stopped, drive lost."""
+    from gw_support import _patient_drive_profile, bus_run
+
+    from gateway.drive_profile import load_drive_profile
+    from gateway.spec import RunSpec
+    from gateway.stop import StopSignals
+
+    emu = emulator()
+    bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
+    own, overtaken = bus.queue, [0]
+
+    def send(msg: can.Message, timeout: float | None = None) -> None:
+        stamp = time.time()
+        for q in bus.channel:  # what VirtualBus.send does, the sender's copy last
+            if q is not own:
+                q.put(can.Message(arbitration_id=msg.arbitration_id, data=msg.data,
+                                  is_extended_id=False, timestamp=stamp, is_rx=True,
+                                  channel=emu.channel))
+        if msg.arbitration_id == SYNC_ID:
+            # the drive's TPDO1..3 first (the gateway's notifier sends the SYNC, and reads
+            # nothing meanwhile, in every cycle but the first: its echoes of the RPDOs wait)
+            want, deadline = own.qsize() + 3, time.monotonic() + 1.0
+            while own.qsize() < want and time.monotonic() < deadline:
+                time.sleep(1e-4)
+            overtaken[0] += own.qsize() >= want
+        own.put(can.Message(arbitration_id=msg.arbitration_id, data=msg.data,
+                            is_extended_id=False, timestamp=stamp, is_rx=False,
+                            channel=emu.channel))
+
+    bus.send = send
+    drive = load_drive_profile(str(_patient_drive_profile()))
+    try:
+        s = bus_run(bus, drive, tmp_path, RunSpec(duration=0.05), StopSignals())
+    finally:
+        bus.shutdown()
+    run = s["run"]
+    assert run["stop"] == "END_OF_PROFILE", run["stop_reason"]
+    assert run["cycles"] == 50 and run["missed_cycles"] == 0, run
+    held = run["tpdo_before_echo"]
+    assert overtaken[0] >= 50 and held >= 150, (overtaken, held)
+    assert run["tpdo_events"] == {}
+    sig = read_csv(tmp_path / "signals.csv")
+    k = np.rint(sig["t"] / 1e-3).astype(int)
+    assert all(int(c) == sync_counter(int(j)) for c, j in zip(sig["sync_counter"], k,
+                                                               strict=True))
