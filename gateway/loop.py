@@ -734,6 +734,9 @@ class CycleLoop:
                 self._backstop_locked()
 
     def _backstop_locked(self) -> None:
+        for can_id, _, _ in self._early:  # held for a SYNC whose echo never came: late
+            self.stats.tpdo_events[f"{self._ids[can_id].name} late"] += 1
+        self._early.clear()
         self._miss()
         self._progress_at = time.monotonic()
         if not self._done.is_set():
