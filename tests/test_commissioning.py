@@ -194,26 +194,6 @@ def test_a_voltage_drive_is_identified_with_its_currents_charge(tmp_path, plant,
     assert summary["speed_error"]["rms"] < 0.015
 
 
-@pytest.mark.parametrize("seed", [1, 4, 6])
-def test_the_ideal_source_is_identified_from_the_current_it_was_commanded(tmp_path, seed):
-    """5 mA of sensor noise per axis (the seeds that were worst): on the ideal source the
-    identification takes each period's charge from the current commanded, which the drive
-    holds, not from the sample, whose noise in the fit's regressors (errors in variables)
-    biased α̂ by −0.14 to −0.25 % and cost these runs 0.020–0.038 rad/s RMS, the true-flux
-    runs (whose slip takes α̂) too. Measured now: α̂ within 0.03 %, RMS 0.006–0.010. Only
-    the magnetisation is simulated here (the identification ends it at 0.32 s)."""
-    scenario = tmp_path / "noise.toml"
-    scenario.write_text(f'[scenario]\nname = "noise"\n[sensors]\nnoise = 0.005\n'
-                        f'seed = {seed}\n')
-    out = tmp_path / "run"
-    assert main(["simulate", "--plant", str(scenario), "--duration", "0.4s", "--no-figures",
-                 "--out", str(out)]) == 0
-    ident = json.loads((out / "summary.json").read_text())["identification"]
-    assert ident["accepted"], ident
-    assert ident["alpha"] == pytest.approx(MOTOR.R_r / MOTOR.L_r, rel=5e-4)
-    assert ident["R_s"] == pytest.approx(MOTOR.R_s, rel=1e-4)
-
-
 def test_identifier_refuses_what_it_cannot_know():
     idf = StandstillIdentifier(MOTOR, T)
     for i, u in _magnetise(MOTOR, n=5):

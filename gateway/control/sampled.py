@@ -311,26 +311,17 @@ class SampledController:
         self.commissioning = (Commissioning(motor, self._T, sensors=self._lag == 0.0)
                               if config.identify else None)
 
-    def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex,
-                    int_i_ab: complex) -> complex:
+    def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
         """The standstill identification (``config.identify``): the flux the laws take
         (:meth:`Commissioning.apply`: the current model's while it is pending, the
         identified voltage model's at the sample that ends it), and from that sample the
-        identified R_s and R_r. ``int_i_ab``: the model's ∫i dt over the past interval,
-        the current commanded (A·s, (a, b))."""
+        identified R_s and R_r."""
         c = self.commissioning
         if c is None:
             return psi_hat_ab
-        # The charge of the past interval. Where the drive does not hold its current: the
-        # estimator's (the model's ∫i with the trapezoid of the measured mismatch). Where
-        # it does (the ideal source): the model's, the current commanded, which the drive
-        # holds — not T·i_k, the sample, which carries the sensors' noise into the fit's
-        # regressors (b, and the current model c(α) it drives): errors in variables,
-        # which biased α̂ (5 mA of noise: −0.14 to −0.25 % on three of eight seeds, and
-        # 0.02–0.038 rad/s RMS where the others gave 0.005–0.01, the true flux too, whose
-        # slip takes α̂; docs/robustness.md §5). A sensor offset or gain error is still
-        # seen: the drive regulates what its sensors read, which the model commanded.
-        charge = self.estimator.charge if self._from_sample else int_i_ab
+        # the charge of the past interval where the drive does not hold its current: the
+        # estimator's (the model's ∫i with the trapezoid of the measured mismatch)
+        charge = self.estimator.charge if self._from_sample else None
         ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab,
                              charge)
         if ident is not None:
@@ -680,7 +671,7 @@ class SampledController:
                                        eps_k, win[2].psi_ref if self._joined else refs.psi_ref,
                                        self._from_sample)
         if self.commissioning is not None:
-            psi_ab = self._commission(refs, sample, psi_ab, int_i_ab)
+            psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         to_k = cmath.exp(-1j * eps_k)
@@ -1148,7 +1139,7 @@ class FullOrderSampledController(SampledController):
                                        rot_s * turn_1 * i_1, eps_k, refs.psi_ref,
                                        self._from_sample)
         if self.commissioning is not None:
-            psi_ab = self._commission(refs, sample, psi_ab, int_i_ab)
+            psi_ab = self._commission(refs, sample, psi_ab)
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         psi_k = psi_ab * rot_k
