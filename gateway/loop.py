@@ -220,7 +220,7 @@ class CycleLoop:
         self._echo_seen = False  # this cycle's counter echo has arrived
         self._suspects: set[str] = set()  # frames that may be the previous cycle's
         #: TPDOs received while the SYNC sent was not yet echoed (see _on_tpdo)
-        self._early: list[tuple[int, bytes, float]] = []
+        self._early: list[tuple[Pdo, bytes, float]] = []
         self._tpdo_time = 0.0
         self._k = 0  # cycles opened (SYNCs seen)
         self._k_done = 0  # cycles completed
@@ -272,11 +272,10 @@ class CycleLoop:
                 return
             self._open_locked(timestamp, k)
             early, self._early = self._early, []
-            for can_id, data, t_frame in early:  # they answer this SYNC: its cycle's now
+            for pdo, raw, t_frame in early:  # they answer this SYNC: its cycle's now
                 if self._done.is_set():
                     break
-                self._tpdo_locked(self._ids[can_id], can_id, data, t_frame,
-                                  time.perf_counter())
+                self._tpdo_locked(pdo, raw, t_frame, time.perf_counter())
 
     def _foreign_sync(self, k: int, data: bytes) -> str:
         """Why the SYNC received as the ``k``-th is not the gateway's, or '' when it is ours.
@@ -456,10 +455,11 @@ class CycleLoop:
         pdo = self._ids.get(can_id)
         if pdo is None or self._done.is_set():
             return
+        raw = bytes(data)
         with self._lock:
-            self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
+            self.recent.append((time.time(), "rx", can_id, raw.hex()))
             if (self._k <= self._k_done and self._sync_in_flight()
-                    and len(data) == pdo.length):
+                    and len(raw) == pdo.length):
                 # Lockstep: the cycle open is complete, the next SYNC is sent, its echo has
                 # not come back, and a TPDO is here. On an in-process bus that hands a frame
                 # to each receiver in turn (python-can's virtual) the drive can answer before
@@ -467,10 +467,10 @@ class CycleLoop:
                 # and taken when the echo opens the cycle, as if after it (dropped as late,
                 # the cycle waited for the 2 s backstop and was missed). A frame of another
                 # cycle is told there as after the echo (counter echo, late, duplicate).
-                self._early.append((can_id, bytes(data), timestamp))
+                self._early.append((pdo, raw, timestamp))
                 self.stats.tpdo_before_echo += 1
                 return
-            self._tpdo_locked(pdo, can_id, bytes(data), timestamp, t_arrival)
+            self._tpdo_locked(pdo, raw, timestamp, t_arrival)
 
     def _sync_in_flight(self) -> bool:
         """Lockstep: the gateway's SYNC is sent and its echo not yet received (lock held).
@@ -483,13 +483,13 @@ class CycleLoop:
         return (self.own_echo and self.cfg.timing is Timing.LOCKSTEP
                 and self._syncs_sent > self._k)
 
-    def _tpdo_locked(self, pdo: Pdo, can_id: int, data: bytes, timestamp: float,
+    def _tpdo_locked(self, pdo: Pdo, data: bytes, timestamp: float,
                      t_arrival: float) -> None:
         """A TPDO in the cycle open now (lock held): :meth:`_on_tpdo`."""
         if len(data) != pdo.length:
             self.stats.tpdo_events[f"{pdo.name} wrong length"] += 1
             self._finish(StopReason.BAD_FRAME,
-                         f"{pdo.name} (COB-ID 0x{can_id:03X}) of {len(data)} bytes, "
+                         f"{pdo.name} (COB-ID 0x{pdo.cob_id:03X}) of {len(data)} bytes, "
                          f"expected {pdo.length}: not decoded (a wrong PDO mapping on the "
                          "drive, or another node on this COB-ID)")
             return
@@ -525,7 +525,7 @@ class CycleLoop:
                 self.stats.tpdo_events[f"{name} duplicate"] += 1
                 return  # the first one counts
             self._suspects.discard(name)
-        self._frames[name] = bytes(data)
+        self._frames[name] = data
         if len(self._frames) < len(self._expected) or self._suspects:
             return
         self._tpdo_time = timestamp
@@ -734,8 +734,8 @@ class CycleLoop:
                 self._backstop_locked()
 
     def _backstop_locked(self) -> None:
-        for can_id, _, _ in self._early:  # held for a SYNC whose echo never came: late
-            self.stats.tpdo_events[f"{self._ids[can_id].name} late"] += 1
+        for pdo, _, _ in self._early:  # held for a SYNC whose echo never came: late
+            self.stats.tpdo_events[f"{pdo.name} late"] += 1
         self._early.clear()
         self._miss()
         self._progress_at = time.monotonic()

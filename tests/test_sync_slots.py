@@ -144,13 +144,16 @@ def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_p
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
     own, overtaken = bus.queue, [0]
 
+    def copy(msg: can.Message, stamp: float, is_rx: bool) -> can.Message:
+        return can.Message(arbitration_id=msg.arbitration_id, data=msg.data,
+                           is_extended_id=False, timestamp=stamp, is_rx=is_rx,
+                           channel=emu.channel)
+
     def send(msg: can.Message, timeout: float | None = None) -> None:
         stamp = time.time()
         for q in bus.channel:  # what VirtualBus.send does, the sender's copy last
             if q is not own:
-                q.put(can.Message(arbitration_id=msg.arbitration_id, data=msg.data,
-                                  is_extended_id=False, timestamp=stamp, is_rx=True,
-                                  channel=emu.channel))
+                q.put(copy(msg, stamp, is_rx=True))
         if msg.arbitration_id == SYNC_ID:
             # the drive's TPDO1..3 first (the gateway's notifier sends the SYNC, and reads
             # nothing meanwhile, in every cycle but the first: its echoes of the RPDOs wait)
@@ -158,9 +161,7 @@ def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_p
             while own.qsize() < want and time.monotonic() < deadline:
                 time.sleep(1e-4)
             overtaken[0] += own.qsize() >= want
-        own.put(can.Message(arbitration_id=msg.arbitration_id, data=msg.data,
-                            is_extended_id=False, timestamp=stamp, is_rx=False,
-                            channel=emu.channel))
+        own.put(copy(msg, stamp, is_rx=False))
 
     bus.send = send
     drive = load_drive_profile(str(_patient_drive_profile()))
