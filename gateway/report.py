@@ -351,6 +351,9 @@ def inertia_line(found: Mapping[str, Any] | None) -> str:
     if found.get("load_rejected_at") is not None:
         load = (f"; the told load rejected at {found['load_rejected_at']:.3f} s, a further "
                 f"{found['T_L_observed']:.3g} N·m observed at the end")
+    elif found.get("load_watch_stopped_at") is not None:
+        load = (f"; the told load no longer watched from {found['load_watch_stopped_at']:.3f}"
+                " s (a sample lost at its step)")
     if found.get("applied"):
         return (f"J tracked on line: {found['J']:.4g} kg·m² from {found['at']:.3f} s "
                 f"(motor file {found['J_file']:.4g}{stopped}){load}")

@@ -108,7 +108,8 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     # a row per cycle with a sample; the slots between rows are the missed ones, skipped
     # slots included, and no row in the slots each hold skipped
     assert np.array_equal(np.diff(k) - 1, np.diff(sig["missed"]).astype(int))
-    assert int(sig["missed"][-1]) >= run["skipped_syncs"]
+    # (slots the thread skipped after the last row are in skipped_syncs, not in a row)
+    assert int(sig["missed"][-1]) + (round(2.5 / T) - int(k[-1])) >= run["skipped_syncs"]
     for h in held_at:
         assert not np.any((k > h) & (k <= h + 2)), (h, k[(k > h - 3) & (k < h + 6)])
     # accuracy, not stability: in the 100 ms after each hold the error of the periods the
@@ -116,12 +117,17 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     # 1.8 rad/s), and, where the cycle of the hold's slot sent its setpoints (always
     # after the second hold, rarely after the first), of the late frame angle with the
     # ringing after it (12 runs: 2.1 to 6.1 rad/s; the model that took the setpoints as
-    # on time: 13 rad/s and runaways),
+    # on time: 13 rad/s and runaways). Where the loaded host also missed more than two
+    # cycles of its own in that window, the drive held its setpoints longer than the hold
+    # (under stress-ng on both cores: 7 periods in a row, 11 rad/s): what it costs is no
+    # longer the hold's alone, and the bound is stability's.
     e = sig["w_m"] - sig["w_ref"]
     for h in held_at:
         sent = bool(np.any((k == h) & (sig["withheld"] == 0)))
         near = (k >= h) & (k <= h + 20)
-        assert np.max(np.abs(e[near])) < (9.0 if sent else 3.0), (h, sent, e[near])
+        own = int(sig["missed"][near][-1] - sig["missed"][k < h][-1]) - 3  # the hold: 3
+        bound = (9.0 if sent else 3.0) if own <= 2 else 25.0
+        assert np.max(np.abs(e[near])) < bound, (h, sent, own, e[near])
     # and at the profile's end the run is back on its reference (nominal: 1 mrad/s; under
     # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp)
     end = sig["t"] >= sig["t"][-1] - 0.1

@@ -415,6 +415,16 @@ class InertiaTracker:
             self._run_load = 0
         return rejected
 
+    def stop_watch(self) -> None:
+        """The watch (I5) takes no more readings: the caller knows they cannot tell a load
+        the laws are not told from what follows (a lost sample at the told load's step)."""
+        self._watch_off = True
+
+    @property
+    def watching(self) -> bool:
+        """The watch (I5) still takes readings (not stopped by a long coast or the caller)."""
+        return not self._watch_off
+
     def coast(self, A: float) -> float:
         """An interval the controller coasted through on its model (a lost sample): the
         prediction alone. The estimator's integral over a lost interval takes an unknown

@@ -152,6 +152,7 @@ class SampledController:
         "_base",
         "_beta",
         "_cmd_refs",
+        "_coasted_at",
         "_constant_current",
         "_d",
         "_di_prev",
@@ -189,6 +190,7 @@ class SampledController:
         "_true_flux",
         "_w_mid",
         "_w_prev",
+        "_watch_stopped_at",
         "commissioning",
         "config",
         "eps_0",
@@ -258,6 +260,8 @@ class SampledController:
                             and not self._from_sample)
         self._load_at: int | None = None  # the sample the told load was rejected at
         self._told_moved = -(1 << 30)  # the last sample whose interval the told load moved in
+        self._watch_stopped_at: int | None = None  # the sample (I5) stopped at (lost sample)
+        self._coasted_at = -(1 << 29)  # the last sample whose interval was lost (coasted)
         self._T_hat = 0.0  # T̂_L, N·m (the load observed; else 0)
         self._w_mid = 0.0  # ω̂ at the midpoint of the interval the last _advance modelled
         self._a_int = 0.0  # and its mechanical copy's ∫dω̂/dt (without (20))
@@ -364,6 +368,8 @@ class SampledController:
                 found["inertia"]["T_L_observed"] = self._T_hat
             if self._load_at is not None:
                 found["inertia"]["load_rejected_at"] = self._load_at * self._T
+            if self._watch_stopped_at is not None:
+                found["inertia"]["load_watch_stopped_at"] = self._watch_stopped_at * self._T
         elif self._inertia_off is not None:
             found = found if found is not None else {}
             found["inertia"] = {"J": self._J, "J_file": self.motor.J, "applied": False,
@@ -470,6 +476,18 @@ class SampledController:
         = ℓ̂·J added to the profile's in (15), (16), as with ``--load observed``)."""
         tracker = self.inertia
         A = self._a_int / self._rho
+        if lost:
+            self._coasted_at = self._k
+        if (abs(self._told_moved - self._coasted_at) * self._T <= tracker.tuning.settle_told
+                and tracker.watching):
+            # A sample lost while the told load moved, or just before or after: the drive's
+            # response to the step was never read, and the estimator's transient after the
+            # coast (at 5 ms it rang ±1.9 rad/s in (I1) for over 0.3 s) is, to the test, a
+            # load the laws are not told: the told load was rejected and the run lost its
+            # precision (0.9 rad/s RMS). The watch stops; the told load stands.
+            tracker.stop_watch()
+            self._watch_stopped_at = self._k
+            return
         if lost or psi_k is None:
             tracker.watch(0.0, 0.0, A, 0.0, lost=lost)
             return
@@ -709,7 +727,7 @@ class SampledController:
             if self._load_observed and measured and not self.inertia.frozen:  # (I4)
                 tracker = self.inertia
                 T_hat = self._T_hat = tracker.load * self._J
-                w_k += tracker.tuning.k_s * T * (tracker.speed - w_k)
+                w_k += min(tracker.tuning.k_s * T, 1.0) * (tracker.speed - w_k)
         self._measured = True
         self.w_hat = w_k
         # predict through the committed intervals I_k … I_{k+d−1}
@@ -880,6 +898,8 @@ class SampledController:
                                        win[0].T_L + self._T_hat, terms,
                                        adapt=False)
             i_end_ab = self._current(prev, terms)[1]
+        if self._load_watch and (win[0].T_L != win[2].T_L or win[1].dT_L):
+            self._told_moved = self._k  # the told load moved in the interval lost
         if self.inertia is not None:
             self._track_inertia(None, lost=True)
         self._measured = False
