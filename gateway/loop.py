@@ -205,6 +205,8 @@ class CycleLoop:
                        if cfg.envelope is not None else None)
         self.stats = LoopStats()
         self._lock = threading.Lock()
+        #: real time: the SYNC thread's send against a cycle's deadline check and RPDOs
+        self._send_lock = threading.Lock()
         self._done = threading.Event()
         self._stop = threading.Event()
         self._error: BaseException | None = None
@@ -565,26 +567,36 @@ class CycleLoop:
         if self._watch is not None and self._watch.check(row, k):
             self._finish(StopReason.DIVERGED, self._watch.reason or "")
             return
-        withheld = cfg.timing is Timing.REALTIME and time.time() > self._sync_time + self._T
-        if withheld:
-            # Ready after the next SYNC was due: sent now, the RPDOs would act one period
-            # late (from the SYNC after next) with a frame angle one period old, or not at
-            # all. Withheld instead: the drive holds its setpoints, and the controller's
-            # model of what the drive applies says so.
-            self.ctl.withhold()
-            self.stats.late_rpdo += 1
-        else:
-            send = self.bus.send
-            frames = self.pd.encode(setpoints)
-            if self.own_echo and cfg.timing is Timing.REALTIME:
-                self._unechoed = {cob_id for cob_id, _, _ in frames}
-            for cob_id, _name, data in frames:
-                self._rpdo_sent[cob_id].append(bytes(data))
-                if not self._send(send, can.Message(arbitration_id=cob_id, data=data,
-                                                    is_extended_id=False)):
-                    return
-                self.recent.append((time.time(), "tx", cob_id, data.hex()))
-            self._k_sent = k
+        with self._send_lock:
+            # Real time: the SYNC thread sends under the same lock, so the next SYNC goes
+            # out either before this check (it has: withheld) or after all of this cycle's
+            # RPDOs, on every receiver's queue alike (python-can's virtual bus puts a frame
+            # in each queue in turn: two threads sending at once could reach the drive in
+            # one order and the gateway's echo in the other).
+            withheld = cfg.timing is Timing.REALTIME and (
+                time.time() > self._sync_time + self._T
+                or (self._sync_thread is not None and self._syncs_sent > k))
+            if withheld:
+                # Ready after the next SYNC was due (or sent: a SYNC thread held up sends the
+                # next slot's on its schedule, less than a period after a late one): sent
+                # now, the RPDOs would act one period late (from the SYNC after next) with
+                # a frame angle one period old, or not at all. Withheld instead: the drive
+                # holds its setpoints, and the controller's model of what the drive applies
+                # says so.
+                self.ctl.withhold()
+                self.stats.late_rpdo += 1
+            else:
+                send = self.bus.send
+                frames = self.pd.encode(setpoints)
+                if self.own_echo and cfg.timing is Timing.REALTIME:
+                    self._unechoed = {cob_id for cob_id, _, _ in frames}
+                for cob_id, _name, data in frames:
+                    self._rpdo_sent[cob_id].append(bytes(data))
+                    if not self._send(send, can.Message(arbitration_id=cob_id, data=data,
+                                                        is_extended_id=False)):
+                        return
+                    self.recent.append((time.time(), "tx", cob_id, data.hex()))
+                self._k_sent = k
         t_sent = time.perf_counter()
         self._k_done = k
         self.stats.last_good_cycle = k
@@ -788,13 +800,14 @@ class CycleLoop:
                 time.sleep(0)
             if self._stop.is_set():
                 break
-            self._syncs_sent = k
-            if self.own_echo:
-                self._slots.append(k)
-            else:
+            if not self.own_echo:
                 self._open_cycle(time.time(), k)
             try:
-                self.bus.send(self._sync_message(k))
+                with self._send_lock:  # never between a cycle's check and its RPDOs
+                    self._syncs_sent = k
+                    if self.own_echo:
+                        self._slots.append(k)
+                    self.bus.send(self._sync_message(k))
             except can.CanError as exc:
                 with self._lock:
                     self._finish(StopReason.BUS_OFF, f"the gateway could not send SYNC {k}: "

@@ -39,8 +39,27 @@ def test_catch_up_skips_the_slots_whose_time_has_passed():
 HOLDS_S = (0.75, 1.3)
 
 
+#: cycles in the loop's miss-rate window (100 ms) at the held-up test's 5 ms
+_WINDOW = 20
+
+
+def _host_losses(k: np.ndarray, withheld: np.ndarray, held_at: list[int],
+                 since: int = 0) -> int:
+    """The most cycles the host lost on its own (missed, or withheld: ready late) within
+    any :data:`_WINDOW` cycles from slot ``since`` on, in a run whose rows are the slots
+    ``k``; the slots of the test's holds (each and the two after it) not counted."""
+    lost = np.zeros(int(k[-1]) + 2)
+    gaps = np.setdiff1d(np.arange(1, int(k[-1]) + 1), k)
+    lost[gaps] = 1
+    lost[k[withheld > 0]] = 1
+    for h in held_at:
+        lost[h:h + 3] = 0
+    return int(np.convolve(lost[max(since, 0):], np.ones(_WINDOW), "full").max())
+
+
 @pytest.mark.timing
-def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, tmp_path):
+def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, tmp_path,
+                                                                     monkeypatch):
     """Real time at 5 ms: the SYNC thread is held 3.4 periods twice (the host stalled it),
     at steady speed and load: before a SYNC (that SYNC leaves late, and the cycle it opens
     has no time to complete: missed) and after one (that cycle's setpoints go out on time,
@@ -66,27 +85,27 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     T = 5e-3
     emu = emulator()
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
-    real_send = bus.send
-    slot, last, holds = [0], [None], list(HOLDS_S)
+    holds = list(HOLDS_S)
     held_at: list[int] = []
 
-    def send(msg: can.Message, timeout: float | None = None) -> None:
-        if msg.arbitration_id == SYNC_ID and msg.data:
-            counter = msg.data[0]
-            slot[0] += 1 if last[0] is None else sync_periods(last[0], counter)
-            last[0] = counter
-            if holds and slot[0] * T >= holds[0]:
-                holds.pop(0)
-                held_at.append(slot[0])
-                if holds:  # the first: before this SYNC
-                    time.sleep(3.4 * T)  # the host holds the SYNC thread
-                else:  # the second: after it
-                    real_send(msg, timeout)
-                    time.sleep(3.4 * T)
-                    return
-        real_send(msg, timeout)
+    def held_catch_up(k: int, t0: float, period: float, now: float) -> int:
+        """The SYNC thread asks for the slot of its next SYNC right after sending one, and
+        outside the lock its sends take: here the host holds it."""
+        if len(holds) == 2 and k * T >= holds[0]:  # the first: before SYNC k (late)
+            held_at.append(k)
+        elif len(holds) == 1 and (k - 1) * T >= holds[0]:  # the second: after SYNC k − 1
+            held_at.append(k - 1)
+        else:
+            return catch_up(k, t0, period, now)
+        holds.pop(0)
+        if holds:  # before SYNC k: held from its time on, it leaves 3.4 periods late
+            time.sleep(max(0.0, t0 + (k - 1) * period - time.perf_counter()) + 3.4 * T)
+        else:  # after a SYNC: the slots that passed meanwhile are skipped
+            time.sleep(3.4 * T)
+            now = time.perf_counter()
+        return catch_up(k, t0, period, now)
 
-    bus.send = send
+    monkeypatch.setattr("gateway.loop.catch_up", held_catch_up)
     drive = load_drive_profile(str(_patient_drive_profile()))
     cfg = RunSpec(timing="realtime", sampling=Sampling(T, 1), max_missed=1000,
                   max_miss_rate=1.0)
@@ -95,13 +114,25 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     finally:
         bus.shutdown()
     run = s["run"]
-    assert run["stop"] == "END_OF_PROFILE", run["stop_reason"]
+    sig = read_csv(tmp_path / "signals.csv")
+    k = np.rint(sig["t"] / T).astype(int)
+    if run["stop"] != "END_OF_PROFILE":
+        # The loop's guards are off here (max_missed 1000, max_miss_rate 1), so that the
+        # holds show. A host loaded beyond what a default run accepts — its own missed and
+        # withheld cycles beyond 20 % of some 100 ms in the 200 ms before the stop, where
+        # the default guards would have stopped the run ("drive lost", "the loop cannot
+        # keep its rate") — may then take the loop out of its envelope (a shared host
+        # here, half its CPU stolen: 9 cycles in a row lost in the first speed ramp, or
+        # the SYNC thread itself held 70 ms): the divergence guard stops it, safely.
+        # Anything else, or a divergence where the host kept its rate, is a failure.
+        assert run["stop"] == "DIVERGED" and s["shutdown"]["safe"], run["stop_reason"]
+        lost = _host_losses(k, sig["withheld"], held_at, since=run["stop_cycle"] - 40)
+        assert lost > 0.2 * _WINDOW, (lost, run["stop_reason"])
+        return
     assert run["exit_status"] == 0 and s["shutdown"]["safe"]
     assert len(held_at) == 2
     assert run["skipped_syncs"] >= 4, run  # at least two slots at each hold
     assert emu.device.account()["sync_gaps"] >= 2
-    sig = read_csv(tmp_path / "signals.csv")
-    k = np.rint(sig["t"] / T).astype(int)
     # every sample is the one the drive took at that slot's SYNC: its counter echo
     assert all(int(c) == sync_counter(int(j)) for c, j in zip(sig["sync_counter"], k,
                                                                strict=True))
@@ -117,21 +148,33 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     # 1.8 rad/s), and, where the cycle of the hold's slot sent its setpoints (always
     # after the second hold, rarely after the first), of the late frame angle with the
     # ringing after it (12 runs: 2.1 to 6.1 rad/s; the model that took the setpoints as
-    # on time: 13 rad/s and runaways). Where the loaded host also missed more than two
-    # cycles of its own in that window, the drive held its setpoints longer than the hold
-    # (under stress-ng on both cores: 7 periods in a row, 11 rad/s): what it costs is no
-    # longer the hold's alone, and the bound is stability's.
+    # on time: 13 rad/s and runaways). Where the loaded host also lost more than two
+    # cycles of its own there or in the 0.3 s before (missed, or withheld: late), the
+    # drive held its setpoints longer than the hold (under stress-ng on both cores: 7
+    # periods in a row, 11 rad/s), or the loop still rang from those losses (a run of
+    # them at the load step: ±10 rad/s): what it costs is no longer the hold's alone, and
+    # the bound is stability's.
     e = sig["w_m"] - sig["w_ref"]
     for h in held_at:
         sent = bool(np.any((k == h) & (sig["withheld"] == 0)))
         near = (k >= h) & (k <= h + 20)
-        own = int(sig["missed"][near][-1] - sig["missed"][k < h][-1]) - 3  # the hold: 3
+        # the host's own losses from 0.3 s before the hold (the hold's own: 3): at 5 ms
+        # the loop rings after a run of lost cycles for that long (docs/robustness.md §10)
+        around = (k >= h - 60) & (k <= h + 20)
+        own = (int(sig["missed"][near][-1] - sig["missed"][k < h - 60][-1]) - 3
+               + int(np.sum(sig["withheld"][around])))
         bound = (9.0 if sent else 3.0) if own <= 2 else 25.0
         assert np.max(np.abs(e[near])) < bound, (h, sent, own, e[near])
     # and at the profile's end the run is back on its reference (nominal: 1 mrad/s; under
-    # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp)
+    # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp),
+    # unless the host missed cycles in its last 0.4 s (at 200 rad/s and 0.5 Wb the torque
+    # to recover is limited: 12 rad/s decaying to 8 in the last 0.1 s): stability's bound
     end = sig["t"] >= sig["t"][-1] - 0.1
-    assert float(np.sqrt(np.mean(e[end] ** 2))) < 1.5, e[end]
+    last = sig["t"] >= sig["t"][-1] - 0.4
+    late = (int(sig["missed"][-1] - sig["missed"][~last][-1])
+            + int(np.sum(sig["withheld"][last])))
+    bound = 1.5 if late <= 2 else 25.0
+    assert float(np.sqrt(np.mean(e[end] ** 2))) < bound, (late, e[end])
 
 
 def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_path):
@@ -185,3 +228,70 @@ def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_p
     k = np.rint(sig["t"] / 1e-3).astype(int)
     assert all(int(c) == sync_counter(int(j)) for c, j in zip(sig["sync_counter"], k,
                                                                strict=True))
+
+
+@pytest.mark.timing
+def test_setpoints_ready_after_the_threads_next_sync_are_withheld(emulator, tmp_path,
+                                                                  monkeypatch):
+    """Real time at 10 ms: the SYNC thread is held 6 ms past the time of SYNC 60, which
+    leaves late; SYNC 61 then goes out on its schedule, 4 ms after it. Cycle 60's step takes
+    6 ms (the controller held up too): its setpoints are ready after SYNC 61 was sent, yet
+    before SYNC 60's time + T, by which the loop once judged them in time and sent them —
+    the drive then latched them a period late with a frame angle a period old, unknown to
+    the model. Now the loop sees the SYNC sent (the thread and the RPDOs share a send lock)
+    and withholds them. (A loaded host may miss cycle 60 of its own, or delay SYNC 61: then
+    the case did not arise, and the run is made again, up to three times.)"""
+    from gw_support import _patient_drive_profile, bus_run
+
+    from dbc.timing import Sampling
+    from gateway.cycle import ControlCycle
+    from gateway.drive_profile import load_drive_profile
+    from gateway.spec import RunSpec
+    from gateway.stop import StopSignals
+
+    T, h = 1e-2, 60
+    real_step = ControlCycle.step
+
+    def slow_step(self, k, measured, truth=None):  # type: ignore[no-untyped-def]
+        if k == h:
+            time.sleep(0.6 * T)
+        return real_step(self, k, measured, truth)
+
+    monkeypatch.setattr(ControlCycle, "step", slow_step)
+    drive = load_drive_profile(str(_patient_drive_profile()))
+    cfg = RunSpec(timing="realtime", sampling=Sampling(T, 1), max_missed=1000,
+                  max_miss_rate=1.0, duration=0.8)
+    seen = []
+    for attempt in range(3):
+        held: list[int] = []
+
+        def held_catch_up(k: int, t0: float, period: float, now: float,
+                          held: list[int] = held) -> int:
+            if k == h and not held:
+                held.append(k)
+                time.sleep(max(0.0, t0 + (k - 1) * period - time.perf_counter()) + 0.6 * T)
+            return catch_up(k, t0, period, now)
+
+        monkeypatch.setattr("gateway.loop.catch_up", held_catch_up)
+        out = tmp_path / str(attempt)
+        emu = emulator()
+        bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
+        try:
+            s = bus_run(bus, drive, out, cfg, StopSignals())
+        finally:
+            bus.shutdown()
+        run = s["run"]
+        assert run["stop"] == "END_OF_PROFILE" and s["shutdown"]["safe"], run["stop_reason"]
+        assert held == [h]
+        sig = read_csv(out / "signals.csv")
+        k = np.rint(sig["t"] / T).astype(int)
+        rows = np.flatnonzero(k == h)
+        # the case: cycle 60 completed, and SYNC 61 came less than a period after SYNC 60
+        if len(rows) and rows[0] + 1 < len(k) and k[rows[0] + 1] == h + 1 \
+                and sig["sync_period"][rows[0] + 1] < 0.7 * T:
+            row = int(rows[0])
+            assert sig["withheld"][row] == 1 and run["late_rpdo"] >= 1, \
+                sig["withheld"][row - 2:row + 3]
+            return
+        seen.append(k[(k > h - 3) & (k < h + 3)].tolist())
+    pytest.fail(f"the host missed the case three times (slots around {h}: {seen})")
