@@ -167,14 +167,19 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
         assert np.max(np.abs(e[near])) < bound, (h, sent, own, e[near])
     # and at the profile's end the run is back on its reference (nominal: 1 mrad/s; under
     # load up to 0.05, 0.78 where the host stalled the loop in the profile's last ramp),
-    # unless the host missed cycles in its last 0.4 s (at 200 rad/s and 0.5 Wb the torque
-    # to recover is limited: 12 rad/s decaying to 8 in the last 0.1 s): stability's bound
+    # unless the host lost cycles in its last 0.4 s (at 200 rad/s and 0.5 Wb the torque
+    # to recover is limited: 12 rad/s decaying to 8 in the last 0.1 s), or lost more than a
+    # default run accepts anywhere (20 % of some 100 ms: the default guards stop such a
+    # run): the loop at 5 ms can be left ringing by such losses for the rest of the run
+    # (in CI once, 3.4 to 8 rad/s at the end with no loss in its last 0.4 s):
+    # stability's bound then
     end = sig["t"] >= sig["t"][-1] - 0.1
     last = sig["t"] >= sig["t"][-1] - 0.4
     late = (int(sig["missed"][-1] - sig["missed"][~last][-1])
             + int(np.sum(sig["withheld"][last])))
-    bound = 1.5 if late <= 2 else 25.0
-    assert float(np.sqrt(np.mean(e[end] ** 2))) < bound, (late, e[end])
+    heavy = _host_losses(k, sig["withheld"], held_at) > 0.2 * _WINDOW
+    bound = 1.5 if late <= 2 and not heavy else 25.0
+    assert float(np.sqrt(np.mean(e[end] ** 2))) < bound, (late, heavy, e[end])
 
 
 def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_path):
