@@ -324,7 +324,7 @@ def _drop_at(tmp_path, cycle: int):
 def test_a_sample_lost_at_the_told_loads_step_stops_the_watch_not_the_told_load(
         tmp_path, cycle):
     """At 5 ms a sample lost as the told load steps (0.5 s, and its step down at 1 s):
-    the drive's response to the step is never read and the estimator rings after the coast
+    the drive's response to the step is never read and the loop rings after the coast
     (±1.9 rad/s in (I1) for over 0.3 s), which the watch (I5) took for a load the laws are
     not told: it rejected the told load (at 0.545 s) and, with ω̂'s pull to the filter at
     k_s·T = 2.5, the run ran away (a guard stop at 0.595 s). Now the watch stops there, the

@@ -481,10 +481,12 @@ class SampledController:
         if (abs(self._told_moved - self._coasted_at) * self._T <= tracker.tuning.settle_told
                 and tracker.watching):
             # A sample lost while the told load moved, or just before or after: the drive's
-            # response to the step was never read, and the estimator's transient after the
-            # coast (at 5 ms it rang ±1.9 rad/s in (I1) for over 0.3 s) is, to the test, a
-            # load the laws are not told: the told load was rejected and the run lost its
-            # precision (0.9 rad/s RMS). The watch stops; the told load stands.
+            # response to the step was never read, and the loop's transient after the coast
+            # (at 5 ms it rang ±1.9 rad/s in (I1) for over 0.3 s: the emulated drive holds
+            # the load sent with its setpoints, the model takes the profile's; see
+            # docs/robustness.md §10) is, to the test, a load the laws are not told: the
+            # told load was rejected and the run lost its precision (0.9 rad/s RMS). The
+            # watch stops; the told load stands.
             tracker.stop_watch()
             self._watch_stopped_at = self._k
             return
