@@ -16,7 +16,7 @@ from gateway.control.inertia_tracker import InertiaTracker
 from gateway.guard import DivergenceWatch, profile_envelope
 from gateway.reference import paper_profile
 from gateway.simulate import run
-from plant.scenario import resolve_scenario
+from plant.scenario import parse_scenario, resolve_scenario
 
 MOTOR = MotorParams.paper()
 
@@ -310,19 +310,15 @@ def test_the_watch_counts_nothing_while_told_so_and_stops_after_a_long_coast():
         w -= a * T
 
 
-def _drop_at(tmp_path, cycle: int):
+def _drop_at(cycle: int):
     """A plant scenario: the nominal motor, the drive's TPDO1 lost once at ``cycle``."""
-    path = tmp_path / f"drop{cycle}.toml"
-    path.write_text(f'[scenario]\nname = "drop{cycle}"\ndescription = "TPDO1 lost once"\n\n'
-                    f'[[bus.fault]]\nkind = "drop"\nmessage = "TPDO1"\ncycle = {cycle}\n'
-                    'duration = 0.001\n')
-    return resolve_scenario(str(path))
+    return parse_scenario(f'[[bus.fault]]\nkind = "drop"\nmessage = "TPDO1"\n'
+                          f'cycle = {cycle}\nduration = 0.001\n', f"drop{cycle}")
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("cycle", [100, 101, 201])
-def test_a_sample_lost_at_the_told_loads_step_stops_the_watch_not_the_told_load(
-        tmp_path, cycle):
+def test_a_sample_lost_at_the_told_loads_step_stops_the_watch_not_the_told_load(cycle):
     """At 5 ms a sample lost as the told load steps (0.5 s, and its step down at 1 s):
     the drive's response to the step is never read and the loop rings after the coast
     (±1.9 rad/s in (I1) for over 0.3 s), which the watch (I5) took for a load the laws are
@@ -331,7 +327,7 @@ def test_a_sample_lost_at_the_told_loads_step_stops_the_watch_not_the_told_load(
     told load stands, and the run costs what the coast itself costs (the motor file's J, no
     tracker: the same numbers)."""
     profile = paper_profile()
-    plant = _drop_at(tmp_path, cycle)
+    plant = _drop_at(cycle)
     results = []
     for inertia in ("tracked", "file"):
         watch = DivergenceWatch(profile_envelope(profile, MOTOR, 14.0))
@@ -349,11 +345,11 @@ def test_a_sample_lost_at_the_told_loads_step_stops_the_watch_not_the_told_load(
 
 
 @pytest.mark.slow
-def test_a_sample_lost_away_from_the_told_loads_steps_leaves_the_watch_on(tmp_path):
+def test_a_sample_lost_away_from_the_told_loads_steps_leaves_the_watch_on():
     """A lost sample at steady speed and load (5 ms, 0.6 s) reopens D's prior only: the
     watch goes on, and nothing is rejected."""
     profile = paper_profile()
-    spec = sim_config(period=5e-3, plant=_drop_at(tmp_path, 120), discretisation="exact",
+    spec = sim_config(period=5e-3, plant=_drop_at(120), discretisation="exact",
                       identify=True)
     rec = run(profile, MOTOR, spec)
     found = rec.identification["inertia"]

@@ -470,6 +470,13 @@ class SampledController:
                                                           * self._T)) / int_psi
                 if int_psi else 0j)
 
+    def _note_told_move(self, win: list[Refs], k: int) -> None:
+        """With (I5) watching: the told load moves over the interval ``win`` spans (its
+        value at the ends differs, or it ramps at the midpoint): sample ``k`` is the last
+        such."""
+        if self._load_watch and (win[0].T_L != win[2].T_L or win[1].dT_L):
+            self._told_moved = k
+
     def _watch_load(self, psi_k: complex | None, eps_k: float, lost: bool) -> None:
         """(I5): the settled filter's speed against the readings; where they reject the
         told load, the load the laws are not told is observed from the next sample on (T̂_L
@@ -718,8 +725,7 @@ class SampledController:
         di = 0.5 * (self._di_prev + di_end)
         self._di_prev = di_k
         T_hat = self._T_hat  # the load observed: the laws' T_L over I_{k−1}
-        if self._load_watch and (win[0].T_L != win[2].T_L or win[1].dT_L):
-            self._told_moved = k  # the told load moves: (I5) does not count these readings
+        self._note_told_move(win, k)  # (I5) does not count these readings
         _, w_k = self._advance(prev, psi0, self._w_prev, win[1], win[0].T_L + T_hat, terms,
                                psi_end, di, False)
         if self.inertia is not None:
@@ -900,8 +906,7 @@ class SampledController:
                                        win[0].T_L + self._T_hat, terms,
                                        adapt=False)
             i_end_ab = self._current(prev, terms)[1]
-        if self._load_watch and (win[0].T_L != win[2].T_L or win[1].dT_L):
-            self._told_moved = self._k  # the told load moved in the interval lost
+        self._note_told_move(win, self._k)  # in the interval lost: (I5) stops
         if self.inertia is not None:
             self._track_inertia(None, lost=True)
         self._measured = False
