@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import can
+import numpy as np
 
 import gateway
 from dbc.cia402 import State
@@ -108,6 +109,22 @@ def bus_run(bus: can.BusABC, drive, out: Path, spec: RunSpec, signals: StopSigna
     target = BusTarget(drive, lambda *_: (bus, "virtual:test", lambda: None))
     return session_run(spec, profile or paper_profile(), MOTOR, target=target,
                        output=Output(str(out), force=True), signals=signals).summary
+
+
+def host_losses(k: np.ndarray, withheld: np.ndarray, window: int,
+                skip: tuple[int, ...] | list[int] = (), since: int = 0) -> int:
+    """The most cycles a real-time run lost on its own (missed, or withheld: its setpoints
+    ready late) within any ``window`` cycles from slot ``since`` on; ``k`` the slots of the
+    run's rows (``signals.csv``), ``withheld`` its column; the slots of a test's own holds
+    (each in ``skip`` and the two after it) not counted. A host loaded beyond 20 % of the
+    loop's miss-rate window (100 ms) is beyond what a default run accepts: its guards stop
+    such a run."""
+    lost = np.zeros(int(k[-1]) + 2)
+    lost[np.setdiff1d(np.arange(1, int(k[-1]) + 1), k)] = 1
+    lost[k[np.asarray(withheld) > 0]] = 1
+    for h in skip:
+        lost[h:h + 3] = 0
+    return int(np.convolve(lost[max(since, 0):], np.ones(window), "full").max())
 
 
 def run_in_thread(emu: Emulator, out: Path, cfg: RunSpec, signals: StopSignals):

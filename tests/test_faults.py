@@ -549,8 +549,14 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     RPDO2 reaches the bus after the next SYNC (RPDO1 before it). The bus's own echo shows
     it: counted (``run.rpdo_after_sync``) and the controller told the drive held its
     setpoints (a withhold after the step; a wrong call would stop the run with
-    CONTROL_ERROR)."""
-    from gw_support import _patient_drive_profile, bus_run
+    CONTROL_ERROR).
+
+    The loop's miss guards are off (so that a loaded host's own misses do not end the run
+    before the held frame); a host that then lost more than a default run accepts (20 % of
+    some 100 ms in the 200 ms before the stop: once here, a shared host with half its CPU
+    stolen) may take the loop at 2 ms out of its envelope and the divergence guard stop it,
+    safely, after the held frame was counted. Anything else is a failure."""
+    from gw_support import _patient_drive_profile, bus_run, host_losses
 
     from dbc.timing import Sampling
 
@@ -578,15 +584,22 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
         s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
     finally:
         bus.shutdown()
-    assert s["run"]["stop"] == "END_OF_PROFILE", s["run"]["stop_reason"]
+    run = s["run"]
+    sig = read_csv(tmp_path / "signals.csv")
+    withheld = sig["withheld"]
+    if run["stop"] != "END_OF_PROFILE":
+        window = 50  # cycles in the loop's miss-rate window (100 ms) at 2 ms
+        k = np.rint(sig["t"] / 2e-3).astype(int)
+        assert run["stop"] == "DIVERGED" and s["shutdown"]["safe"], run["stop_reason"]
+        lost = host_losses(k, withheld, window, since=run["stop_cycle"] - 100)
+        assert lost > 0.2 * window, (lost, run["stop_reason"])
     # the 150th RPDO2 (a cycle of 600: a loaded host that misses half of them still sends
     # it; the 300th was once not reached, 174 sent)
-    assert not held and n_rpdo2[0] > 150, (n_rpdo2[0], s["run"]["missed_cycles"])
-    assert s["run"]["rpdo_after_sync"] >= 1
+    assert not held and n_rpdo2[0] > 150, (n_rpdo2[0], run["missed_cycles"])
+    assert run["rpdo_after_sync"] >= 1
     # the rows say which cycles' setpoints were withheld (late by the clock), as many as counted
-    withheld = read_csv(tmp_path / "signals.csv")["withheld"]
     assert set(np.unique(withheld)) <= {0.0, 1.0}
-    assert int(withheld.sum()) == s["run"]["late_rpdo"]
+    assert int(withheld.sum()) == run["late_rpdo"]
     assert_disabled(emu)
 
 

@@ -43,20 +43,6 @@ HOLDS_S = (0.75, 1.3)
 _WINDOW = 20
 
 
-def _host_losses(k: np.ndarray, withheld: np.ndarray, held_at: list[int],
-                 since: int = 0) -> int:
-    """The most cycles the host lost on its own (missed, or withheld: ready late) within
-    any :data:`_WINDOW` cycles from slot ``since`` on, in a run whose rows are the slots
-    ``k``; the slots of the test's holds (each and the two after it) not counted."""
-    lost = np.zeros(int(k[-1]) + 2)
-    gaps = np.setdiff1d(np.arange(1, int(k[-1]) + 1), k)
-    lost[gaps] = 1
-    lost[k[withheld > 0]] = 1
-    for h in held_at:
-        lost[h:h + 3] = 0
-    return int(np.convolve(lost[max(since, 0):], np.ones(_WINDOW), "full").max())
-
-
 @pytest.mark.timing
 def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, tmp_path,
                                                                      monkeypatch):
@@ -75,7 +61,7 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     A host this loaded also misses and delays cycles of its own, anywhere in the profile; a
     few of them in a speed step cost rad/s (the drive holds its setpoints while the
     reference accelerates). That is accuracy too, and the profile's end shows it recovered."""
-    from gw_support import _patient_drive_profile, bus_run
+    from gw_support import _patient_drive_profile, bus_run, host_losses
 
     from dbc.timing import Sampling
     from gateway.drive_profile import load_drive_profile
@@ -126,7 +112,7 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
         # the SYNC thread itself held 70 ms): the divergence guard stops it, safely.
         # Anything else, or a divergence where the host kept its rate, is a failure.
         assert run["stop"] == "DIVERGED" and s["shutdown"]["safe"], run["stop_reason"]
-        lost = _host_losses(k, sig["withheld"], held_at, since=run["stop_cycle"] - 40)
+        lost = host_losses(k, sig["withheld"], _WINDOW, held_at, since=run["stop_cycle"] - 40)
         assert lost > 0.2 * _WINDOW, (lost, run["stop_reason"])
         return
     assert run["exit_status"] == 0 and s["shutdown"]["safe"]
@@ -177,7 +163,7 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     last = sig["t"] >= sig["t"][-1] - 0.4
     late = (int(sig["missed"][-1] - sig["missed"][~last][-1])
             + int(np.sum(sig["withheld"][last])))
-    heavy = _host_losses(k, sig["withheld"], held_at) > 0.2 * _WINDOW
+    heavy = host_losses(k, sig["withheld"], _WINDOW, held_at) > 0.2 * _WINDOW
     bound = 1.5 if late <= 2 and not heavy else 25.0
     assert float(np.sqrt(np.mean(e[end] ** 2))) < bound, (late, heavy, e[end])
 
