@@ -95,6 +95,35 @@ def test_uml_only_does_not_fall_back(tmp_path):
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="vcan-run is for Linux")
+def test_a_sandbox_that_never_boots_is_named_at_the_time_limit(tmp_path):
+    """A kernel that hangs before the sandbox's init (seen once: QEMU under TCG on a host
+    with half its CPU stolen, silent for 500 s) is not a command that ran too long: at the
+    time limit vcan-run says which sandbox, that the command had not started, and how to
+    see the kernel's console; exit 124, everything killed."""
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    real = shutil.which("linux.uml")
+    version = f"exec {real} --version" if real else "echo 6.1.0"
+    script = bindir / "linux.uml"
+    script.write_text("#!/bin/sh\n"
+                      f'if [ "$1" = --version ]; then {version}; fi\n'
+                      f"echo $$ > {tmp_path / 'pid'}\n"
+                      "exec sleep 300\n")
+    script.chmod(0o755)
+    p = _vcan_run(["--uml", "--timeout", "3", "--", "true"],
+                  {"VCAN_RUN_XSAVE_SHIM": "never"}, path_first=bindir, timeout=120)
+    _needs_packages(p)
+    assert p.returncode == 124, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert "time limit of 3s reached" in last and " in UML (" in last, last
+    assert "'true' had not started: the sandbox did not finish booting" in last, last
+    assert "rerun with VCAN_RUN_DEBUG=1" in last, last
+    pid = int((tmp_path / "pid").read_text())
+    assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(
+        f"/proc/{pid}/status").read_text(), "the hung kernel was left running"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="vcan-run is for Linux")
 def test_uml_that_cannot_boot_falls_back_to_qemu(tmp_path):
     """auto: UML ends before the command starts -> one line naming QEMU and why, then the
     command runs there with working SocketCAN, and its exit status is vcan-run's."""
