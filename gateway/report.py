@@ -317,6 +317,11 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
     if "accepted" not in ident and "reason" not in ident:  # the inertia tracker alone
         return inertia
     inertia = f"; {inertia}" if inertia else ""
+    noise = ""
+    if ident.get("mismatch_gain", 1.0) < 1.0:
+        noise = (f"; the current sensors' noise ({1e3 * ident['mismatch_rms']:.2g} mA rms "
+                 f"against the model at standstill) weighted down to "
+                 f"{ident['mismatch_gain']:.2g} in the flux estimate")
     if ident.get("accepted"):
         sensors = ""
         if ident.get("sensors_corrected"):
@@ -325,8 +330,9 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
                        f"phase b's gain {ident['gain_b']:.4f}")
         return (f"identified at standstill ({ident['samples']} samples): R_s "
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s)"
-                f"{sensors}, used from the end of the magnetisation{inertia}")
-    return f"standstill identification not applied: {ident.get('reason', '')}{inertia}"
+                f"{sensors}, used from the end of the magnetisation{noise}{inertia}")
+    return (f"standstill identification not applied: {ident.get('reason', '')}"
+            f"{noise}{inertia}")
 
 
 def speed_gain_line(ident: Mapping[str, Any] | None) -> str:

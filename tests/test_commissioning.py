@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import random
 from dataclasses import replace
 
 import numpy as np
@@ -322,3 +323,59 @@ def test_the_flux_references_join_the_motors_flux_after_the_identification(tmp_p
     assert summary["identification"]["accepted"]
     assert summary["speed_error"]["rms"] < 0.01
     assert summary["speed_error"]["max"] < 0.05
+
+
+class _Refs:
+    def __init__(self, w_ref: float = 0.0) -> None:
+        self.w_ref, self.dw_ref, self.T_L = w_ref, 0.0, 0.0
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.005])
+def test_the_mismatch_with_the_models_current_says_whether_it_is_noise(noise):
+    """The controller's model of the current beside the measured one: their mismatch's rms
+    over the standstill, and from it κ = 1 (resolution: the mismatch is corrected sample by
+    sample) or (NOISE_RMS/rms)² (the sensors' noise); the flux handed over is then κ of the
+    voltage model's and 1 − κ of the current model's."""
+    from gateway.control.commissioning import Commissioning
+
+    rnd = random.Random(4)
+    samples = _magnetise(MOTOR)[1:]
+    c = Commissioning(MOTOR, T, sensors=False)
+    for k, (i, u) in enumerate(samples):
+        measured = i + complex(rnd.gauss(0.0, noise), rnd.gauss(0.0, noise))
+        found = c.step(_Refs(1.0 if k == len(samples) - 1 else 0.0), measured, u,
+                       i_model=i)
+    assert found is not None and found.accepted, found
+    ident = c.identifier
+    psi_v = ident.flux(found.R_s)
+    psi_c = ident.current_model_flux_at(found.alpha)
+    if noise == 0.0:
+        assert found.mismatch_rms == 0.0 and found.mismatch_gain == 1.0
+        assert c.flux() == psi_v
+    else:
+        assert found.mismatch_rms == pytest.approx(noise * math.sqrt(2.0), rel=0.1)
+        kappa = (Commissioning.NOISE_RMS / found.mismatch_rms) ** 2
+        assert found.mismatch_gain == pytest.approx(kappa) and kappa < 0.2
+        assert c.flux() == pytest.approx(kappa * psi_v + (1.0 - kappa) * psi_c, abs=1e-15)
+    # without a model of the current (a drive that does not hold it): nothing said
+    c = Commissioning(MOTOR, T, sensors=False)
+    for k, (i, u) in enumerate(samples):
+        found = c.step(_Refs(1.0 if k == len(samples) - 1 else 0.0), i, u)
+    assert math.isnan(found.mismatch_rms) and found.mismatch_gain == 1.0
+
+
+def test_the_estimator_weighs_the_mismatchs_trapezoid_by_kappa():
+    """(24) in the sampled-data design: the charge is the model's plus κ times the
+    trapezoid of the mismatch (κ = 1 until an identification says otherwise)."""
+    from gateway.control.estimator import IntervalFluxEstimator
+
+    est = IntervalFluxEstimator(MOTOR)
+    assert est.mismatch_gain == 1.0
+    est.update(1.0 + 0.002j, 0j, T, T * 1.0, 1.0)
+    assert est.charge == T * 1.0 + 0.5 * T * 0.002j
+    est.identified(MOTOR.R_s, 1.0 + 0j, 1.0 + 0j, 0.25)
+    est.update(1.0 + 0.004j, 0j, T, T * 1.0, 1.0)
+    assert est.charge == pytest.approx(T * 1.0 + 0.25 * 0.5 * T * (0.002j + 0.004j),
+                                       abs=1e-18)
+    with pytest.raises(ValueError, match="within 0…1"):
+        est.identified(MOTOR.R_s, 1.0 + 0j, 1.0 + 0j, 1.5)

@@ -105,6 +105,13 @@ class Identification:
     gain_b_std: float = 0.0
     sensors_corrected: bool = False
     sensors_reason: str = ""
+    #: the measured current's mismatch with the controller's model of it over the
+    #: standstill, rms (A; NaN where the controller has no such model), and what follows
+    #: from it: the weight κ of the mismatch in the voltage model from now on and of the
+    #: voltage model in the flux handed over (1, or below where it is the sensors' noise:
+    #: :attr:`Commissioning.NOISE_RMS`)
+    mismatch_rms: float = math.nan
+    mismatch_gain: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -477,6 +484,13 @@ class Commissioning:
     #: the least change of M (relative) the fit applies without a sensor error: 5 mA of
     #: noise alone moves it by 2.2 %
     M_MIN = 0.03
+    #: the rms (A) of the measured current's mismatch with the controller's model at
+    #: standstill up to which it is the setpoints' and readings' resolution (the bus's
+    #: 1 mA: 0.29 mA; 5 mA of noise per axis: 7.1 mA), which the voltage model corrects
+    #: sample by sample; above it the sensors' noise dominates, and the mismatch's weight
+    #: κ = (NOISE_RMS/rms)² is the Wiener gain for a systematic part of at most NOISE_RMS
+    #: (docs/robustness.md §5 "Sensor noise")
+    NOISE_RMS = 2e-3
 
     def __init__(self, motor: Motor, period: float, sensors: bool = False) -> None:
         self.identifier = StandstillIdentifier(motor, period)
@@ -487,14 +501,23 @@ class Commissioning:
         self._still = 0  # samples since it last moved
         self._psi_fit = 0j  # the rotor flux of the sensors' fit at its last sample
         self._joint = False  # the result is the sensors' fit's (with its M)
+        self._mismatch_ss = 0.0  # Σ|i_measured − i_model|² over the standstill
+        self._mismatch_n = 0
 
     def step(self, refs: Refs, i_s_ab: complex, u_s_ab: complex,
-             charge: complex | None = None) -> Identification | None:
-        """One sample with its references (``charge``: :meth:`StandstillIdentifier.add`);
-        the identification at the sample that ends the standstill, else None."""
+             charge: complex | None = None, i_model: complex | None = None
+             ) -> Identification | None:
+        """One sample with its references (``charge``: :meth:`StandstillIdentifier.add`;
+        ``i_model``: the controller's model of the current at the sample, A (a, b), where
+        the drive holds the current it was given); the identification at the sample that
+        ends the standstill, else None."""
         if self.result is not None:
             return None
         self.identifier.add(i_s_ab, u_s_ab, charge)
+        if i_model is not None:
+            d = i_s_ab - i_model
+            self._mismatch_ss += d.real * d.real + d.imag * d.imag
+            self._mismatch_n += 1
         moving = getattr(refs, "dpsi_ref", 0.0) != 0.0 or getattr(refs, "ddpsi_ref", 0.0) != 0.0
         self._rose = self._rose or moving
         self._still = 0 if moving else self._still + 1
@@ -507,6 +530,10 @@ class Commissioning:
         if (self.sensors and not math.isnan(found.fit)
                 and abs(ident.flux(found.R_s)) >= StandstillIdentifier.PSI_MIN):
             found = self._with_offsets(found)
+        if self._mismatch_n:
+            rms = math.sqrt(self._mismatch_ss / self._mismatch_n)
+            gain = 1.0 if rms <= self.NOISE_RMS else (self.NOISE_RMS / rms) ** 2
+            found = replace(found, mismatch_rms=rms, mismatch_gain=gain)
         self.result = found
         return found
 
@@ -579,7 +606,8 @@ class Commissioning:
             self.identifier.gap()
 
     def apply(self, refs: Refs, i_s_ab: complex, u_s_ab: complex, estimator: Any,
-              psi_hat_ab: complex | None, charge: complex | None = None
+              psi_hat_ab: complex | None, charge: complex | None = None,
+              i_model: complex | None = None
               ) -> tuple[Identification | None, complex | None]:
         """:meth:`step`, and the rotor flux the laws take at this sample (Wb, (a, b)), with
         the identification when it is accepted at this sample (else None):
@@ -595,22 +623,26 @@ class Commissioning:
         * at the sample that ends a refused one: the current model's flux, which the
           ``estimator`` restarts from with the controller's R_s (not the flux it integrated
           over the magnetisation with an R_s error);
-        * after: the estimator's ``psi_hat_ab`` (None: the laws take the true flux)."""
-        found = self.step(refs, i_s_ab, u_s_ab, charge)
+        * after: the estimator's ``psi_hat_ab`` (None: the laws take the true flux).
+
+        ``i_model``: :meth:`step`; where the mismatch was the sensors' noise the estimator
+        weighs it by the result's ``mismatch_gain`` from now on."""
+        found = self.step(refs, i_s_ab, u_s_ab, charge, i_model)
         if found is None:
             if self.pending and psi_hat_ab is not None:
                 return None, self.standstill_flux()
             return None, psi_hat_ab
         if not found.accepted:
             psi = self.standstill_flux()
-            estimator.identified(self.identifier.motor.R_s, psi, i_s_ab)
+            estimator.identified(self.identifier.motor.R_s, psi, i_s_ab, found.mismatch_gain)
             return None, psi if psi_hat_ab is not None else None
         psi = self.flux()
         corr = self.correction
         if self._joint:  # the fit's inductances from now on
             estimator.inductances(found.M, found.L_s, found.L_r)
         estimator.identified(found.R_s, psi,
-                             i_s_ab if corr is None else corr.true_current(i_s_ab))
+                             i_s_ab if corr is None else corr.true_current(i_s_ab),
+                             found.mismatch_gain)
         return found, psi
 
     @property
@@ -626,14 +658,23 @@ class Commissioning:
     def flux(self) -> complex:
         """The voltage-model rotor flux at the last sample with the identified R_s, Wb; the
         current model's with the identified α where samples were missing during the
-        standstill (:meth:`StandstillIdentifier.add`)."""
-        assert self.result is not None
+        standstill (:meth:`StandstillIdentifier.add`). Where the current's mismatch was
+        the sensors' noise (``mismatch_gain`` κ < 1) κ of the voltage model's and 1 − κ of
+        the current model's: the voltage model carries the last sample's noise (σ·L_r/M
+        times it) and the random walk of R_s·T·Σn over the standstill, the current model
+        the noise through the rotor's filter (√(αT/2) of it)."""
+        result = self.result
+        assert result is not None
         ident = self.identifier
         if ident.gaps:
-            return ident.current_model_flux_at(self.result.alpha)
+            return ident.current_model_flux_at(result.alpha)
         if self._joint:
             return self._psi_fit
-        return ident.flux(self.result.R_s)
+        psi = ident.flux(result.R_s)
+        kappa = result.mismatch_gain
+        if kappa < 1.0:
+            psi = kappa * psi + (1.0 - kappa) * ident.current_model_flux_at(result.alpha)
+        return psi
 
     def describe(self) -> dict[str, object]:
         """For summary.json: the identification, or why there is none."""

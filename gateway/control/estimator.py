@@ -70,9 +70,13 @@ class OpenLoopFluxEstimator:
         self._k_r = L_r / M
         self._m_lr = M / L_r
 
-    def identified(self, R_s: float, psi_r_ab: complex, i_s_ab: complex) -> None:
+    def identified(self, R_s: float, psi_r_ab: complex, i_s_ab: complex,
+                   mismatch_gain: float = 1.0) -> None:
         """After a standstill identification (:mod:`gateway.control.commissioning`): the
-        identified R_s (Ω) from now on, and the rotor flux at this sample (Wb, (a, b))."""
+        identified R_s (Ω) from now on, and the rotor flux at this sample (Wb, (a, b)).
+        ``mismatch_gain``: the weight of the measured current's mismatch in the voltage
+        model from now on (:class:`IntervalFluxEstimator`; the others integrate the
+        measured current itself)."""
         self._R_s = R_s
         self.psi_s_ab = self._sigma * i_s_ab + self._m_lr * psi_r_ab
 
@@ -162,10 +166,15 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
     end; the difference between the measured and the modelled current at the samples
     (sensor errors, a current loop's lag) is added as a trapezoid:
 
-        ψ_s(t_k) = ψ_s(t_{k−1}) + T·ū − R_s·(∫i_model dt + T·(δ_{k−1} + δ_k)/2),
+        ψ_s(t_k) = ψ_s(t_{k−1}) + T·ū − R_s·(∫i_model dt + κ·T·(δ_{k−1} + δ_k)/2),
         δ_k = i_measured(t_k) − i_model(t_k),
 
-    with δ_{k−1} = 0 where the model starts the period from the measured current.
+    with δ_{k−1} = 0 where the model starts the period from the measured current. κ = 1
+    but where the standstill identification found the mismatch to be the sensors' noise
+    (:attr:`mismatch_gain`, set by :meth:`identified`; docs/robustness.md §5 "Sensor
+    noise"): the trapezoid of white noise is a random walk in ψ_s, R_s·T·Σn (1 mWb in a
+    second for 5 mA at 1 ms), while the mismatch it is there for (the setpoints' and
+    readings' resolution) is a fraction of a mA.
 
     The last period's charge (the bracket) is :attr:`charge`. With ``w_c > 0`` the
     drift-free correction of :class:`DriftFreeFluxEstimator` is added.
@@ -177,6 +186,9 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
             raise ValueError(f"interval estimator: w_c = {w_c!r} rad/s must be >= 0")
         self.w_c = w_c
         self._delta = 0j
+        #: κ, the weight of the measured mismatch's trapezoid where the drive holds the
+        #: current (1 until :meth:`identified` says otherwise)
+        self.mismatch_gain = 1.0
         #: ∫i dt over the last period (A·s, (a, b)): the model's with the trapezoid of δ
         self.charge = 0j
 
@@ -201,8 +213,13 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
             target = self._oriented(i_s_ab, eps_0, psi_ref)
             self._adapt(target, i_s_ab, eps_0, T)
         delta = i_s_ab - i_end_ab
-        charge = self.charge = int_i_ab + 0.5 * T * (delta if from_sample
-                                                     else self._delta + delta)
+        if from_sample:
+            charge = int_i_ab + 0.5 * T * delta
+        elif self.mismatch_gain == 1.0:
+            charge = int_i_ab + 0.5 * T * (self._delta + delta)
+        else:
+            charge = int_i_ab + 0.5 * T * self.mismatch_gain * (self._delta + delta)
+        self.charge = charge
         increment = T * u_s_ab - self._R_s * charge
         self._delta = delta
         if corrected:
@@ -210,6 +227,13 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
             self.psi_s_ab = target + decay * (self.psi_s_ab - target)
         psi_s = self.psi_s_ab = self.psi_s_ab + increment
         return self._k_r * (psi_s - self._sigma * i_s_ab)  # rotor_flux(i_s_ab), inline
+
+    def identified(self, R_s: float, psi_r_ab: complex, i_s_ab: complex,
+                   mismatch_gain: float = 1.0) -> None:
+        super().identified(R_s, psi_r_ab, i_s_ab)
+        if not 0.0 <= mismatch_gain <= 1.0:
+            raise ValueError(f"mismatch gain {mismatch_gain!r} must be within 0…1")
+        self.mismatch_gain = mismatch_gain
 
     def set_rotor_flux(self, psi_r_ab: complex, i_s_ab: complex) -> None:
         """Take the stator flux σ·i_s + (M/L_r)·ψ_r of a model (a period without data)."""

@@ -315,11 +315,13 @@ class SampledController:
         self.commissioning = (Commissioning(motor, self._T, sensors=self._lag == 0.0)
                               if config.identify else None)
 
-    def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex) -> complex:
+    def _commission(self, refs: Refs, sample: Sample, psi_hat_ab: complex,
+                    i_model: complex | None = None) -> complex:
         """The standstill identification (``config.identify``): the flux the laws take
         (:meth:`Commissioning.apply`: the current model's while it is pending, the
         identified voltage model's at the sample that ends it), and from that sample the
-        identified R_s and R_r."""
+        identified R_s and R_r. ``i_model``: the model's current at the sample, where the
+        drive holds the current (the mismatch's noise: :attr:`Commissioning.NOISE_RMS`)."""
         c = self.commissioning
         if c is None:
             return psi_hat_ab
@@ -327,7 +329,7 @@ class SampledController:
         # estimator's (the model's ∫i with the trapezoid of the measured mismatch)
         charge = self.estimator.charge if self._from_sample else None
         ident, psi = c.apply(refs, sample.i_s_ab, sample.u_s_ab, self.estimator, psi_hat_ab,
-                             charge)
+                             charge, i_model)
         if ident is not None:
             self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r, M=ident.M,
                                     L_s=ident.L_s, L_r=ident.L_r))
@@ -698,7 +700,8 @@ class SampledController:
                                        eps_k, win[2].psi_ref if self._joined else refs.psi_ref,
                                        self._from_sample)
         if self.commissioning is not None:
-            psi_ab = self._commission(refs, sample, psi_ab)
+            psi_ab = self._commission(refs, sample, psi_ab,
+                                      None if self._from_sample else i_end_ab)
         if self._true_flux:
             psi_ab = law_flux(True, sample, psi_ab)
         to_k = cmath.exp(-1j * eps_k)
