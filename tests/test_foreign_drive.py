@@ -149,10 +149,14 @@ def test_sync_jitter_without_a_counter_is_not_a_foreign_sync(foreign, tmp_path, 
                  "--duration", "0.5s", "--max-miss-rate", "1")
     assert len(held) > 10
     assert s["run"]["stop"] != "FOREIGN_SYNC", s["run"]
-    # a host that stops the process for tens of ms in the speed step (a VM's stall) can
-    # leave a real speed error the divergence guard stops: that is timing, not this test's
-    # question; any other end is a failure
-    assert rc == 0 or s["run"]["stop"] == "DIVERGED", s["run"]
+    # a host that stops the process for tens of ms (a VM's stall) can leave a real speed
+    # error the divergence guard stops, or, stalled for a dozen periods in a row (once
+    # here: 12 at 4 ms), stop the run as the drive lost — both end safe, and neither is
+    # this test's question; any other end is a failure
+    run = s["run"]
+    assert rc == 0 or run["stop"] == "DIVERGED" or (
+        run["stop"] == "DRIVE_LOST" and "consecutive cycles without the drive's TPDOs"
+        in run["stop_reason"] and s["shutdown"]["safe"]), run
 
 
 @pytest.mark.timing

@@ -112,6 +112,9 @@ class Identification:
     #: :attr:`Commissioning.NOISE_RMS`)
     mismatch_rms: float = math.nan
     mismatch_gain: float = 1.0
+    #: R_s and α fitted with the controller's model of the current in the regressors (the
+    #: mismatch being the sensors' noise: :meth:`StandstillIdentifier.solve`'s ``noisy``)
+    model_current: bool = False
 
 
 @dataclass(frozen=True)
@@ -197,6 +200,9 @@ class StandstillIdentifier:
         # the samples, for the offsets' fit (:meth:`solve_offsets`): i_k, a_k, b_k
         # (and the period's mean current where it is not held: the rotor model's input)
         self._rec: list[tuple[complex, complex, complex, complex]] = []
+        # the controller's model of the current at each sample, where it came with every
+        # one (:meth:`solve`'s ``noisy`` fit)
+        self._rec_model: list[complex] = []
 
     def gap(self) -> None:
         """A period without a sample (a missed cycle): the motor lived it, its voltage and
@@ -206,11 +212,14 @@ class StandstillIdentifier:
         self._gaps += 1
         self.gaps += 1
 
-    def add(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None) -> None:
+    def add(self, i_s_ab: complex, u_s_ab: complex, charge: complex | None = None,
+            i_model: complex | None = None) -> None:
         """One sample: the measured current at t_k (A) and the average voltage the drive
         applied over the period before it (V), (a, b) frame; ``charge``: ∫i dt over that
         period (A·s) where the drive does not hold its current over the period (a voltage
-        drive, a current loop's rise: the controller's model of it), else None (T·i_k).
+        drive, a current loop's rise: the controller's model of it), else None (T·i_k);
+        ``i_model``: the controller's model of the current the drive holds, A (for
+        :meth:`solve`'s ``noisy`` fit).
 
         After a :meth:`gap`, each missing period takes this period's voltage and the
         current halfway from the last sample's to this one's, in the integrals and the
@@ -229,6 +238,8 @@ class StandstillIdentifier:
             for _ in range(gaps):
                 self._integrate(i_mid, u_s_ab, i_mid)
         self._add(i_s_ab, u_s_ab, i_s_ab if charge is None else charge / self._T)
+        if i_model is not None and len(self._rec_model) < self.RECORD_MAX:
+            self._rec_model.append(i_model)
 
     def _segment(self) -> tuple[np.ndarray, np.ndarray, float]:
         """What the segment since the last gap takes off the fit's sums (Σ|a − c|²,
@@ -309,8 +320,57 @@ class StandstillIdentifier:
         of (1) at ω = 0, from zero flux), Wb (a, b): R_s does not enter it."""
         return complex(self._c[self.POINTS // 2])
 
-    def solve(self) -> Identification:
-        """The identified R_s and α (see the module docstring), accepted or not."""
+    #: the noisy fit searches α within this many points of the grid either side of the
+    #: least-squares minimum (about ±14 %)
+    NOISY_REACH = 15
+
+    def _noisy(self, k: int) -> tuple[float, float, float] | None:
+        """(log(α/α₀), R_s, Σ|r|²) with the controller's model of the current in the fit's
+        regressors — the charge b_k and the rotor model c_k(α) — and the measured voltage
+        model a_k, on the grid within :attr:`NOISY_REACH` of ``k``, refined by a parabola;
+        None where the model did not come with every sample, or samples were missing.
+
+        With the sensors' noise n the measured regressors are b + (L_r/M)·T·Σn, a random
+        walk, and c(α) + the noise through the rotor's filter: errors in variables, whose
+        one realisation over a magnetisation biases α̂ by up to 0.3 % (5 mA per axis) — the
+        random walk does not average out against the regressors' own slow trends, so an
+        instrumental-variable fit with the model as instrument keeps the bias. The model's
+        current is the current the drive holds (less its resolution), noise-free."""
+        n = len(self._rec)
+        if self.gaps or n < 10 or len(self._rec_model) != n or n >= self.RECORD_MAX:
+            return None
+        m, T = self.motor, self._T
+        a = np.array([r[1] for r in self._rec])
+        z = np.array(self._rec_model)
+        b = self._k_r * T * np.cumsum(z)
+        bb = float(np.sum(b.real ** 2 + b.imag ** 2))
+        if not bb > 0.0:
+            return None
+        lo, hi = max(k - self.NOISY_REACH, 0), min(k + self.NOISY_REACH, self.POINTS - 1)
+        J = np.empty(hi - lo + 1)
+        R = np.empty(hi - lo + 1)
+        for j in range(lo, hi + 1):
+            e = float(self._e[j])
+            d = a - first_order(m.M * z, e, 1.0 - e)
+            R[j - lo] = float(np.sum(b.real * d.real + b.imag * d.imag)) / bb
+            J[j - lo] = float(np.sum(d.real ** 2 + d.imag ** 2)) - R[j - lo] ** 2 * bb
+        q = int(np.argmin(J))
+        if q in (0, hi - lo):
+            return None  # no minimum within reach
+        logf = np.log(self._f)
+        x = logf[lo + q]
+        y0, y1, y2 = J[q - 1], J[q], J[q + 1]
+        den = y0 - 2.0 * y1 + y2
+        if den > 0.0:
+            x += 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
+        R_s = float(np.interp(x, logf[lo:hi + 1], R))
+        return x, R_s, float(J[q])
+
+    def solve(self, noisy: bool = False) -> Identification:
+        """The identified R_s and α (see the module docstring), accepted or not; ``noisy``:
+        the current's mismatch with the controller's model is the sensors' noise, and the
+        fit's regressors take the model's current (:meth:`_noisy`) where it came with
+        every sample."""
         m = self.motor
         if self._n < 10 or self._s_bb <= 0.0:
             return Identification(m.R_s, m.R_r, self._alpha0, math.nan, self._n, False,
@@ -332,10 +392,14 @@ class StandstillIdentifier:
             den = y0 - 2.0 * y1 + y2
             if den > 0.0:
                 x = logf[k] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
-        f = math.exp(x)
         R_s = float(np.interp(x, logf, cross)) / bb
+        J_min = float(J[k])
+        found = self._noisy(k) if noisy else None
+        if found is not None:
+            x, R_s, J_min = found
+        f = math.exp(x)
         alpha = f * self._alpha0
-        fit = float(max(J[k], 0.0) / self._s_aa) if self._s_aa > 0.0 else math.nan
+        fit = float(max(J_min, 0.0) / self._s_aa) if self._s_aa > 0.0 else math.nan
         reason = ""
         psi_end = abs(self.flux(R_s))
         if psi_end < self.PSI_MIN:
@@ -351,14 +415,16 @@ class StandstillIdentifier:
         elif not 0.5 * m.R_s <= R_s <= 2.0 * m.R_s:
             reason = f"R_s = {R_s:.3g} Ω is not within 0.5…2 × the controller's {m.R_s:g} Ω"
         return Identification(R_s, alpha * m.L_r, alpha, fit, self._n, not reason, reason,
-                              m.M, m.L_s, m.L_r)
+                              m.M, m.L_s, m.L_r, model_current=found is not None)
 
-    def solve_offsets(self, first: Identification, fit_M: bool = True) -> OffsetFit | None:
+    def solve_offsets(self, first: Identification, fit_M: bool = True, noisy: bool = False
+                      ) -> OffsetFit | None:
         """R_s, α, the current sensors' offsets and phase b's gain together, and M with the
         leakages held (``fit_M``), from the first fit ``first`` (:meth:`solve`;
         docs/robustness.md §5); None where they cannot be fitted (samples missing, or more
         than :attr:`RECORD_MAX`). The rotor model and the charge take each period's mean
-        current (the sample where the drive holds it).
+        current (the sample where the drive holds it); ``noisy``: the controller's model of
+        the current in place of the readings (:meth:`solve`'s ``noisy``).
 
         The drive regulates the current it reads, i_k, and the motor carries
         i_t = i_k − o − λ·e_b,k (o the offsets' (a, b) image, e_b phase b's reading in the
@@ -387,6 +453,11 @@ class StandstillIdentifier:
         L_ls, L_lr = m.L_s - m.M, m.L_r - m.M
         U = a / self._k_r + m.sigma * i  # T·Σ ū
         Q = b / self._k_r  # T·Σ i (charge)
+        if noisy and len(self._rec_model) == n:
+            # the reading the drive regulated, without the sensors' noise: the model's
+            # current in every place the reading enters (see :meth:`_noisy`)
+            i = i_f = np.array(self._rec_model)
+            Q = T * np.cumsum(i)
         Tk = T * np.arange(1, n + 1, dtype=float)
         # phase b's reading in the (a, b) frame: a gain error λ moves i_true by −λ·e_b
         e_b = 1j * (2.0 / SQRT3) * phases(i)[1]
@@ -513,7 +584,7 @@ class Commissioning:
         ends the standstill, else None."""
         if self.result is not None:
             return None
-        self.identifier.add(i_s_ab, u_s_ab, charge)
+        self.identifier.add(i_s_ab, u_s_ab, charge, i_model)
         if i_model is not None:
             d = i_s_ab - i_model
             self._mismatch_ss += d.real * d.real + d.imag * d.imag
@@ -525,27 +596,29 @@ class Commissioning:
         if (refs.w_ref == 0.0 and refs.dw_ref == 0.0 and refs.T_L == 0.0
                 and not magnetised):
             return None
-        found = self.identifier.solve()
-        ident = self.identifier
-        if (self.sensors and not math.isnan(found.fit)
-                and abs(ident.flux(found.R_s)) >= StandstillIdentifier.PSI_MIN):
-            found = self._with_offsets(found)
+        rms, gain = math.nan, 1.0
         if self._mismatch_n:
             rms = math.sqrt(self._mismatch_ss / self._mismatch_n)
             gain = 1.0 if rms <= self.NOISE_RMS else (self.NOISE_RMS / rms) ** 2
+        found = self.identifier.solve(noisy=gain < 1.0)
+        ident = self.identifier
+        if (self.sensors and not math.isnan(found.fit)
+                and abs(ident.flux(found.R_s)) >= StandstillIdentifier.PSI_MIN):
+            found = self._with_offsets(found, gain < 1.0)
+        if self._mismatch_n:
             found = replace(found, mismatch_rms=rms, mismatch_gain=gain)
         self.result = found
         return found
 
-    def _with_offsets(self, first: Identification) -> Identification:
+    def _with_offsets(self, first: Identification, noisy: bool = False) -> Identification:
         """``first`` with the current sensors' errors fitted (:meth:`StandstillIdentifier.
         solve_offsets`): where they are corrected, accepted with the joint fit's R_s and α
         (also when ``first`` was refused for its residual: a sensor error the first fit
         cannot explain); else ``first``, with the errors found and why they are not."""
-        fit = self.identifier.solve_offsets(first)
+        fit = self.identifier.solve_offsets(first, noisy=noisy)
         m = self.identifier.motor
         if fit is not None and abs(fit.M / m.M - 1.0) < self.M_MIN:  # M: the controller's
-            fit = self.identifier.solve_offsets(first, fit_M=False)
+            fit = self.identifier.solve_offsets(first, fit_M=False, noisy=noisy)
         if fit is None:
             return replace(first, sensors_reason="samples missing during the standstill: "
                                                   "sensor errors not fitted")
@@ -632,6 +705,11 @@ class Commissioning:
             if self.pending and psi_hat_ab is not None:
                 return None, self.standstill_flux()
             return None, psi_hat_ab
+        kappa = found.mismatch_gain
+        if kappa < 1.0 and i_model is not None:
+            # the stator flux the estimator restarts from is σ·i + (M/L_r)·ψ_r: with this
+            # sample's noise in i it would keep σ·n for good (0.3 mWb at 5 mA)
+            i_s_ab = i_model + kappa * (i_s_ab - i_model)
         if not found.accepted:
             psi = self.standstill_flux()
             estimator.identified(self.identifier.motor.R_s, psi, i_s_ab, found.mismatch_gain)
