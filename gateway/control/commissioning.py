@@ -712,15 +712,14 @@ class Commissioning:
             i_s_ab = i_model + kappa * (i_s_ab - i_model)
         if not found.accepted:
             psi = self.standstill_flux()
-            estimator.identified(self.identifier.motor.R_s, psi, i_s_ab, found.mismatch_gain)
+            estimator.identified(self.identifier.motor.R_s, psi, i_s_ab, kappa)
             return None, psi if psi_hat_ab is not None else None
         psi = self.flux()
         corr = self.correction
         if self._joint:  # the fit's inductances from now on
             estimator.inductances(found.M, found.L_s, found.L_r)
         estimator.identified(found.R_s, psi,
-                             i_s_ab if corr is None else corr.true_current(i_s_ab),
-                             found.mismatch_gain)
+                             i_s_ab if corr is None else corr.true_current(i_s_ab), kappa)
         return found, psi
 
     @property

@@ -213,13 +213,10 @@ class IntervalFluxEstimator(OpenLoopFluxEstimator):
             target = self._oriented(i_s_ab, eps_0, psi_ref)
             self._adapt(target, i_s_ab, eps_0, T)
         delta = i_s_ab - i_end_ab
-        if from_sample:
-            charge = int_i_ab + 0.5 * T * delta
-        elif self.mismatch_gain == 1.0:
-            charge = int_i_ab + 0.5 * T * (self._delta + delta)
-        else:
-            charge = int_i_ab + 0.5 * T * self.mismatch_gain * (self._delta + delta)
-        self.charge = charge
+        # (κ = 1: the same bits as without it, the product 0.5·T·1.0 being exact)
+        charge = self.charge = int_i_ab + (
+            0.5 * T * delta if from_sample
+            else 0.5 * T * self.mismatch_gain * (self._delta + delta))
         increment = T * u_s_ab - self._R_s * charge
         self._delta = delta
         if corrected:

@@ -334,7 +334,7 @@ class SampledController:
             self._set_motor(replace(self.motor, R_s=ident.R_s, R_r=ident.R_r, M=ident.M,
                                     L_s=ident.L_s, L_r=ident.L_r))
             self._joining = True  # the flux references join the motor's (_join)
-            if self.inertia is not None and ident.mismatch_rms == ident.mismatch_rms:
+            if self.inertia is not None and not math.isnan(ident.mismatch_rms):
                 # the reading (I1) of the inertia filter: the flux's noise σ·(L_r/M)·n at
                 # two samples over ∫ψ ≈ |ψ|·T, n the sensors' noise per axis (rms/√2)
                 noise = self._sigma / self._k_r * ident.mismatch_rms / self._T
