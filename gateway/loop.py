@@ -196,6 +196,8 @@ class CycleLoop:
         #: the last frames seen and sent: (time.time(), 'rx'/'tx', COB-ID, data hex)
         self.recent: deque[tuple[float, str, int, str]] = deque(maxlen=RECENT_FRAMES)
         self._misses: deque[int] = deque()  # cycles missed within the last window
+        #: cycles missed or with their setpoints withheld within the last window
+        self._lost: deque[int] = deque()
         self._miss_window = max(5, round(MISS_WINDOW / cfg.sampling.period))
         self._syncs_sent = 0
         #: the slots of the SYNCs the SYNC thread sent, not yet seen on the bus (own echo)
@@ -433,6 +435,7 @@ class CycleLoop:
             self.ctl.coast()
         misses, window = self._misses, self._miss_window
         misses.append(k)
+        self._note_lost(k)
         while misses[0] <= k - window:
             misses.popleft()
         missing = (["no SYNC (the gateway was held up past its slot)"] if skipped
@@ -540,6 +543,31 @@ class CycleLoop:
 
     # ------------------------------------------------------------------ the cycle
 
+    def _note_lost(self, k: int) -> None:
+        """Cycle ``k`` gave the drive no new setpoints (missed, or withheld): kept for
+        :meth:`_lost_note` over the last miss window."""
+        lost = self._lost
+        lost.append(k)
+        while lost[0] <= k - self._miss_window:
+            lost.popleft()
+
+    #: the share of the last miss window's cycles lost beyond which a divergence names them
+    LOST_NOTE = 0.2
+
+    def _lost_note(self, k: int) -> str:
+        """What a divergence stop in cycle ``k`` adds when the loop had lost its rate just
+        before: the drive held old setpoints through those cycles (a host that stalled, a
+        lossy bus), which the controller's model follows but no law is designed for."""
+        window = self._miss_window
+        n = sum(1 for j in self._lost if j > k - window)
+        if n < self.LOST_NOTE * window:
+            return ""
+        return (f"; {n} of the {window} cycles before it ({window * self._T * 1e3:g} ms) gave "
+                f"the drive no new setpoints (missed: {self.stats.missed} in the run, withheld "
+                f"as late: {self.stats.late_rpdo}): the loop lost its rate (a loaded or "
+                "stalled host in real time, a lossy bus), and the drive held older setpoints "
+                "meanwhile; signals.csv's columns missed and withheld show when")
+
     def _cycle(self, t_arrival: float) -> None:
         """Check, decode, step, guard, encode, send (lock held)."""
         k = self._k
@@ -565,7 +593,7 @@ class CycleLoop:
                 return
         setpoints, row = self.cycle.step(k, measured)
         if self._watch is not None and self._watch.check(row, k):
-            self._finish(StopReason.DIVERGED, self._watch.reason or "")
+            self._finish(StopReason.DIVERGED, (self._watch.reason or "") + self._lost_note(k))
             return
         with self._send_lock:
             # Real time: the SYNC thread sends under the same lock, so the next SYNC goes
@@ -585,6 +613,7 @@ class CycleLoop:
                 # says so.
                 self.ctl.withhold()
                 self.stats.late_rpdo += 1
+                self._note_lost(k)
             else:
                 send = self.bus.send
                 frames = self.pd.encode(setpoints)

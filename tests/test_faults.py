@@ -14,6 +14,7 @@ import random
 import re
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import can
@@ -271,8 +272,35 @@ def test_divergence_stops_the_run(emulator, tmp_path):
     assert rc == 1 and s["run"]["stop"] == "DIVERGED", s["run"]
     reason = s["run"]["stop_reason"]
     assert "field orientation lost" in reason or "beyond" in reason, reason
+    assert "no new setpoints" not in reason, reason  # no cycle was lost
     assert_disabled(emu)
 
+
+def test_a_divergence_after_lost_cycles_names_them():
+    """Half the drive's TPDO1 lost (the loop's own miss guards off, as a user may set them):
+    the controller's model follows the held setpoints, but the run leaves its envelope
+    (0.44 s), and the divergence stop says that half the cycles before it gave the drive no
+    new setpoints — which a divergence without losses does not (test above)."""
+    from sim_support import sim_config
+
+    from dbc.motor import MotorParams
+    from gateway.guard import DivergenceWatch, profile_envelope
+    from gateway.reference import paper_profile
+    from gateway.simulate import run
+    from plant.scenario import parse_scenario
+
+    prof = paper_profile()
+    lossy = parse_scenario('[[bus.fault]]\nkind = "drop"\nmessage = "TPDO1"\ncycle = 1\n'
+                           'probability = 0.5\nseed = 1\n', "lossy")
+    rec = run(prof, MotorParams(), sim_config(plant=lossy, max_missed=1000, max_miss_rate=1.0),
+              watch=DivergenceWatch(profile_envelope(prof, MotorParams(), 20.0)))
+    stats = rec.link.stats
+    assert stats.stop is StopReason.DIVERGED, stats.stop_reason
+    m = re.search(r"; (\d+) of the 100 cycles before it \(100 ms\) gave the drive no new "
+                  r"setpoints \(missed: (\d+) in the run", stats.stop_reason)
+    assert m, stats.stop_reason
+    assert 35 <= int(m[1]) <= 65 and int(m[2]) == stats.missed, stats.stop_reason
+    assert "signals.csv's columns missed and withheld" in stats.stop_reason
 
 def test_missed_cycle_rate_stops_the_run(emulator, tmp_path):
     """Isolated misses (never two in a row; the limit in a row is out of reach) but more
@@ -555,44 +583,54 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     before the held frame); a host that then lost more than a default run accepts (20 % of
     some 100 ms in the 200 ms before the stop: once here, a shared host with half its CPU
     stolen) may take the loop at 2 ms out of its envelope and the divergence guard stop it,
-    safely, after the held frame was counted. Anything else is a failure."""
+    safely; where that was before the held frame (the run's start lost), a fresh run, three
+    in all. Anything else is a failure."""
     from gw_support import _patient_drive_profile, bus_run, host_losses
 
     from dbc.timing import Sampling
 
-    emu = emulator()
-    bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
-    real_send = bus.send
-    held: list[can.Message] = []
-    n_rpdo2 = [0]
+    for attempt in range(1, 4):
+        emu = emulator()
+        bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
+        real_send = bus.send
+        held: list[can.Message] = []
+        n_rpdo2 = [0]
 
-    def send(msg: can.Message, timeout: float | None = None) -> None:
-        if msg.arbitration_id == 0x301:
-            n_rpdo2[0] += 1
-            if n_rpdo2[0] == 150:
-                held.append(msg)  # until the next SYNC has gone out
-                return
-        real_send(msg, timeout)
-        if msg.arbitration_id == 0x080 and held:
-            real_send(held.pop())
+        def send(msg: can.Message, timeout: float | None = None, real_send=real_send,
+                 held=held, n_rpdo2=n_rpdo2) -> None:
+            if msg.arbitration_id == 0x301:
+                n_rpdo2[0] += 1
+                if n_rpdo2[0] == 150:
+                    held.append(msg)  # until the next SYNC has gone out
+                    return
+            real_send(msg, timeout)
+            if msg.arbitration_id == 0x080 and held:
+                real_send(held.pop())
 
-    bus.send = send
-    drive = load_drive_profile(str(_patient_drive_profile()))
-    cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), duration=1.2,
-                    max_missed=1000, max_miss_rate=1.0)
-    try:
-        s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
-    finally:
-        bus.shutdown()
-    run = s["run"]
-    sig = read_csv(tmp_path / "signals.csv")
-    withheld = sig["withheld"]
-    if run["stop"] != "END_OF_PROFILE":
-        window = 50  # cycles in the loop's miss-rate window (100 ms) at 2 ms
-        k = np.rint(sig["t"] / 2e-3).astype(int)
-        assert run["stop"] == "DIVERGED" and s["shutdown"]["safe"], run["stop_reason"]
-        lost = host_losses(k, withheld, window, since=run["stop_cycle"] - 100)
-        assert lost > 0.2 * window, (lost, run["stop_reason"])
+        bus.send = send
+        drive = load_drive_profile(str(_patient_drive_profile()))
+        cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), duration=1.2,
+                      max_missed=1000, max_miss_rate=1.0)
+        try:
+            s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
+        finally:
+            bus.shutdown()
+        run = s["run"]
+        sig = read_csv(tmp_path / "signals.csv")
+        withheld = sig["withheld"]
+        if run["stop"] != "END_OF_PROFILE":
+            window = 50  # cycles in the loop's miss-rate window (100 ms) at 2 ms
+            k = np.rint(sig["t"] / 2e-3).astype(int)
+            assert run["stop"] == "DIVERGED" and s["shutdown"]["safe"], run["stop_reason"]
+            lost = host_losses(k, withheld, window, since=run["stop_cycle"] - 100)
+            assert lost > 0.2 * window, (lost, run["stop_reason"])
+            assert_disabled(emu)
+        if n_rpdo2[0] > 150:
+            break
+        # stopped so before the held frame (the host lost the start of the run: a stall of
+        # a hundred milliseconds, seen in CI and here): a fresh run on a fresh drive
+        warnings.warn(f"attempt {attempt}: the host lost the real-time run before the "
+                      f"held frame: {run['stop_reason']}", stacklevel=1)
     # the 150th RPDO2 (a cycle of 600: a loaded host that misses half of them still sends
     # it; the 300th was once not reached, 174 sent)
     assert not held and n_rpdo2[0] > 150, (n_rpdo2[0], run["missed_cycles"])

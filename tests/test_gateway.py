@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 import time
+import warnings
 from pathlib import Path
 
 import can
@@ -15,6 +16,8 @@ from gw_support import (
     MOTOR,
     assert_disabled,
     gateway_run,
+    host_losses,
+    realtime_run_past,
     run_in_thread,
     wait_cycles,
 )
@@ -145,20 +148,29 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_fact
                      "--period", "2ms", "--reference", str(ref), "--max-missed", "500",
                      "--max-miss-rate", "1", "--estimator", "drift-free")
     s = json.loads((tmp_path / "summary.json").read_text())
-    assert rc == 0, s["run"]
     run_ = s["run"]
-    assert run_["cycles"] + run_["missed_cycles"] >= 1495 and run_["cycles"] > 0
+    sig = read_csv(tmp_path / "signals.csv")
     # How many cycles a loaded host misses is the host's to say (a quarter under stress-ng on
     # 2 cores; BENCHMARKS.md has the idle figures; a virtual machine that stops for 80 ms
     # missed 41 of 50 in a row, so no miss rate stops this run). What must hold: one row
     # per cycle run, at its cycle's time, with the misses counted so far: the gaps between
     # rows are the misses.
-    from gateway.report import read_csv
-
-    sig = read_csv(tmp_path / "signals.csv")
-    assert len(sig["t"]) == run_["cycles"]
+    assert len(sig["t"]) == run_["cycles"] > 0
     steps = np.rint(np.diff(sig["t"]) / 2e-3).astype(int)
     np.testing.assert_array_equal(steps - 1, np.diff(sig["missed"]))
+    if rc != 0:
+        # A host that loses the loop's rate for long (once in CI: 346 of 807 cycles
+        # missed, 159 withheld) can take even this profile out of its envelope: the
+        # divergence guard stops it, safely, and says so. A divergence where the host kept
+        # its rate (its own losses within 20 % of every 100 ms of the 200 ms before the
+        # stop) is a failure, and so is any other stop.
+        assert run_["stop"] == "DIVERGED" and s["shutdown"]["safe"], run_
+        k = np.rint(sig["t"] / 2e-3).astype(int)
+        lost = host_losses(k, sig["withheld"], 50, since=run_["stop_cycle"] - 100)
+        assert lost > 0.2 * 50, (lost, run_["stop_reason"])
+        assert_disabled(emu)
+        return
+    assert run_["cycles"] + run_["missed_cycles"] >= 1495
     # the misses after the last row (a host that stalls at the end: 36 of them once under
     # load) are the cycles left in the run after it
     trailing = run_["missed_cycles"] - sig["missed"][-1]
@@ -177,11 +189,9 @@ def test_realtime_runs_for_seconds_with_timing(emulator, tmp_path, tmp_path_fact
 @pytest.mark.timing
 def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     """What Ctrl-C and SIGTERM do: a stop request ends the loop and the drive is disabled."""
-    emu = emulator()
-    signals = StopSignals()
-    cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
-    th, result = run_in_thread(emu, tmp_path, cfg, signals)
-    wait_cycles(emu.device, 200)
+    cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), max_missed=1000,
+                  max_miss_rate=1.0)
+    emu, th, result, signals = realtime_run_past(emulator, tmp_path, cfg, 200)
     signals.requested.set()
     signals.reason = "SIGTERM received"
     assert signals.on_stop is not None
@@ -190,11 +200,11 @@ def test_stop_request_mid_run_disables_the_drive(emulator, tmp_path):
     assert not th.is_alive()
     s = result["summary"]
     assert s["run"]["stop_reason"] == "SIGTERM received"
-    # stopped mid-run: after the 200 SYNCs the drive saw, long before the profile's 2500.
+    # stopped mid-run: after the 200 SYNCs the drive saw, long before the profile's 1250.
     # (Completed cycles can be fewer: in real time on a loaded 2-core host some are missed,
     # which this run allows; once 133 of 203.)
     run = s["run"]
-    assert 150 < run["stop_cycle"] < 2500
+    assert 150 < run["stop_cycle"] < 1250
     assert 0 < run["cycles"] <= run["stop_cycle"]
     assert_disabled(emu)
     # nothing logged is lost: the log is complete and closed
@@ -208,11 +218,9 @@ def test_drive_fault_stops_the_loop(emulator, tmp_path):
     the run stops by that cause and the drive ends disabled."""
     from dbc.cia301 import Emcy
 
-    emu = emulator()
-    signals = StopSignals()
-    cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
-    th, result = run_in_thread(emu, tmp_path, cfg, signals)
-    wait_cycles(emu.device, 100)
+    cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), max_missed=1000,
+                  max_miss_rate=1.0)
+    emu, th, result, _ = realtime_run_past(emulator, tmp_path, cfg, 100)
     with emu.device._lock:  # as its own over-current check does, in its own lock
         emu.device._fault(Emcy.OVERCURRENT)
     th.join(10)
@@ -228,11 +236,9 @@ def test_a_foreign_writer_on_the_rpdo_stops_the_loop(emulator, tmp_path):
     """Another node sending on the gateway's RPDO2 COB-ID (here a 2-byte frame, which the
     drive also refuses with EMCY 0x8210): the gateway sees a frame on its COB-ID it did not
     send, in bus order before the drive's EMCY, and stops by that cause."""
-    emu = emulator()
-    signals = StopSignals()
-    cfg = RunSpec(timing="realtime", max_missed=1000, max_miss_rate=1.0)
-    th, result = run_in_thread(emu, tmp_path, cfg, signals)
-    wait_cycles(emu.device, 100)
+    cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), max_missed=1000,
+                  max_miss_rate=1.0)
+    emu, th, result, _ = realtime_run_past(emulator, tmp_path, cfg, 100)
     with can.Bus(interface="virtual", channel=emu.channel) as intruder:
         intruder.send(can.Message(arbitration_id=0x301, data=b"\x00\x01", is_extended_id=False))
     th.join(10)
@@ -339,38 +345,52 @@ def test_sim_command_is_the_quick_start(tmp_path, capsys):
 @pytest.mark.timing
 def test_ctrl_c_twice_stops_cleanly_and_keeps_the_log(tmp_path):
     """A real SIGINT (and a second one during shutdown) to `hil-gateway sim`. The profile
-    is a slow one: the signal comes about 1.5 s into the run, which in the paper's profile
-    is its steepest acceleration, where a host that stalls for 70 ms (some virtual machines
-    do, when idle) leaves a real speed error beyond the guard's 40 rad/s."""
+    is a slow one at 2 ms: the signal comes about 1.5 s into the run, which in the paper's
+    profile is its steepest acceleration, where a host that stalls for 70 ms (some virtual
+    machines do, when idle) leaves a real speed error beyond the guard's 40 rad/s; at 1 ms
+    the drive's and the gateway's threads in this one process take half the interpreter's
+    time, and a stall's backlog took a hundred cycles to drain."""
     import signal
     import subprocess
     import sys
 
-    out = tmp_path / "sigint"
     ref = tmp_path / "slow-hold.toml"
     ref.write_text(SLOW_HOLD)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "gateway", "sim", "--timing", "realtime", "--duration", "60s",
-         "--reference", str(ref), "--max-missed", "100000", "--max-miss-rate", "1",
-         "--estimator", "drift-free", "--out", str(out)],
-        cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True)
-    try:
-        deadline = time.monotonic() + 60
-        while not (out / "bus.blf").exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(1.5)
-        proc.send_signal(signal.SIGINT)
-        time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        _stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
+    for attempt in range(1, 4):
+        out = tmp_path / f"sigint-{attempt}"
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "gateway", "sim", "--timing", "realtime", "--period",
+             "2ms", "--duration", "60s", "--reference", str(ref), "--max-missed", "100000",
+             "--max-miss-rate", "1", "--estimator", "drift-free", "--out", str(out)],
+            cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while not (out / "bus.blf").exists() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(1.5)
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                time.sleep(0.05)
+                proc.send_signal(signal.SIGINT)
+            _stdout, stderr = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+        s = json.loads((out / "summary.json").read_text())
+        if s["run"]["stop"] != "DIVERGED":
+            break
+        # the host lost the loop's rate before the signal (a stall of a hundred cycles: one
+        # process holds the drive's and the gateway's threads): a safe stop that names the
+        # lost cycles, then a fresh run (gw_support.realtime_run_past does the same)
+        assert "gave the drive no new setpoints" in s["run"]["stop_reason"], s["run"]
+        assert proc.returncode == 1 and s["shutdown"]["safe"], s["run"]
+        warnings.warn(f"attempt {attempt}: the host lost the real-time run before the "
+                      f"signal: {s['run']['stop_reason']}", stacklevel=1)
     assert "Traceback" not in stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["run"]["stop_reason"] == "SIGINT received"
     assert proc.returncode == 130
-    assert 300 < s["run"]["cycles"] < 60000
+    assert 150 < s["run"]["cycles"] < 30000
     frames = list(can.LogReader(str(out / "bus.blf")))
     assert len(frames) == s["run"]["bus_frames_logged"]
     # the last things on the bus: controlword "disable voltage" by SDO, then NMT pre-op
