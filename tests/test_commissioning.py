@@ -267,6 +267,7 @@ def test_identification_refused_on_the_current_loop_drive_with_dead_time():
     ident = run(paper_profile(), MOTOR, replace(cfg, identify=True))
     assert not ident.identification["accepted"]
     assert "do not agree" in ident.identification["reason"]
+    assert "`hil-gateway identify` measures it" in ident.identification["reason"]
     e_plain = np.abs(plain["w_m"] - plain["w_ref"])
     e = np.abs(ident.arrays()["w_m"] - ident.arrays()["w_ref"])
     assert e_plain.max() > 50.0  # a runaway
