@@ -10,6 +10,7 @@ import json
 import re
 import threading
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -144,19 +145,30 @@ def test_sync_jitter_without_a_counter_is_not_a_foreign_sync(foreign, tmp_path, 
         return real(self, k)
 
     monkeypatch.setattr(CycleLoop, "_sync_message", jittered)
-    _drive, channel, profile = foreign(42)
-    rc, s = _run(channel, profile, tmp_path / "run", "--timing", "realtime", "--period", "4ms",
-                 "--duration", "0.5s", "--max-miss-rate", "1")
+    for attempt in range(1, 4):
+        held.clear()
+        _drive, channel, profile = foreign(42)
+        out = tmp_path / f"run-{attempt}"
+        rc, s = _run(channel, profile, out, "--timing", "realtime", "--period", "4ms",
+                     "--duration", "0.5s", "--max-miss-rate", "1")
+        run = s["run"]
+        # every SYNC sent so far, held ones included, was judged ours
+        assert run["stop"] != "FOREIGN_SYNC", run
+        # a host that stops the process for tens of ms (a VM's stall) can leave a real
+        # speed error the divergence guard stops (named with the lost cycles), or, stalled
+        # for a dozen periods in a row (once here: 12 at 4 ms), stop the run as the drive
+        # lost — both end safe, and neither is this test's question; any other end is a
+        # failure
+        assert rc == 0 or (run["stop"] == "DIVERGED" and s["shutdown"]["safe"]) or (
+            run["stop"] == "DRIVE_LOST" and "consecutive cycles without the drive's TPDOs"
+            in run["stop_reason"] and s["shutdown"]["safe"]), run
+        if len(held) > 10:
+            break
+        # stopped so before a dozen holds (under stress-ng once: at cycle 66, 11 of its
+        # last 25 cycles lost): too few to answer, a fresh run
+        warnings.warn(f"attempt {attempt}: the run ended after {len(held)} held SYNCs: "
+                      f"{run['stop_reason']}", stacklevel=1)
     assert len(held) > 10
-    assert s["run"]["stop"] != "FOREIGN_SYNC", s["run"]
-    # a host that stops the process for tens of ms (a VM's stall) can leave a real speed
-    # error the divergence guard stops, or, stalled for a dozen periods in a row (once
-    # here: 12 at 4 ms), stop the run as the drive lost — both end safe, and neither is
-    # this test's question; any other end is a failure
-    run = s["run"]
-    assert rc == 0 or run["stop"] == "DIVERGED" or (
-        run["stop"] == "DRIVE_LOST" and "consecutive cycles without the drive's TPDOs"
-        in run["stop_reason"] and s["shutdown"]["safe"]), run
 
 
 @pytest.mark.timing
