@@ -37,7 +37,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 from gateway.control.interface import Command, DriveController, Sample
 from gateway.control.laws import Refs
@@ -158,6 +158,16 @@ def _sign(x: float) -> float:
     return float((x > 0.0) - (x < 0.0))
 
 
+class _Commanded(NamedTuple):
+    """A commanded interval, for the sample that ends it: ``phi`` the turn of its (d, q)
+    setpoints at its end past the midpoint (ω0·T/2), ``w_0`` its ω0, ``du`` the inverter's
+    error (C2) its command was corrected for, V (a, b) (None: not known, held setpoints)."""
+
+    phi: float = 0.0
+    w_0: float = 0.0
+    du: complex | None = None
+
+
 class CorrectedController:
     """``inner`` with the corrections of :class:`SensorCorrection` around it (module
     docstring): it sees true currents and applied voltages, and its setpoints reach the
@@ -180,13 +190,10 @@ class CorrectedController:
         self.signals = inner.signals
         self._T = period
         self._turning = turning  # (d, q) setpoints: the drive turns them over the interval
-        # (φ at the interval's end, ω0) of each commanded interval not yet sampled, oldest
-        # first: the sample at t_k ends the interval commanded d + 1 steps before
-        self._turns: deque[tuple[float, float]] = deque([(0.0, 0.0)] * (delay + 1))
-        self._sampled = (0.0, 0.0)  # the interval that ended at the last sample
-        # the inverter's error each of those intervals' command was corrected for, V (a, b)
-        # (None: not known, a held command's)
-        self._du: deque[complex | None] = deque([None] * (delay + 1))
+        # each commanded interval not yet sampled, oldest first: the sample at t_k ends the
+        # interval commanded d + 1 steps before
+        self._turns: deque[_Commanded] = deque([_Commanded()] * (delay + 1))
+        self._sampled = _Commanded()  # the interval that ended at the last sample
 
     def __getattr__(self, name: str) -> Any:  # the inner controller's other attributes
         if name == "inner":  # not yet set (copy, pickle): no recursion
@@ -195,15 +202,15 @@ class CorrectedController:
 
     def step(self, refs: Refs, sample: Sample) -> Command:
         c = self.correction
-        self._sampled = self._turns.popleft()
-        phi = self._sampled[0]
+        self._sampled = ended = self._turns.popleft()
+        phi = ended.phi
         i_read = sample.i_s_ab
         if phi:
             i_read -= c.offset_ab * (cmath.exp(1j * phi) - 1.0)
         i_true = c.true_current(i_read)
         # the inverter's error over the interval that ended: the one its command was
         # corrected for (_command), where that command was sent
-        du = self._du.popleft()
+        du = ended.du
         u_applied = sample.u_s_ab - (c.voltage_error(i_true) if du is None else du)
         cmd = self.inner.step(refs, replace(sample, i_s_ab=i_true, u_s_ab=u_applied))
         return self._command(cmd)
@@ -212,7 +219,7 @@ class CorrectedController:
         """The inner controller's command with the corrections: what the drive must read,
         and apply, for the motor to get what the controller meant."""
         c = self.correction
-        half = self._turn(cmd)
+        half = 0.5 * self._T * cmd.w_0
         # the setpoints' (a, b) image at the interval's midpoint, and its change
         turn = cmath.exp(1j * (cmd.eps_0 + half))
         i_ab = cmd.i_s_dq_ref * turn
@@ -226,23 +233,22 @@ class CorrectedController:
         du = c.voltage_error_over(start, start * cmath.exp(2j * half))
         di_ab = c.reading(cmd.i_s_ab_ref) - cmd.i_s_ab_ref
         du_ab = c.voltage_error(cmd.i_s_ab_ref)
-        self._du.append(du if self._turning else du_ab)
+        self._turn(cmd, du if self._turning else du_ab)
         return replace(cmd, i_s_dq_ref=cmd.i_s_dq_ref + di / turn,
                        u_s_dq_ref=cmd.u_s_dq_ref + du / turn,
                        i_s_ab_ref=cmd.i_s_ab_ref + di_ab, u_s_ab_ref=cmd.u_s_ab_ref + du_ab)
 
-    def _turn(self, cmd: Command) -> float:
-        """Records the interval ``cmd`` commands (its turn at the end, its ω0) for the sample
-        that ends it; returns its half-period turn ω0·T/2."""
-        half = 0.5 * self._T * cmd.w_0
-        self._turns.append((half, cmd.w_0) if self._turning else (0.0, 0.0))
-        return half
+    def _turn(self, cmd: Command, du: complex | None = None) -> None:
+        """Records the interval ``cmd`` commands (its turn at the end, its ω0, the error
+        ``du`` its command was corrected for) for the sample that ends it."""
+        self._turns.append(_Commanded(0.5 * self._T * cmd.w_0, cmd.w_0, du) if self._turning
+                           else _Commanded(du=du))
 
-    def _held(self) -> tuple[float, float]:
+    def _held(self) -> _Commanded:
         """The interval after the last one commanded, on held setpoints: the drive keeps
-        turning their frame, one period further."""
-        phi, w_0 = self._turns[-1] if self._turns else self._sampled
-        return phi + self._T * w_0, w_0
+        turning their frame, one period further (its error not known)."""
+        last = self._turns[-1] if self._turns else self._sampled
+        return _Commanded(last.phi + self._T * last.w_0, last.w_0)
 
     def withhold(self) -> None:
         self._withhold_turn()
@@ -253,13 +259,10 @@ class CorrectedController:
         self.inner.coast()
 
     def _withhold_turn(self) -> None:
-        self._du[-1] = None
         self._turns.pop()  # not sent: the drive held the interval before's setpoints
         self._turns.append(self._held())
 
     def _coast_turn(self) -> None:
-        self._du.append(None)
-        self._du.popleft()
         self._turns.append(self._held())
         self._sampled = self._turns.popleft()  # the interval that ended unsampled
 
@@ -273,11 +276,11 @@ class CorrectedController:
             return None
 
         def delayed(n: int) -> None:
-            sent, du = self._turns[-1], self._du[-1]
+            sent = self._turns[-1]
             self._withhold_turn()
             for _ in range(n):
                 self._coast_turn()
-            self._turns[-1], self._du[-1] = sent, du
+            self._turns[-1] = sent
             inner(n)
 
         return delayed
@@ -303,12 +306,10 @@ class IdentifiedCorrection(CorrectedController):
                 return self.inner.step(refs, sample)
             return super().step(refs, sample)
         self._sampled = self._turns.popleft()
-        self._du.popleft()
         cmd = self.inner.step(refs, sample)
         found = self.inner.commissioning.result
         if found is None:
             self._turn(cmd)
-            self._du.append(None)
             return cmd
         self._waiting = False
         correction = self.inner.commissioning.correction
