@@ -337,13 +337,10 @@ class CycleLoop:
         with self._lock:
             self.stats.error_frames += 1
             k = self._k
-            errors = self._errors
-            errors.append(k)
-            while errors and errors[0] <= k - self._miss_window:
-                errors.popleft()
-            if len(errors) > MAX_ERROR_FRAMES and not self._done.is_set():
+            errors = self._in_window(self._errors, k)
+            if errors > MAX_ERROR_FRAMES and not self._done.is_set():
                 self._finish(StopReason.BUS_ERRORS,
-                             f"{len(errors)} error frames within {self._miss_window} cycles "
+                             f"{errors} error frames within {self._miss_window} cycles "
                              f"({self.stats.error_frames} in all): the bus is damaged "
                              "(cabling, termination, bitrate, a faulty node)")
 
@@ -433,11 +430,9 @@ class CycleLoop:
         self._k_done = k
         if not coasted:
             self.ctl.coast()
-        misses, window = self._misses, self._miss_window
-        misses.append(k)
-        self._note_lost(k)
-        while misses[0] <= k - window:
-            misses.popleft()
+        window = self._miss_window
+        misses = self._in_window(self._misses, k)
+        self._in_window(self._lost, k)
         missing = (["no SYNC (the gateway was held up past its slot)"] if skipped
                    else sorted(self._missed_names | self._suspects) or ["none (late)"])
         if self._consecutive_lost >= self.cfg.max_missed:
@@ -445,9 +440,9 @@ class CycleLoop:
                          f"{self._consecutive_lost} consecutive cycles without the drive's "
                          f"TPDOs (missing in cycle {k}: {', '.join(missing)}; drive lost or "
                          "bus overloaded)")
-        elif len(misses) > self.cfg.max_miss_rate * window and self.cfg.max_miss_rate < 1:
+        elif misses > self.cfg.max_miss_rate * window and self.cfg.max_miss_rate < 1:
             self._finish(StopReason.DRIVE_LOST,
-                         f"{len(misses)} of the last {window} cycles missed (more than "
+                         f"{misses} of the last {window} cycles missed (more than "
                          f"{self.cfg.max_miss_rate:.0%} within {window * self._T * 1e3:g} ms; "
                          f"last missing: {', '.join(missing)}): the loop cannot keep its rate")
         elif k >= self.cfg.n_cycles:  # the last cycle was missed: no cycle n + 1
@@ -543,13 +538,13 @@ class CycleLoop:
 
     # ------------------------------------------------------------------ the cycle
 
-    def _note_lost(self, k: int) -> None:
-        """Cycle ``k`` gave the drive no new setpoints (missed, or withheld): kept for
-        :meth:`_lost_note` over the last miss window."""
-        lost = self._lost
-        lost.append(k)
-        while lost[0] <= k - self._miss_window:
-            lost.popleft()
+    def _in_window(self, cycles: deque[int], k: int) -> int:
+        """Cycle ``k`` added to ``cycles`` (those of some event, oldest first), and those
+        before the miss window that ends at ``k`` dropped; how many are left."""
+        cycles.append(k)
+        while cycles[0] <= k - self._miss_window:
+            cycles.popleft()
+        return len(cycles)
 
     #: the share of the last miss window's cycles lost beyond which a divergence names them
     LOST_NOTE = 0.2
@@ -613,7 +608,7 @@ class CycleLoop:
                 # says so.
                 self.ctl.withhold()
                 self.stats.late_rpdo += 1
-                self._note_lost(k)
+                self._in_window(self._lost, k)  # for _lost_note
             else:
                 send = self.bus.send
                 frames = self.pd.encode(setpoints)
