@@ -112,6 +112,16 @@ def bus_run(bus: can.BusABC, drive, out: Path, spec: RunSpec, signals: StopSigna
                        output=Output(str(out), force=True), signals=signals).summary
 
 
+def closed_run(bus: can.BusABC, out: Path, spec: RunSpec) -> dict:
+    """:func:`bus_run` on ``bus`` with the drive profile of :func:`_patient_drive_profile`
+    and no stop request; ``bus`` shut down after it; returns the summary."""
+    try:
+        return bus_run(bus, load_drive_profile(str(_patient_drive_profile())), out, spec,
+                       StopSignals())
+    finally:
+        bus.shutdown()
+
+
 def host_losses(k: np.ndarray, withheld: np.ndarray, window: int,
                 skip: tuple[int, ...] | list[int] = (), since: int = 0) -> int:
     """The most cycles a real-time run lost on its own (missed, or withheld: its setpoints

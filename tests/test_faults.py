@@ -585,7 +585,7 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
     stolen) may take the loop at 2 ms out of its envelope and the divergence guard stop it,
     safely; where that was before the held frame (the run's start lost), a fresh run, three
     in all. Anything else is a failure."""
-    from gw_support import _patient_drive_profile, bus_run, host_losses
+    from gw_support import closed_run, host_losses
 
     from dbc.timing import Sampling
 
@@ -608,13 +608,9 @@ def test_rpdos_that_reach_the_bus_after_the_next_sync_are_counted_and_modelled(e
                 real_send(held.pop())
 
         bus.send = send
-        drive = load_drive_profile(str(_patient_drive_profile()))
         cfg = RunSpec(timing="realtime", sampling=Sampling(2e-3, 1), duration=1.2,
                       max_missed=1000, max_miss_rate=1.0)
-        try:
-            s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
-        finally:
-            bus.shutdown()
+        s = closed_run(bus, tmp_path, cfg)
         run = s["run"]
         sig = read_csv(tmp_path / "signals.csv")
         withheld = sig["withheld"]

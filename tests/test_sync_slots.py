@@ -61,12 +61,10 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
     A host this loaded also misses and delays cycles of its own, anywhere in the profile; a
     few of them in a speed step cost rad/s (the drive holds its setpoints while the
     reference accelerates). That is accuracy too, and the profile's end shows it recovered."""
-    from gw_support import _patient_drive_profile, bus_run, host_losses
+    from gw_support import closed_run, host_losses
 
     from dbc.timing import Sampling
-    from gateway.drive_profile import load_drive_profile
     from gateway.spec import RunSpec
-    from gateway.stop import StopSignals
 
     T = 5e-3
     emu = emulator()
@@ -92,13 +90,9 @@ def test_a_sync_thread_held_up_skips_slots_and_the_run_stays_accurate(emulator, 
         return catch_up(k, t0, period, now)
 
     monkeypatch.setattr("gateway.loop.catch_up", held_catch_up)
-    drive = load_drive_profile(str(_patient_drive_profile()))
     cfg = RunSpec(timing="realtime", sampling=Sampling(T, 1), max_missed=1000,
                   max_miss_rate=1.0)
-    try:
-        s = bus_run(bus, drive, tmp_path, cfg, StopSignals())
-    finally:
-        bus.shutdown()
+    s = closed_run(bus, tmp_path, cfg)
     run = s["run"]
     sig = read_csv(tmp_path / "signals.csv")
     k = np.rint(sig["t"] / T).astype(int)
@@ -174,11 +168,9 @@ def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_p
     every cycle here (the gateway's echo of each SYNC is queued only once the drive's three
     TPDOs are in): each answer is held and taken when the echo opens its cycle. Dropped as
     late, every cycle waited for the 2 s backstop and the run stopped, drive lost."""
-    from gw_support import _patient_drive_profile, bus_run
+    from gw_support import closed_run
 
-    from gateway.drive_profile import load_drive_profile
     from gateway.spec import RunSpec
-    from gateway.stop import StopSignals
 
     emu = emulator()
     bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
@@ -204,11 +196,7 @@ def test_lockstep_takes_the_answers_that_overtake_the_syncs_echo(emulator, tmp_p
         own.put(copy(msg, stamp, is_rx=False))
 
     bus.send = send
-    drive = load_drive_profile(str(_patient_drive_profile()))
-    try:
-        s = bus_run(bus, drive, tmp_path, RunSpec(duration=0.05), StopSignals())
-    finally:
-        bus.shutdown()
+    s = closed_run(bus, tmp_path, RunSpec(duration=0.05))
     run = s["run"]
     assert run["stop"] == "END_OF_PROFILE", run["stop_reason"]
     assert run["cycles"] == 50 and run["missed_cycles"] == 0, run
@@ -232,13 +220,11 @@ def test_setpoints_ready_after_the_threads_next_sync_are_withheld(emulator, tmp_
     the model. Now the loop sees the SYNC sent (the thread and the RPDOs share a send lock)
     and withholds them. (A loaded host may miss cycle 60 of its own, or delay SYNC 61: then
     the case did not arise, and the run is made again, up to three times.)"""
-    from gw_support import _patient_drive_profile, bus_run
+    from gw_support import closed_run
 
     from dbc.timing import Sampling
     from gateway.cycle import ControlCycle
-    from gateway.drive_profile import load_drive_profile
     from gateway.spec import RunSpec
-    from gateway.stop import StopSignals
 
     T, h = 1e-2, 60
     real_step = ControlCycle.step
@@ -249,7 +235,6 @@ def test_setpoints_ready_after_the_threads_next_sync_are_withheld(emulator, tmp_
         return real_step(self, k, measured, truth)
 
     monkeypatch.setattr(ControlCycle, "step", slow_step)
-    drive = load_drive_profile(str(_patient_drive_profile()))
     cfg = RunSpec(timing="realtime", sampling=Sampling(T, 1), max_missed=1000,
                   max_miss_rate=1.0, duration=0.8)
     seen = []
@@ -267,10 +252,7 @@ def test_setpoints_ready_after_the_threads_next_sync_are_withheld(emulator, tmp_
         out = tmp_path / str(attempt)
         emu = emulator()
         bus = can.Bus(interface="virtual", channel=emu.channel, receive_own_messages=True)
-        try:
-            s = bus_run(bus, drive, out, cfg, StopSignals())
-        finally:
-            bus.shutdown()
+        s = closed_run(bus, out, cfg)
         run = s["run"]
         assert run["stop"] == "END_OF_PROFILE" and s["shutdown"]["safe"], run["stop_reason"]
         assert held == [h]
