@@ -172,6 +172,15 @@ def wait_cycles(out_device: DriveDevice, n: int, timeout: float = 10.0,
     return True
 
 
+def assert_lost_to_the_host(summary: dict) -> None:
+    """A real-time run that ended before its test could act: by the divergence guard,
+    safely, its reason naming the cycles that gave the drive no new setpoints (the host
+    lost the loop's rate, :meth:`gateway.loop.CycleLoop._lost_note`)."""
+    run = summary["run"]
+    assert run["stop"] == "DIVERGED" and summary["shutdown"]["safe"], run["stop_reason"]
+    assert "gave the drive no new setpoints" in run["stop_reason"], run["stop_reason"]
+
+
 def realtime_run_past(make_emulator, out: Path, cfg: RunSpec, cycles: int,
                       attempts: int = 3
                       ) -> tuple[Emulator, threading.Thread, dict, StopSignals]:
@@ -194,8 +203,7 @@ def realtime_run_past(make_emulator, out: Path, cfg: RunSpec, cycles: int,
         assert "error" not in result, result.get("error")
         s = result["summary"]
         run = s["run"]
-        assert run["stop"] == "DIVERGED" and s["shutdown"]["safe"], run["stop_reason"]
-        assert "gave the drive no new setpoints" in run["stop_reason"], run["stop_reason"]
+        assert_lost_to_the_host(s)
         assert_disabled(emu)
         warnings.warn(f"attempt {attempt} of {attempts}: the host lost the real-time run "
                       f"before cycle {cycles}, which stopped safely: {run['stop_reason']}",
