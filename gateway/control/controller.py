@@ -23,7 +23,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
-from dbc.modes import DriveMode
+from dbc.modes import DriveMode, SetpointFrame
 from dbc.timing import Sampling
 from gateway.control.commissioning import Commissioning
 from gateway.control.estimator import (
@@ -169,9 +169,15 @@ class ControllerConfig:
         object.__setattr__(self, "inertia", as_enum(InertiaSource, self.inertia, "inertia"))
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
-        if self.load is LoadSource.OBSERVED and self.law is Law.FULL_ORDER:
-            raise ValueError("the load is observed for the current-fed law only (the "
-                             "full-order law was not found stable with an observer): use "
+        if (self.load is LoadSource.OBSERVED and self.law is Law.FULL_ORDER
+                and not (self.discretisation is Discretisation.EXACT
+                         and self.current_lag == 0.0
+                         and self.sampling.setpoint_frame is SetpointFrame.DQ)):
+            # the sampled-data full-order law observes it through the inertia filter
+            # (docs/robustness.md §10); its Euler design has no observer found stable
+            raise ValueError("the full-order law observes the load in the sampled-data "
+                             "design on a voltage drive with (d, q) setpoints only "
+                             "(--discretisation exact --setpoint-frame dq): use those, or "
                              "--load known or untold")
         if (self.load is LoadSource.OBSERVED and self.discretisation is Discretisation.EXACT
                 and self.estimator is EstimatorKind.RS_ADAPTIVE):

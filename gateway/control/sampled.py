@@ -1046,11 +1046,15 @@ class FullOrderSampledController(SampledController):
         return self._fo_predict(c, i0, psi0, w0, r0, rh, r1, f0)
 
     def _fo_predict(self, c: Interval, i0: complex, psi0: complex, w0: float,
-                    r0: Refs, rh: Refs, r1: Refs, f0: float | None = None):
+                    r0: Refs, rh: Refs, r1: Refs, f0: float | None = None,
+                    T_L: float | None = None):
         """:meth:`_fo_model` computed (nothing kept looked at: a step's prediction, from
-        the state it has just estimated)."""
+        the state it has just estimated); ``T_L``: the load over the interval (default
+        the profile's, ``r0.T_L``; with the load observed the profile's plus T̂_L)."""
+        if T_L is None:
+            T_L = r0.T_L
         if f0 is None:
-            f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, r0.T_L)
+            f0 = self._fo_rate(psi0, i0, c.i_ref0, r0, T_L)
         w_m = w0 + self._half_T * f0
         # A(ω0, ω) at the midpoint's speed
         a11, a12, a21, a22 = (complex(-self._c1, -c.w_0), self._beta * complex(self._alpha, -w_m),
@@ -1075,7 +1079,7 @@ class FullOrderSampledController(SampledController):
         di_h, dp_h = e11 * di + e12 * dp, e21 * di + e22 * dp
         di_1, dp_1 = e11 * di_h + e12 * dp_h, e21 * di_h + e22 * dp_h
         # for _fo_finish: the load over the interval (T_L/J) and the reference at the middle
-        return (c, w0, r0.T_L / self._J, 0.5 * (c.i_ref0 + c.i_ref1), rh, r1, f0,
+        return (c, w0, T_L / self._J, 0.5 * (c.i_ref0 + c.i_ref1), rh, r1, f0,
                 i_ss + di_h, p_ss + dp_h, i_ss + di_1, p_ss + dp_1)
 
     def _fo_finish(self, model, end: tuple[complex, complex] | None = None,
@@ -1108,6 +1112,16 @@ class FullOrderSampledController(SampledController):
 
     # ------------------------------------------------------------------ a cycle
 
+    def _fo_measured(self, jumped: bool) -> bool:
+        """The flux at t_k is a reading of the interval just ended for the inertia filter:
+        not from a coast's modelled start, nor across a frame set on the flux; with the
+        load observed not at the standstill either (the current-fed law's rule: with ℓ a
+        free state, the readings of a flux of a few mWb against a real drive's offsets and
+        noise ran its speed to −540 rad/s in 6 ms, and the pull (I4) took ω̂ with it)."""
+        return (self._measured and self._psi_prev is not None and not jumped
+                and not (self._load_observed and self.commissioning is not None
+                         and self.commissioning.pending))
+
     def _fo_track(self, model, i_e: complex, psi_e: complex, psi_k: complex, eps_k: float,
                   jumped: bool) -> float | None:
         """The inertia tracker over the interval just ended (docs/robustness.md §9): (I1)
@@ -1121,7 +1135,7 @@ class FullOrderSampledController(SampledController):
             return None
         _, w0, tl_j, _, _, _, _, i_h, p_h, i_1, p_1 = model
         psi0, i0 = self._psi_prev, self._i_prev
-        measured = self._measured and psi0 is not None and not jumped
+        measured = self._fo_measured(jumped)
         if measured:
             mu = self._mu
             int_psi = self._T_6 * (psi0 + 4.0 * p_h + p_1)
@@ -1158,8 +1172,9 @@ class FullOrderSampledController(SampledController):
                 and kept[2] is psi0 and kept[3] is self._w_prev):
             model = kept[4]
         else:
+            T_hat = self._T_hat
             model = self._fo_predict(prev, self._i_prev, psi0, self._w_prev, win[0], win[1],
-                                     win[2])
+                                     win[2], None, win[0].T_L + T_hat if T_hat else None)
         i_h, i_1 = model[7], model[9]
         eps_s = prev.eps
         # e^{jε} of the last step's ε_k (the same float object, not a zero: its sign) is the
@@ -1198,25 +1213,34 @@ class FullOrderSampledController(SampledController):
         w_o = (r1.psi_ref * psi_e.imag + beta * (psi_e.imag * e_d - psi_e.real * e_q)) / gamma_2
         f_end = mu * (psi_e.real * i_e.imag - psi_e.imag * i_e.real) - tl_j + w_o
         w_k = w_k + T_6 * (f0 + 4.0 * f_h + f_end)  # Simpson
+        T_hat_before = self._T_hat
         if self.inertia is not None:
+            measured = self._fo_measured(jumped)
             w_reset = self._fo_track(model, i_e, psi_e, psi_k, eps_k, jumped)
             if w_reset is not None:
                 w_k = w_reset
+            if self._load_observed and measured and not self.inertia.frozen:  # (I4)
+                tracker = self.inertia
+                self._T_hat = tracker.load * self._J
+                w_k += min(tracker.tuning.k_s * T, 1.0) * (tracker.speed - w_k)
+        T_hat = self._T_hat  # the load observed (0 otherwise): added to the profile's
         self.w_hat = w_k
         # (27), (32) at the end of an interval, against its end reference, is the rate at
         # the start of the next against that one's start reference (the same reference
         # object) when the two intervals' loads are the same number: f_end is kept for it
         load_end = win[0].T_L  # the load of the interval f_end ended
+        if T_hat_before:
+            load_end = load_end + T_hat_before
         i, psi, w = i_k, psi_k, w_k
         for j in range(1, d + 1):
             c = hist[j]
             r0 = win[2 * j]
-            load = r0.T_L  # _same_number(load, load_end), inline
+            load = r0.T_L + T_hat if T_hat else r0.T_L  # _same_number(load, load_end), inline
             model = self._fo_predict(c, i, psi, w, r0, win[2 * j + 1], win[2 * j + 2],
                                      f_end if (c.i_ref0 is hist[j - 1].i_ref1 and not jumped
                                                and (load is load_end
                                                     or (load == load_end and load != 0.0)))
-                                     else None)
+                                     else None, load)
             if j == 1:  # the next step's model of its past interval
                 self._kept = (c, i, psi, w, model)
             # (i, ψ, ω̂, dω̂/dt) at the interval's end: _fo_finish(model) inline
@@ -1248,7 +1272,7 @@ class FullOrderSampledController(SampledController):
                 turned = True
         # the command for I_{k+d} = (t0, t0 + T], t0 = (k + d)·T
         r0, rh, r1 = win[self._cmd_refs]
-        T_L = r0.T_L
+        T_L = r0.T_L + T_hat if T_hat else r0.T_L
         if self._k > d + 1:
             # i_ref0 = the end reference of I_{k+d−1} (the frame turned: the current), and
             # (27), (32) at t0 with it: the rate the model ended that interval with, when its
@@ -1320,10 +1344,11 @@ class FullOrderSampledController(SampledController):
         prev = hist[0]
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         i0 = self._i_prev
+        T_L = win[0].T_L + self._T_hat if self._T_hat else win[0].T_L  # T̂_L added
         f0 = (self._mu * (psi0.real * i0.imag - psi0.imag * i0.real)
-              - win[0].T_L / self._J)  # the mechanical copy of (27) alone
+              - T_L / self._J)  # the mechanical copy of (27) alone
         i_k, psi_k, w_k, _ = self._fo_finish(
-            self._fo_predict(prev, i0, psi0, self._w_prev, win[0], win[1], win[2], f0),
+            self._fo_predict(prev, i0, psi0, self._w_prev, win[0], win[1], win[2], f0, T_L),
             adapt=False)
         if self.inertia is not None:
             self._a_int = w_k - self._w_prev  # the mechanical copy's ∫dω̂/dt over it
