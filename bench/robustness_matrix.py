@@ -19,7 +19,8 @@ The targets (speed error ω − ω*, rad/s; "stopped": the divergence guard ende
 * phase b's gain +2 %, 5 mA of noise: RMS ≤ 1.5 × the true-flux run's;
 * the `real-drive` plant: completes (both laws);
 * the full-order law at 2 ms: RMS ≤ 0.05;
-* zero speed under load and the slow reversal, R_s ±10 %: max |ω − ω*| ≤ 1 throughout;
+* zero speed under load and the slow reversal, R_s ±10 % (both laws): max |ω − ω*| ≤ 1
+  throughout;
 * the load not told (observed: the defaults where a scenario does not tell it): RMS ≤ 2 ×
   the run with the paper's load told on the nominal motor, with the same law (the run with
   `--load untold`, which ignores it, is shown beside);

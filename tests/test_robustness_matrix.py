@@ -69,7 +69,8 @@ def test_a_failed_point_is_not_a_verdict():
 
 
 def test_one_block_through_the_campaign(tmp_path):
-    """The low-speed block, in this process: its table, its verdicts and the JSON line."""
+    """The low-speed block (both laws), in this process: its table, its verdicts and the
+    JSON line."""
     out = tmp_path / "matrix"
     p = subprocess.run([sys.executable, str(ROOT / "bench" / "robustness_matrix.py"),
                         "--in-process", "--only", "low speed", "--out", str(out), "--json",
@@ -77,10 +78,11 @@ def test_one_block_through_the_campaign(tmp_path):
                        capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert p.returncode == 0, p.stderr[-2000:]
     figures = json.loads(p.stdout.strip().splitlines()[-1])
-    assert figures["rows"] == 4 and figures["met"] == 4 and figures["missed"] == []
-    cell = figures["low speed/zero-speed: rs+10 / defaults"]
-    assert 0.0 < cell["rms"] < cell["max"] <= 1.0 and cell["stopped"] is False
-    assert "4 of 4 rows meet their target" in p.stdout
+    assert figures["rows"] == 8 and figures["met"] == 8 and figures["missed"] == []
+    for law in ("", ", full-order"):  # both laws
+        cell = figures[f"low speed/zero-speed{law}: rs+10 / defaults"]
+        assert 0.0 < cell["rms"] < cell["max"] <= 1.0 and cell["stopped"] is False
+    assert "8 of 8 rows meet their target" in p.stdout
     assert (tmp_path / "m.png").stat().st_size > 10_000
 
 

@@ -435,6 +435,12 @@ class InertiaTracker:
         """The watch (I5) still takes readings (not stopped by a long coast or the caller)."""
         return not self._watch_off
 
+    def hold_ratio(self) -> None:
+        """ρ is held through the next reading (a consider state, as after a load step): for
+        a reading of a rotor no torque is asked of, whose model's torque is the sensors'
+        error alone (:meth:`update` would read it as inertia)."""
+        self._hold = max(self._hold, 1)
+
     def coast(self, A: float) -> float:
         """An interval the controller coasted through on its model (a lost sample): the
         prediction alone. The estimator's integral over a lost interval takes an unknown
