@@ -328,6 +328,9 @@ def identification_line(ident: Mapping[str, Any] | None) -> str:
             sensors = (f"; current sensors corrected: offsets "
                        f"{1e3 * ident['offset_a']:.2f}/{1e3 * ident['offset_b']:.2f} mA, "
                        f"phase b's gain {ident['gain_b']:.4f}")
+        if ident.get("u_dead"):
+            sensors += (f"; the inverter's dead time corrected: {ident['u_dead']:.3g} V "
+                        "(the drive reports the voltage it was told)")
         return (f"identified at standstill ({ident['samples']} samples): R_s "
                 f"{ident['R_s']:.4g} Ω, R_r {ident['R_r']:.4g} Ω (α {ident['alpha']:.4g} 1/s)"
                 f"{sensors}, used from the end of the magnetisation{noise}{inertia}")
