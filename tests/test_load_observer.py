@@ -168,6 +168,32 @@ def test_sim_over_canopen_with_observed_load_equals_simulate(tmp_path):
         np.testing.assert_array_equal(bus[col], ref[col], err_msg=col)
 
 
+@pytest.mark.parametrize("plant", ["unknown-load", "dead-time"])
+def test_sim_over_canopen_runs_the_full_order_law_as_simulate(tmp_path, plant):
+    """The full-order law on its voltage drive over CANopen, bit for bit with `simulate`:
+    its load observed (unknown-load), and the dead time the run's own identification fits
+    and corrects (a 2 µs plant, the load told)."""
+    from gateway.report import read_csv
+
+    if plant == "dead-time":
+        path = tmp_path / "dead.toml"
+        path.write_text('[scenario]\nname = "dead-time"\n[inverter]\ndead_time = 2e-6\n')
+        plant = str(path)
+    words = ["--plant", plant, "--law", "full-order", "--drive-mode", "voltage",
+             "--duration", "0.7s", "--no-figures"]
+    for command in ("sim", "simulate"):
+        assert main([command, *words, "--out", str(tmp_path / command)]) == 0
+    a, b = (read_csv(tmp_path / c / "signals.csv") for c in ("sim", "simulate"))
+    for col in ("i_sa", "i_sb", "u_sa", "u_sb", "i_sq_ref", "w_hat", "eps_0"):
+        np.testing.assert_array_equal(a[col], b[col], err_msg=col)
+    s = json.loads((tmp_path / "sim" / "summary.json").read_text())
+    if "dead" in plant:
+        assert s["identification"]["u_dead"] == pytest.approx(11.2, rel=0.01)
+    else:
+        assert s["configuration"]["load"] == "observed"
+        assert s["identification"]["inertia"]["T_L_observed"] == pytest.approx(5.8, abs=0.3)
+
+
 def test_a_missed_cycle_does_not_upset_the_load_estimate():
     """Controller.coast: the observer turns its flux with the frame and restarts its speed;
     T̂_L stays close to the load instead of jumping on the two-period flux increment."""
