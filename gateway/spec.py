@@ -15,7 +15,7 @@ from pathlib import PurePath
 from typing import Any, Protocol
 
 from dbc.errors import UserError
-from dbc.modes import DriveMode, SetpointFrame
+from dbc.modes import DriveMode
 from dbc.timing import Sampling, Timing
 from gateway.control.controller import (
     ControllerConfig,
@@ -238,11 +238,7 @@ class RunSpec:
             law=self.law, flux=self.flux, estimator=self.estimator, w_c=self.w_c,
             sampling=self.sampling or Sampling(self.record_step), gains=self.gains,
             discretisation=self.discretisation, current_lag=current_lag,
-            load=self.load, **load_config(
-                self.load, self.drive_mode,
-                filtered=(self.discretisation is Discretisation.EXACT and current_lag == 0.0
-                          and self.sampling is not None
-                          and self.sampling.setpoint_frame is SetpointFrame.DQ)),
+            load=self.load, **load_config(self.load, self.drive_mode),
             identify=self.identifies, inertia=self.inertia)
 
     def describe(self) -> dict[str, Any]:

@@ -144,6 +144,16 @@ class OffsetFit:
     edge: bool
 
 
+def _vertex(logf: np.ndarray, y: np.ndarray, k: int) -> float:
+    """The fits' α in log α: the vertex of the parabola through the residuals ``y`` at
+    grid points k − 1, k, k + 1 (``logf`` evenly spaced), logf[k] where it opens down."""
+    y0, y1, y2 = y
+    den = y0 - 2.0 * y1 + y2
+    if den > 0.0:
+        return logf[k] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
+    return logf[k]
+
+
 class StandstillIdentifier:
     """R_s and α from the standstill magnetisation (see the module docstring).
 
@@ -364,11 +374,7 @@ class StandstillIdentifier:
         if q in (0, hi - lo):
             return None  # no minimum within reach
         logf = np.log(self._f)
-        x = logf[lo + q]
-        y0, y1, y2 = J[q - 1], J[q], J[q + 1]
-        den = y0 - 2.0 * y1 + y2
-        if den > 0.0:
-            x += 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
+        x = _vertex(logf, J[q - 1:q + 2], lo + q)
         R_s = float(np.interp(x, logf[lo:hi + 1], R))
         return x, R_s, float(J[q])
 
@@ -392,12 +398,7 @@ class StandstillIdentifier:
         J = dd - cross * cross / bb
         k = int(np.argmin(J))
         logf = np.log(self._f)
-        x = logf[k]
-        if 0 < k < self.POINTS - 1:  # parabola through the neighbours, in log α
-            y0, y1, y2 = J[k - 1], J[k], J[k + 1]
-            den = y0 - 2.0 * y1 + y2
-            if den > 0.0:
-                x = logf[k] + 0.5 * (logf[1] - logf[0]) * (y0 - y2) / den
+        x = _vertex(logf, J[k - 1:k + 2], k) if 0 < k < self.POINTS - 1 else logf[k]
         R_s = float(np.interp(x, logf, cross)) / bb
         J_min = float(J[k])
         found = self._noisy(k) if noisy else None
@@ -507,19 +508,14 @@ class StandstillIdentifier:
         costs = np.array([fit_at(float(e))[0] for e in self._e])
         k = int(np.argmin(costs))
         logf = np.log(self._f)
-        lx = logf[k]
-        if 0 < k < self.POINTS - 1:
-            c0, c1, c2 = costs[k - 1], costs[k], costs[k + 1]
-            den = c0 - 2.0 * c1 + c2
-            if den > 0.0:
-                lx = logf[k] + 0.5 * (logf[1] - logf[0]) * (c0 - c2) / den
+        lx = _vertex(logf, costs[k - 1:k + 2], k) if 0 < k < self.POINTS - 1 else logf[k]
         alpha = math.exp(lx) * self._alpha0
         cost, sol, _ = fit_at(math.exp(-alpha * T))
         R_s, E = float(sol[0]), complex(sol[1], sol[2])
         energy = float(np.sum(y0.real ** 2 + y0.imag ** 2))
         fit = cost / energy if energy > 0.0 else math.nan
         # u_dead from E: the phases' signs along the current's direction
-        phase = (unit.real, -0.5 * unit.real + 0.5 * SQRT3 * unit.imag)
+        phase = phases(unit)
         phase = (*phase, -phase[0] - phase[1])
         axes = (1.0 + 0j, cmath.exp(2j * math.pi / 3), cmath.exp(-2j * math.pi / 3))
         z = int(np.argmin(np.abs(phase)))

@@ -170,9 +170,7 @@ class ControllerConfig:
         if not self.current_lag >= 0.0:
             raise ValueError(f"current_lag {self.current_lag!r} s must be >= 0")
         if (self.load is LoadSource.OBSERVED and self.law is Law.FULL_ORDER
-                and not (self.discretisation is Discretisation.EXACT
-                         and self.current_lag == 0.0
-                         and self.sampling.setpoint_frame is SetpointFrame.DQ)):
+                and not self.sampled_dq):
             # the sampled-data full-order law observes it through the inertia filter
             # (docs/robustness.md §10); its Euler design has no observer found stable
             raise ValueError("the full-order law observes the load in the sampled-data "
@@ -184,6 +182,13 @@ class ControllerConfig:
             raise ValueError("--load observed in the sampled-data design reads the flux the "
                              "R_s adaptation moves: use --estimator open-loop or drift-free "
                              "(the identification takes R_s), or --discretisation euler")
+
+    @property
+    def sampled_dq(self) -> bool:
+        """The sampled-data design with (d, q) setpoints and a drive that has no current lag:
+        where the full-order law runs its own sampled design (else its Euler design)."""
+        return (self.discretisation is Discretisation.EXACT and self.current_lag == 0.0
+                and self.sampling.setpoint_frame is SetpointFrame.DQ)
 
     @property
     def holds_current(self) -> bool:

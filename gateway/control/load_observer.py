@@ -253,19 +253,17 @@ def tuning(drive_mode: str) -> tuple[float, float, float]:
     except KeyError:
         raise ValueError(
             f"the load observer runs with the current-fed law on an ideal or current-loop "
-            f"drive, or with the full-order law on a voltage drive in the sampled-data "
-            f"design with (d, q) setpoints; with a '{drive_mode}' drive here it was not "
-            f"found stable: use --load known, or --discretisation exact and "
-            f"--setpoint-frame dq") from None
+            f"drive; with a '{drive_mode}' drive it was not found stable: use --load "
+            f"known") from None
 
 
-def load_config(load: str, drive: str, filtered: bool = False) -> dict[str, float]:
+def load_config(load: str, drive: str) -> dict[str, float]:
     """ControllerConfig's load-observer fields for the drive mode ({} when the load is not
-    observed, or where ``filtered``: the sampled-data full-order law on its voltage drive,
-    which observes the load through the inertia filter, docs/robustness.md §10, and takes
-    no tuning of this observer); ValueError for a drive mode the observer has no tuning
-    for."""
-    if load != "observed" or (filtered and drive == "voltage"):
+    observed, or on the full-order law's voltage drive: its sampled-data design observes
+    the load through the inertia filter, docs/robustness.md §10, with no tuning of this
+    observer, and ControllerConfig refuses its other designs); ValueError for a drive mode
+    the observer has no tuning for."""
+    if load != "observed" or drive == "voltage":
         return {}
     p, k_s, rho = tuning(drive)
     return {"load_bandwidth": p, "load_speed_gain": k_s, "load_current_rise": rho}

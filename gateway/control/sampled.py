@@ -1123,19 +1123,19 @@ class FullOrderSampledController(SampledController):
                          and self.commissioning.pending))
 
     def _fo_track(self, model, i_e: complex, psi_e: complex, psi_k: complex, eps_k: float,
-                  jumped: bool) -> float | None:
+                  measured: bool) -> float | None:
         """The inertia tracker over the interval just ended (docs/robustness.md §9): (I1)
         from the measured flux at its end against the model's, the model's mechanical
         ∫dω̂/dt by Simpson's rule on the trajectory corrected by the measured end. Unlike
         the current-fed law's, it reads from the first sample on, the standstill included
         (the current model's flux then: they hold the filter's ω and D at rest; measured,
-        J × 2 0.011 rad/s RMS with them, 0.020 without)."""
+        J × 2 0.011 rad/s RMS with them, 0.020 without). ``measured``: the flux at t_k is a
+        reading of the interval (:meth:`_fo_measured`)."""
         if self.inertia.frozen:  # ρ settled, or a long coast: no reading to take
             self._measured = True
             return None
         _, w0, tl_j, _, rh, r1, _, i_h, p_h, i_1, p_1 = model
         psi0, i0 = self._psi_prev, self._i_prev
-        measured = self._fo_measured(jumped)
         if (measured and tl_j == 0.0 and rh.w_ref == 0.0 and rh.dw_ref == 0.0
                 and r1.w_ref == 0.0 and r1.dw_ref == 0.0):
             # no torque asked of the rotor over the interval: a reading of ω and D, not of J
@@ -1173,14 +1173,15 @@ class FullOrderSampledController(SampledController):
         i_k = sample.i_s_ab * rot_k
         # the past interval by the model: the estimator's current integral, then ω̂
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
+        T_hat_before = self._T_hat  # the load observed over it (0 otherwise)
         kept = self._kept  # the last step's prediction of this interval (_fo_model, inline)
         if (kept is not None and kept[0] is prev and kept[1] is self._i_prev
                 and kept[2] is psi0 and kept[3] is self._w_prev):
             model = kept[4]
         else:
-            T_hat = self._T_hat
             model = self._fo_predict(prev, self._i_prev, psi0, self._w_prev, win[0], win[1],
-                                     win[2], None, win[0].T_L + T_hat if T_hat else None)
+                                     win[2], None,
+                                     win[0].T_L + T_hat_before if T_hat_before else None)
         i_h, i_1 = model[7], model[9]
         eps_s = prev.eps
         # e^{jε} of the last step's ε_k (the same float object, not a zero: its sign) is the
@@ -1219,10 +1220,9 @@ class FullOrderSampledController(SampledController):
         w_o = (r1.psi_ref * psi_e.imag + beta * (psi_e.imag * e_d - psi_e.real * e_q)) / gamma_2
         f_end = mu * (psi_e.real * i_e.imag - psi_e.imag * i_e.real) - tl_j + w_o
         w_k = w_k + T_6 * (f0 + 4.0 * f_h + f_end)  # Simpson
-        T_hat_before = self._T_hat
         if self.inertia is not None:
             measured = self._fo_measured(jumped)
-            w_reset = self._fo_track(model, i_e, psi_e, psi_k, eps_k, jumped)
+            w_reset = self._fo_track(model, i_e, psi_e, psi_k, eps_k, measured)
             if w_reset is not None:
                 w_k = w_reset
             if self._load_observed and measured and not self.inertia.frozen:  # (I4)
@@ -1395,7 +1395,7 @@ def make_controller(motor, config: ControllerConfig, refs_at: Callable[[float], 
     if config.discretisation is Discretisation.EXACT:
         if config.law is Law.CURRENT_FED:
             return SampledController(motor, config, refs_at, eps_0=eps_0, w_hat=w_hat)
-        if config.current_lag == 0.0 and config.sampling.setpoint_frame is SetpointFrame.DQ:
+        if config.sampled_dq:
             return FullOrderSampledController(motor, config, refs_at, eps_0=eps_0,
                                               w_hat=w_hat)
     return Controller(motor, config, eps_0=eps_0, w_hat=w_hat)
