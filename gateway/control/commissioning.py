@@ -415,10 +415,9 @@ class StandstillIdentifier:
         elif not fit <= self.FIT_MAX:
             reason = (f"the two flux models do not agree (relative residual {fit:.2g} > "
                       f"{self.FIT_MAX:g}): the voltages the drive reports are not the ones it "
-                      "applies at standstill (dead time?), or the rotor moved; a dead time "
-                      "cannot be told from R_s here (one current direction): `hil-gateway "
-                      "identify` measures it for the motor file (README \"Commissioning the "
-                      "motor\")")
+                      "applies at standstill (a dead time? `hil-gateway identify` measures it "
+                      "for the motor file: README \"Commissioning the motor\"), or the rotor "
+                      "moved")
         elif k in (0, self.POINTS - 1):
             reason = (f"α at the edge of the search ({f:.3g} × the controller's): the motor "
                       "is not the one the controller was given")
