@@ -1,6 +1,6 @@
 """Baseline: plant.drive.Drive against motulator on the same induction-motor drive, side by side.
 
-    .venv/bin/pip install motulator                       # the baseline (not a project dependency)
+    .venv/bin/pip install -e '.[bench]'                   # the baseline, motulator (an extra)
     .venv/bin/python bench/bench_motulator.py             # 0.5 s simulated per run, 5 runs
     .venv/bin/python bench/bench_motulator.py --quick     # 0.1 s, 3 runs
     .venv/bin/python bench/bench_motulator.py --T-s 125e-6 --carrier   # one motulator config
@@ -47,7 +47,8 @@ A run that fails (an exception from either simulator, the operating point lost) 
 measurement for its side: ``FAILED: <reason>`` in its row, the other sides go on, exit
 status 1 (bench/_common.py). motulator not installed is not a failure (ours only).
 ``--json [FILE]`` keys: ``python``, ``t_sim_s``, ``repeats``, ``motulator`` (its version or
-null), ``motulator_note`` (why not, or ""), ``ours_x_real_time`` (median sim s / wall s),
+null), ``motulator_note`` (why not, or ""), ``ours_internal_rate_hz`` (--f-pwm: ours' inner
+step rate), ``ours_x_real_time`` (median sim s / wall s),
 ``ours_x_real_time_runs``; per motulator configuration ``<c>`` (``motulator_250us_ZOH``,
 ``motulator_125us_PWM``) ``<c>_x_real_time``, ``<c>_x_real_time_runs``, ``<c>_ours_over_it``,
 ``<c>_points_per_sim_s``; ``ratio``, the headline: ``<c>_ours_over_it`` of the first
@@ -72,7 +73,7 @@ from bench_plant import operating_point, run_once
 from dbc.motor import MotorParams
 from plant.params import DriveParams
 
-INSTALL_HINT = ".venv/bin/pip install motulator"
+INSTALL_HINT = ".venv/bin/pip install -e '.[bench]'"  # motulator, the baseline
 TORQUE_SCALE = 1.5  # motulator's peak-scaled torque over ours, same currents and fluxes
 
 
@@ -216,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
                "load balancing, u_dc = 560 V, started in steady state, checked at the end"))
     print(wrap(OURS_WHAT.format(f=args.f_pwm / 1e3, h=1e6 / args.f_pwm, T=args.T * 1e3)))
     fig = Figures(python=python, t_sim_s=t_sim, repeats=repeats, motulator=mver,
-                  motulator_note="" if mver else why)
+                  motulator_note="" if mver else why, ours_internal_rate_hz=args.f_pwm)
     if mver is None:
         print(f"motulator: {why} for the side-by-side comparison (ours only below)")
         configs = []

@@ -126,6 +126,24 @@ def test_bench_motulator_quick_run_gives_its_ratio(bench):
         assert data["ratio"] == data["motulator_250us_ZOH_ours_over_it"] > 0
 
 
+def test_bench_twoproc_relaxed_drive_profile_loads(tmp_path):
+    """``bench_twoproc.py --no-deadlines`` runs the gateway with a copy of the emulator's
+    profile whose drive deadlines are at their longest: the gateway must accept it (a 0,
+    which the profile refuses as switching the watch off, made the real-time run exit 2)."""
+    from gateway.drive_profile import load_drive_profile
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_twoproc
+    finally:
+        sys.path.remove(str(BENCH))
+    path = tmp_path / "drive.toml"
+    path.write_text(bench_twoproc.relaxed_drive())
+    prof = load_drive_profile(path)
+    assert (prof.heartbeat_timeout_ms, prof.rpdo_timeout_ms) == (65535, 65535)
+    assert prof.drive_heartbeat_timeout_ms == 5000
+
+
 PLANT_FAILS = textwrap.dedent("""
     import sys
     sys.path.insert(0, "bench")
