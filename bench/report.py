@@ -12,9 +12,9 @@ motulator comes with the ``bench`` extra: ``.venv/bin/pip install -e '.[bench]'`
 command a user waits for and scripts/demo (`bench_command.py --sim`), the lean process data
 at 500 us (`bench_lean.py`), the lockstep loop in one process (`bench_loop.py`, lockstep
 only) and, with ``--vcan``, the two-process lockstep rate over SocketCAN inside whichever
-sandbox `scripts/vcan-run` starts on this host (`bench_twoproc.py --quick`; it has no target:
-the rate is reported with the sandbox's kind). Each benchmark's own output streams through;
-its full table and method are in BENCHMARKS.md's section on it.
+sandbox `scripts/vcan-run` starts on this host (`bench_twoproc.py --seconds 0`, lockstep
+only; it has no target: the rate is reported with the sandbox's kind). Each benchmark's own
+output streams through; its full table and method are in BENCHMARKS.md's section on it.
 
 ``--write`` replaces the section of BENCHMARKS.md between the ``bench/report.py`` markers (or
 puts it before the first section when there is none) with the table, the date, the commit
@@ -220,8 +220,8 @@ BENCHES = (
     Bench("bench_loop.py", ("--realtime-seconds", "0"),
           ("--quick", "--realtime-seconds", "0"), loop_rows, ((LOOP, "≥ 5000"),)),
 )
-TWOPROC = Bench("bench_twoproc.py", ("--quick", "--no-deadlines"),
-                ("--quick", "--no-deadlines"), twoproc_rows, ((TWOPROC_ROW, "reported"),))
+TWOPROC = Bench("bench_twoproc.py", ("--seconds", "0", "--repeats", "3"),
+                ("--seconds", "0", "--repeats", "1"), twoproc_rows, ((TWOPROC_ROW, "reported"),))
 
 
 def run_bench(bench: Bench, quick: bool, work: Path, vcan: bool = False
@@ -338,8 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         epilog="Writes nothing but BENCHMARKS.md's marked section (with --write).")
     ap.add_argument("--quick", action="store_true", help="shorter runs of each benchmark")
     ap.add_argument("--vcan", action="store_true",
-                    help="also two processes over vcan (bench_twoproc.py --quick inside "
-                         "scripts/vcan-run's sandbox; a few minutes)")
+                    help="also two processes over vcan in lockstep (bench_twoproc.py inside "
+                         "scripts/vcan-run's sandbox; about a minute)")
     ap.add_argument("--write", action="store_true",
                     help="put the table in BENCHMARKS.md (its bench/report.py section)")
     ap.add_argument("--benchmarks", type=Path, default=BENCHMARKS, metavar="FILE",

@@ -183,3 +183,40 @@ def test_the_shipped_benchmarks_md_has_the_section(report):
     section = text.split(report.BEGIN)[1].split(report.END)[0]
     assert "## The performance targets, one run" in section
     assert section.count("\n| ") >= 11  # the header and the ten rows
+
+
+@pytest.mark.parametrize("script, args", [
+    ("bench_control.py", ["--quick"]),
+    ("bench_motulator.py", ["--quick", "--t-sim", "0.02", "--repeats", "1"]),
+    ("bench_command.py", ["--sim", "--repeats", "1"]),
+    ("bench_lean.py", ["--repeats", "1"]),
+    ("bench_loop.py", ["--quick", "--repeats", "1", "--realtime-seconds", "0"]),
+])
+def test_the_report_reads_what_each_benchmark_writes(report, tmp_path, script, args):
+    """Each benchmark's real --json run (short) turned into its rows: every row measured
+    (met or missed: the figures depend on the host), none failed for a key the report
+    expects and the benchmark does not write. motulator is an extra: without it its row
+    fails with the command that installs it."""
+    import os
+    import subprocess
+
+    out = tmp_path / "figures.json"
+    p = subprocess.run([sys.executable, str(ROOT / "bench" / script), *args, "--json",
+                        str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                       stdin=subprocess.DEVNULL, env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert "Traceback" not in p.stdout + p.stderr, p.stdout + p.stderr
+    data = json.loads(out.read_text())
+    bench = next(b for b in report.BENCHES if b.script == script)
+    rows = report.rows_of(bench, data, "")
+    assert [r.target for r in rows] == [t for t, _ in bench.targets]
+    for row in rows:
+        if row.status is report.Status.FAILED and script == "bench_motulator.py" \
+                and data.get("motulator") is None:
+            assert "pip install -e '.[bench]'" in row.figure, row
+            continue
+        assert row.status in (report.Status.MET, report.Status.MISSED), row
+        assert row.value is not None and row.figure and row.baseline, row
+    if script == "bench_lean.py":  # the deterministic part: bits and the lockstep run
+        assert (data["lean_bits"], data["default_bits"]) == (410, 765)
+        assert data["lean_500us_missed"] == 0 and data["lean_500us_cycles"] == 5000
+        assert data["lean_500us_rms_rad_s"] < 0.005 and p.returncode == 0
