@@ -48,7 +48,7 @@ from typing import Any
 
 import can
 
-from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, NmtState, sync_counter
+from dbc.cia301 import SYNC_ID, SYNC_OVERFLOW, NmtState, sync_counter, sync_periods
 from dbc.cia402 import SW_FAULT, State
 from dbc.timing import LOCKSTEP_BACKSTOP_S, Sampling, Timing
 from gateway.control.controller import PAPER_SIGNALS
@@ -266,7 +266,7 @@ class CycleLoop:
             self.recent.append((time.time(), "rx", can_id, bytes(data).hex()))
             if self._done.is_set():
                 return
-            k = self._slots.popleft() if self._slots else self._k + 1
+            k = self._slots.popleft() if self._slots else self._kernel_cycle(bytes(data))
             why = self._foreign_sync(k, bytes(data))
             if why:
                 self._finish(StopReason.FOREIGN_SYNC,
@@ -281,6 +281,28 @@ class CycleLoop:
                     break
                 self._tpdo_locked(pdo, raw, t_frame, time.perf_counter())
 
+    def _kernel_cycle(self, data: bytes) -> int:
+        """The cycle a SYNC opens where no SYNC thread keeps the slots (lock held): the
+        next one, except with the kernel's broadcast manager and a counter. The manager
+        sends one SYNC per period, in order, but one can fail to reach the gateway (its
+        receive queue full while the host held the process) or be skipped with the host's
+        timer: the counter tells how many periods passed since the last SYNC seen, as it
+        tells the drive (:func:`dbc.cia301.sync_periods`), and the cycles between are
+        skipped slots (:meth:`_skip`). A counter equal to the last one, or one further
+        ahead than the manager can have sent by now (one per period since it started, plus
+        :data:`FOREIGN_SYNC_SLACK`), is not taken: the next cycle, which the foreign-SYNC
+        rule then judges by the counter."""
+        k = self._k + 1
+        if self._sync_task is None or not self.cfg.sync_counter or len(data) != 1:
+            return k
+        last = sync_counter(self._k)
+        if data[0] == last:
+            return k
+        ahead = self._k + sync_periods(last, data[0])
+        sent = (math.floor((time.time() - self._producer_start) / self._T) + 1
+                + FOREIGN_SYNC_SLACK)
+        return ahead if ahead <= sent else k
+
     def _foreign_sync(self, k: int, data: bytes) -> str:
         """Why the SYNC received as the ``k``-th is not the gateway's, or '' when it is ours.
 
@@ -294,7 +316,7 @@ class CycleLoop:
             want = sync_counter(k)
             if len(data) == 1 and data[0] == want:
                 return ""
-            return f"by the SYNC counter: ours would carry {want}"
+            return f"by the SYNC counter: ours would carry {want:02x} (hex, as the data)"
         if data:
             return "by its data: the gateway's SYNC carries no counter"
         if self.cfg.timing is Timing.LOCKSTEP:
@@ -391,8 +413,10 @@ class CycleLoop:
         self._suspects.clear()
 
     def _skip(self, n: int) -> None:
-        """The SYNC thread skipped ``n`` slots after cycle self._k (held up past them): each
-        is a cycle without a sample, which the controller coasts through (lock held).
+        """The SYNC producer skipped ``n`` slots after cycle self._k (the SYNC thread held
+        up past them, or the kernel's SYNCs that the counter says did not reach the
+        gateway): each is a cycle without a sample, which the controller coasts through
+        (lock held).
 
         With synchronous RPDOs the drive latches nothing without a SYNC: it holds the
         setpoints it had through the skipped slots and latches cycle self._k's, sent for

@@ -225,3 +225,39 @@ def test_foreign_sync_rule_by_counter_data_and_count():
     assert "by count" in rule(kernel, 40, b"")
     lockstep = loop(timing=Timing.LOCKSTEP, _syncs_sent=4)
     assert rule(lockstep, 4, b"") == "" and "by count" in rule(lockstep, 5, b"")
+
+
+def test_kernel_syncs_that_did_not_reach_the_gateway_are_skipped_slots_by_the_counter():
+    """With the kernel's broadcast manager (socketcan, real time) and a counter, a SYNC
+    whose counter is ahead of the last one seen by n opens cycle k + n (the slots between
+    skipped), as the drive counts them; before, a loaded host's lost SYNCs (33 then 0x24
+    in the UML sandbox) stopped the run as another producer's. A repeat, or a counter
+    further ahead than the manager can have sent by now, is still another producer's."""
+    from types import SimpleNamespace
+
+    from gateway.loop import FOREIGN_SYNC_SLACK, CycleLoop, LoopConfig, Timing
+
+    def loop(k, since_start_s, task=True, counter=True):
+        cfg = LoopConfig(n_cycles=1000, timing=Timing.REALTIME, sync_counter=counter)
+        return SimpleNamespace(cfg=cfg, _k=k, _T=1e-3, _sync_task=object() if task else None,
+                               _producer_start=time.time() - since_start_s,
+                               _syncs_sent=0, _sync_thread=None)
+
+    cycle, rule = CycleLoop._kernel_cycle, CycleLoop._foreign_sync
+    busy = loop(33, 0.0405)  # 41 SYNCs sent by now at most
+    assert cycle(busy, bytes([34])) == 34  # the next
+    assert cycle(busy, bytes([0x24])) == 36  # 34 and 35 did not reach the gateway
+    assert rule(busy, 36, bytes([0x24])) == ""
+    assert cycle(busy, bytes([41 + FOREIGN_SYNC_SLACK])) == 41 + FOREIGN_SYNC_SLACK
+    # beyond what the manager can have sent: the next cycle, and the rule names it
+    assert cycle(busy, bytes([42 + FOREIGN_SYNC_SLACK])) == 34
+    assert "ours would carry 22 (hex" in rule(busy, 34, bytes([42 + FOREIGN_SYNC_SLACK]))
+    assert cycle(busy, bytes([33])) == 34 and rule(busy, 34, bytes([33]))  # a repeat
+    # across the counter's overflow (240 → 1)
+    wrap = loop(239, 0.3)
+    assert cycle(wrap, bytes([2])) == 242 and rule(wrap, 242, bytes([2])) == ""
+    # the first SYNC: counter 1 is cycle 1; 3 means the first two were not seen
+    assert cycle(loop(0, 0.01), bytes([1])) == 1 and cycle(loop(0, 0.01), bytes([3])) == 3
+    # no broadcast manager (the SYNC thread keeps its slots), or no counter: the next
+    assert cycle(loop(33, 0.0405, task=False), bytes([0x24])) == 34
+    assert cycle(loop(33, 0.0405, counter=False), b"") == 34
