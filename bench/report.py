@@ -4,6 +4,7 @@
     .venv/bin/python bench/report.py --write         # ... and put it in BENCHMARKS.md
     .venv/bin/python bench/report.py --quick         # shorter runs of each benchmark
     .venv/bin/python bench/report.py --vcan          # also two processes over vcan
+    .venv/bin/python bench/report.py --vcan uml,qemu # ... in each sandbox kind
 
 Runs the benchmarks that hold the targets, one after the other, each with ``--json`` (its
 figures and its baseline come from the same run of that benchmark), and prints one table:
@@ -12,8 +13,9 @@ motulator comes with the ``bench`` extra: ``.venv/bin/pip install -e '.[bench]'`
 command a user waits for and scripts/demo (`bench_command.py --sim`), the lean process data
 at 500 us (`bench_lean.py`), the lockstep loop in one process (`bench_loop.py`, lockstep
 only) and, with ``--vcan``, the two-process lockstep rate over SocketCAN inside whichever
-sandbox `scripts/vcan-run` starts on this host (`bench_twoproc.py --seconds 0`, lockstep
-only; it has no target: the rate is reported with the sandbox's kind). Each benchmark's own
+sandbox `scripts/vcan-run` starts on this host, or in each kind named (``--vcan uml,qemu``)
+(`bench_twoproc.py --seconds 0`, lockstep only; it has no target: the rate is reported with
+the sandbox's kind). Each benchmark's own
 output streams through; its full table and method are in BENCHMARKS.md's section on it.
 
 ``--write`` replaces the section of BENCHMARKS.md between the ``bench/report.py`` markers (or
@@ -39,13 +41,15 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "BENCHMARKS.md"
+#: The sandboxes --vcan can name (scripts/vcan-run's --uml, --qemu; auto: its choice).
+VCAN_KINDS = ("auto", "uml", "qemu")
 BEGIN = "<!-- bench/report.py: begin; written by `bench/report.py --write`, edit the script -->"
 END = "<!-- bench/report.py: end -->"
 
@@ -224,14 +228,17 @@ TWOPROC = Bench("bench_twoproc.py", ("--seconds", "0", "--repeats", "3"),
                 ("--seconds", "0", "--repeats", "1"), twoproc_rows, ((TWOPROC_ROW, "reported"),))
 
 
-def run_bench(bench: Bench, quick: bool, work: Path, vcan: bool = False
+def run_bench(bench: Bench, quick: bool, work: Path, vcan: str | None = None
               ) -> tuple[dict[str, Any] | None, str]:
-    """Run one benchmark (its output streams through); (its JSON or None, why not)."""
-    out = work / f"{Path(bench.script).stem}.json"
+    """Run one benchmark (its output streams through); (its JSON or None, why not).
+    ``vcan``: inside scripts/vcan-run's sandbox of that kind (``auto``: its own choice)."""
+    out = work / f"{Path(bench.script).stem}{'-' + vcan if vcan else ''}.json"
     args = bench.quick_args if quick else bench.args
     cmd = [sys.executable, str(ROOT / "bench" / bench.script), *args, "--json", str(out)]
     if vcan:
-        cmd = [str(ROOT / "scripts" / "vcan-run"), "--", *cmd]
+        kind = [] if vcan == "auto" else [f"--{vcan}"]
+        cmd = [str(ROOT / "scripts" / "vcan-run"), "--timeout", f"{bench.timeout_s:.0f}",
+               *kind, "--", *cmd]
     print(f"\n$ {' '.join(Path(c).name if i < 2 else c for i, c in enumerate(cmd))}",
           flush=True)
     try:
@@ -337,9 +344,11 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__.splitlines()[0],
         epilog="Writes nothing but BENCHMARKS.md's marked section (with --write).")
     ap.add_argument("--quick", action="store_true", help="shorter runs of each benchmark")
-    ap.add_argument("--vcan", action="store_true",
+    ap.add_argument("--vcan", nargs="?", const="auto", metavar="KINDS",
                     help="also two processes over vcan in lockstep (bench_twoproc.py inside "
-                         "scripts/vcan-run's sandbox; about a minute)")
+                         "scripts/vcan-run's sandbox, about a minute under UML): the one it "
+                         "chooses, or each of KINDS (comma-separated: uml, qemu; QEMU under "
+                         "TCG boots in about 20 s more)")
     ap.add_argument("--write", action="store_true",
                     help="put the table in BENCHMARKS.md (its bench/report.py section)")
     ap.add_argument("--benchmarks", type=Path, default=BENCHMARKS, metavar="FILE",
@@ -347,6 +356,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", nargs="?", const="-", metavar="FILE",
                     help="also the rows as one JSON line on stdout (--json) or into FILE")
     args = ap.parse_args(argv)
+    kinds = [k.strip() for k in args.vcan.split(",")] if args.vcan else []
+    if any(k not in VCAN_KINDS for k in kinds) or len(set(kinds)) != len(kinds):
+        ap.error(f"--vcan {args.vcan}: name sandbox kinds from {', '.join(VCAN_KINDS)}, "
+                 "each once (comma-separated), or give none for scripts/vcan-run's choice")
     if args.write:  # refuse a file --write cannot update before measuring for minutes
         try:
             replace_section(args.benchmarks.read_text(encoding="utf-8"), "")
@@ -360,15 +373,17 @@ def main(argv: list[str] | None = None) -> int:
         for bench in BENCHES:
             data, why = run_bench(bench, args.quick, Path(tmp))
             rows += rows_of(bench, data, why)
-        if args.vcan:
-            data, why = run_bench(TWOPROC, args.quick, Path(tmp), vcan=True)
-            rows += rows_of(TWOPROC, data, why)
-        else:
+        for kind in kinds:
+            data, why = run_bench(TWOPROC, args.quick, Path(tmp), vcan=kind)
+            rows += [replace(r, target=f"{r.target}, sandbox: {kind}")
+                     for r in rows_of(TWOPROC, data, why)]
+        if not kinds:
             rows.append(Row(TWOPROC.targets[0][0], "not run here (`--vcan` runs it)", "",
                             "reported", Status.NOT_RUN))
     info["load_end"] = os.getloadavg()[0]
     command = ".venv/bin/python bench/report.py" + "".join(
-        f" --{o}" for o in ("quick", "vcan", "write") if getattr(args, o))
+        f" --{o}" for o in ("quick", "write") if getattr(args, o)) + (
+        "" if not kinds else " --vcan" if args.vcan == "auto" else f" --vcan {args.vcan}")
     table = markdown(rows, info, command)
     print("\n" + table)
     status = 0 if all(r.status in (Status.MET, Status.REPORTED, Status.NOT_RUN)

@@ -59,7 +59,7 @@ def _fake_runs(report, monkeypatch, data: dict[str, dict | None]):
     """run_bench gives ``data[script]`` (None: the benchmark gave no figures)."""
     calls = []
 
-    def fake(bench, quick, work, vcan=False):
+    def fake(bench, quick, work, vcan=None):
         calls.append((bench.script, quick, vcan))
         got = data[bench.script]
         return (got, "") if got is not None else (None, f"{bench.script} gave no figures "
@@ -85,9 +85,25 @@ def test_every_target_met_gives_exit_0_and_one_row_each(report, monkeypatch, cap
 def test_with_vcan_the_sandbox_rate_is_reported_with_its_kind(report, monkeypatch, capsys):
     calls = _fake_runs(report, monkeypatch, GOOD)
     assert report.main(["--vcan"]) == 0
-    assert ("bench_twoproc.py", False, True) in calls
+    assert ("bench_twoproc.py", False, "auto") in calls
     out = capsys.readouterr().out
-    assert "| 187 | where: User-Mode Linux sandbox" in out  # the median of its runs
+    assert "sandbox: auto | 187 | where: User-Mode Linux sandbox" in out  # median of runs
+    assert "`.venv/bin/python bench/report.py --vcan`" in out
+    calls.clear()
+    assert report.main(["--vcan", "uml,qemu"]) == 0
+    assert [c for c in calls if c[0] == "bench_twoproc.py"] == [
+        ("bench_twoproc.py", False, "uml"), ("bench_twoproc.py", False, "qemu")]
+    out = capsys.readouterr().out
+    assert "(cycles/s), sandbox: uml |" in out and "(cycles/s), sandbox: qemu |" in out
+    assert "report.py --vcan uml,qemu`" in out
+
+
+def test_vcan_refuses_an_unknown_sandbox_kind(report, monkeypatch, capsys):
+    calls = _fake_runs(report, monkeypatch, GOOD)
+    with pytest.raises(SystemExit) as exc:
+        report.main(["--vcan", "uml,docker"])
+    assert exc.value.code == 2 and calls == []
+    assert "name sandbox kinds from auto, uml, qemu" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("script, key, value, target", [
