@@ -224,7 +224,10 @@ def test_the_report_reads_what_each_benchmark_writes(report, tmp_path, script, a
     data = json.loads(out.read_text())
     bench = next(b for b in report.BENCHES if b.script == script)
     rows = report.rows_of(bench, data, "")
-    assert [r.target for r in rows] == [t for t, _ in bench.targets]
+    failed = report.rows_of(bench, None, "no figures")  # what a run without JSON shows
+    assert [r.target for r in rows] == [r.target for r in failed]
+    assert [r.goal for r in rows] == [r.goal for r in failed]
+    assert all(r.figure == "FAILED: no figures" for r in failed)
     for row in rows:
         if row.status is report.Status.FAILED and script == "bench_motulator.py" \
                 and data.get("motulator") is None:
