@@ -23,7 +23,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import resource
+import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -74,6 +78,44 @@ def require_completed(summary: dict[str, Any], out: Path | None = None,
     for name in files:
         if out is None or not (out / name).exists():
             raise RunError(f"the run completed but wrote no {name}")
+
+
+def warm_env(**extra: str) -> dict[str, str]:
+    """The environment of a timed command: this one's without ``PYTHONDONTWRITEBYTECODE``
+    (a user's would not have it; without bytecode caches every start compiles the
+    project's modules again), plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env.update(extra)
+    return env
+
+
+def run_command(cmd: list[str], cwd: Path, env: dict[str, str], timeout: float
+                ) -> tuple[float, float]:
+    """Run ``cmd`` to its end, output captured: (wall s, CPU s of it and the processes it
+    waited for). RunError for no end within ``timeout`` s or an exit status other than 0
+    (with the last line of its stderr)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    try:
+        done = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True,
+                              stdin=subprocess.DEVNULL, timeout=timeout)
+    except subprocess.TimeoutExpired as exc:
+        raise RunError(f"no end after {exc.timeout:g} s") from exc
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    if done.returncode != 0:
+        why = " ".join((done.stderr.strip().splitlines() or ["no message"])[-1].split())
+        raise RunError(f"exit status {done.returncode}: {why}")
+    return wall, cpu
+
+
+def read_summary(out: Path) -> dict[str, Any]:
+    """The run directory ``out``'s summary.json; RunError where there is none to read."""
+    try:
+        return json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise RunError(f"no readable summary.json ({exc})") from exc
 
 
 def failed_text(reason: str) -> str:

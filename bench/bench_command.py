@@ -29,17 +29,20 @@ was recorded; commands ``simulate``, ``simulate_no_figures``, ``help``, ``sim``,
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import resource
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from _common import Figures, RunError, add_json_option, require_completed
+from _common import (
+    Figures,
+    RunError,
+    add_json_option,
+    read_summary,
+    require_completed,
+    run_command,
+    warm_env,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 1.0
@@ -76,27 +79,13 @@ def commands(sim: bool) -> dict[str, tuple[list[str], tuple[str, ...]]]:
 def run_once(tree: Path, words: list[str], files: tuple[str, ...], out: Path
              ) -> tuple[float, float]:
     """(wall s, CPU s of the command and what it waited for); RunError when it failed."""
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
-    env["PYTHONPATH"] = str(tree)
     cmd = ([str(tree / DEMO), *words[1:]] if words[0] == DEMO
            else [sys.executable, "-m", "gateway", *words])
     if words[-1] != "--help":
         cmd += ["--out", str(out), "--force"]
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    done = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True,
-                          stdin=subprocess.DEVNULL, timeout=300)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    if done.returncode != 0:
-        why = " ".join((done.stderr.strip().splitlines() or ["no message"])[-1].split())
-        raise RunError(f"exit status {done.returncode}: {why}")
+    wall, cpu = run_command(cmd, tree, warm_env(PYTHONPATH=str(tree)), timeout=300)
     if files:
-        try:
-            summary = json.loads((out / "summary.json").read_text())
-        except (OSError, ValueError) as exc:
-            raise RunError(f"no readable summary.json ({exc})") from exc
+        summary = read_summary(out)
         require_completed(summary, out, files)
     return wall, cpu
 

@@ -26,15 +26,23 @@ measured), ``failed``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from _common import Figures, RunError, add_json_option, require_completed, the_run
+from _common import (
+    Figures,
+    add_json_option,
+    read_summary,
+    require_completed,
+    run_command,
+    the_run,
+    warm_env,
+)
+
+from gateway.bustime import profile_load
+from gateway.drive_profile import load_drive_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 PERIOD_S = 500e-6
@@ -43,10 +51,6 @@ MAPPINGS = {"default": "emulator", "lean": "emulator-lean"}
 
 def bus_time(builtin: str) -> dict[str, float]:
     """The cycle's bus time of a built-in emulator profile."""
-    sys.path.insert(0, str(ROOT))
-    from gateway.bustime import profile_load
-    from gateway.drive_profile import load_drive_profile
-
     with the_run(f"drive profile {builtin}"):
         load = profile_load(load_drive_profile(None, builtin))
     return {"bits": load.busiest_bits, "bus_time_us": load.busiest_time * 1e6,
@@ -56,26 +60,15 @@ def bus_time(builtin: str) -> dict[str, float]:
 def lockstep(words: list[str], repeats: int, work: Path) -> dict[str, float]:
     """`hil-gateway sim` of the paper profile in lockstep, ``repeats`` runs: the first run's
     cycles, missed and speed error (deterministic), the median wall time."""
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     walls, first = [], None
     for r in range(repeats):
         out = work / f"run{r}"
         cmd = [sys.executable, "-m", "gateway", "sim", "--profile",
                str(ROOT / "profiles" / "paper.toml"), *words, "--no-figures",
                "--out", str(out), "--force"]
-        try:
-            done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
-                                  stdin=subprocess.DEVNULL, timeout=600)
-        except subprocess.TimeoutExpired as exc:
-            raise RunError(f"run {r + 1} of {repeats}: no end after {exc.timeout:g} s") from exc
-        if done.returncode != 0:
-            why = " ".join((done.stderr.strip().splitlines() or ["no message"])[-1].split())
-            raise RunError(f"run {r + 1} of {repeats}: exit status {done.returncode}: {why}")
-        try:
-            summary = json.loads((out / "summary.json").read_text())
-        except (OSError, ValueError) as exc:
-            raise RunError(f"run {r + 1} of {repeats}: no readable summary.json "
-                           f"({exc})") from exc
+        with the_run(f"run {r + 1} of {repeats}"):
+            run_command(cmd, ROOT, warm_env(), timeout=600)
+            summary = read_summary(out)
         require_completed(summary, out)
         run = summary["run"]
         walls.append(run["wall_time_s"])
