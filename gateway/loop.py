@@ -76,6 +76,13 @@ MISS_WINDOW = 0.1
 #: before the gateway calls them foreign (the kernel's timer and the echo's timestamp may
 #: disagree by a period either way).
 FOREIGN_SYNC_SLACK = 2
+
+
+def kernel_syncs_sent(start: float, T: float) -> int:
+    """The most SYNCs the kernel's broadcast manager, started at ``start`` (time.time())
+    with period ``T``, can have sent by now: one per period, plus
+    :data:`FOREIGN_SYNC_SLACK`."""
+    return math.floor((time.time() - start) / T) + 1 + FOREIGN_SYNC_SLACK
 #: Frames kept for the summary of a stop.
 RECENT_FRAMES = 24
 #: Error frames the loop tolerates within any :data:`MISS_WINDOW` before it stops: a few
@@ -299,9 +306,7 @@ class CycleLoop:
         if data[0] == last:
             return k
         ahead = self._k + sync_periods(last, data[0])
-        sent = (math.floor((time.time() - self._producer_start) / self._T) + 1
-                + FOREIGN_SYNC_SLACK)
-        return ahead if ahead <= sent else k
+        return ahead if ahead <= kernel_syncs_sent(self._producer_start, self._T) else k
 
     def _foreign_sync(self, k: int, data: bytes) -> str:
         """Why the SYNC received as the ``k``-th is not the gateway's, or '' when it is ours.
@@ -323,9 +328,8 @@ class CycleLoop:
             sent = self._syncs_sent
         elif self._sync_thread is not None:
             sent = self._syncs_sent + FOREIGN_SYNC_SLACK
-        else:  # the kernel's broadcast manager: one per period from its start
-            sent = (math.floor((time.time() - self._producer_start) / self._T) + 1
-                    + FOREIGN_SYNC_SLACK)
+        else:  # the kernel's broadcast manager
+            sent = kernel_syncs_sent(self._producer_start, self._T)
         if k <= sent:
             return ""
         return (f"by count: {k} SYNCs received where the gateway sent at most {sent} "
