@@ -259,7 +259,7 @@ def rows_of(bench: Bench, data: dict[str, Any] | None, why: str) -> list[Row]:
 
 def host() -> dict[str, Any]:
     """What the figures depend on: CPU, cores, AVX-512/AMX, load, Python, commit."""
-    model, flags = platform.processor() or "", set()
+    model, flags = "", set()
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
@@ -278,7 +278,8 @@ def host() -> dict[str, Any]:
                                timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         commit, dirty = "", ""
-    return {"cpu": model or platform.machine(), "cores": os.cpu_count(),
+    return {"cpu": model or platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
             "avx512f": "avx512f" in flags, "amx": any(f.startswith("amx") for f in flags),
             "load_start": os.getloadavg()[0], "python": sys.version.split()[0],
             "commit": (commit + (" with uncommitted changes" if dirty else "")) or "unknown",
