@@ -93,17 +93,26 @@ def truth_from(measured: Mapping[str, float]) -> Truth:
                  measured.get("T_e", nan))
 
 
-def sample_from(measured: Mapping[str, float]) -> Sample:
+def sample_from(measured: Mapping[str, float], modulator_dc_link: float | None = None
+                ) -> Sample:
     """The controller's input from the drive's role values: currents, voltages (NaN where a
     standard drive sends none), the
     emulator's true flux where it sends it (read only in the comparison mode
-    ``flux="true"``), and the drive's speed where it sends one."""
+    ``flux="true"``), and the drive's speed where it sends one.
+
+    ``modulator_dc_link``: a drive without DC-link compensation whose modulator assumes this
+    DC link, V (the drive profile's ``modulator_dc_link_v``): it applies the voltage it
+    reports scaled by the DC link it reports over the period (``u_dc``), and the sample's
+    voltage is that, u_applied = u_reported·u_dc/U_mod (docs/robustness.md §12)."""
     psi = (complex(measured["psi_ra"], measured["psi_rb"]) if "psi_ra" in measured
            else None)
     nan = math.nan
+    u = complex(measured.get("u_sa", nan), measured.get("u_sb", nan))
+    if modulator_dc_link is not None and "u_dc" in measured:
+        u *= measured["u_dc"] / modulator_dc_link
     return Sample(
         i_s_ab=complex(measured.get("i_sa", nan), measured.get("i_sb", nan)),
-        u_s_ab=complex(measured.get("u_sa", nan), measured.get("u_sb", nan)),
+        u_s_ab=u,
         psi_r_ab=psi,
         w_m=measured.get("w_m"),
     )
@@ -146,11 +155,14 @@ class ControlCycle:
 
     The load torque sent (for the emulated dynamometer) is the profile's at the start of
     the interval the setpoints act on, t_k + delay·T (docs/ARCHITECTURE.md).
+    ``modulator_dc_link``: :func:`sample_from`'s (the drive profile's
+    ``modulator_dc_link_v``); the row records the voltage the drive reported.
     """
 
     def __init__(self, controller: DriveController, profile: ReferenceProfile,
-                 sampling: Sampling) -> None:
+                 sampling: Sampling, modulator_dc_link: float | None = None) -> None:
         self.controller = controller
+        self.modulator_dc_link = modulator_dc_link
         self.profile = profile
         self.sampling = sampling
         self.row_type = row_type(controller.signals)
@@ -162,7 +174,7 @@ class ControlCycle:
         unquantised)."""
         s = self.sampling
         t = k * s.period
-        sample = sample_from(measured)
+        sample = sample_from(measured, self.modulator_dc_link)
         refs = self.profile.at(t)
         cmd = self.controller.step(refs, sample)
         T_L_cmd = self.profile.at(s.t_apply(t)).T_L if s.delay else refs.T_L
@@ -172,9 +184,12 @@ class ControlCycle:
         if len(cmd.logged) != self._n_logged:
             raise ValueError(f"the controller logged {len(cmd.logged)} values for its "
                              f"{self._n_logged} signals {self.controller.signals}")
+        u = sample.u_s_ab
+        if self.modulator_dc_link is not None:  # the record keeps what the drive reported
+            u = complex(measured.get("u_sa", math.nan), measured.get("u_sb", math.nan))
         row = self.row_type(
             t, refs.w_ref, refs.psi_ref, refs.T_L, tr.w_m, abs(tr.psi_r_ab),
-            sample.i_s_ab.real, sample.i_s_ab.imag, sample.u_s_ab.real, sample.u_s_ab.imag,
+            sample.i_s_ab.real, sample.i_s_ab.imag, u.real, u.imag,
             cmd.i_s_dq_ref.real, cmd.i_s_dq_ref.imag, cmd.u_s_dq_ref.real, cmd.u_s_dq_ref.imag,
             cmd.eps_0, cmd.w_0, tr.T_e, float(cmd.i_limited),
             float(bool(status & SW_INTERNAL_LIMIT)), *cmd.logged,

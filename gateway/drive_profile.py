@@ -11,6 +11,10 @@ carry which signals, the modes of operation, and timing. The emulator's profile 
     node = 1
     device_type = 0x00010192         # 0x1000 expected (CiA 402, frequency converter)
     bitrate = 1000000                # the bus's bit rate, bit/s: the bus time of a cycle
+    modulator_dc_link_v = 560.0      # optional: a drive WITHOUT DC-link compensation, whose
+                                     # modulator assumes this DC link: it applies the voltage
+                                     # it reports × u_dc/this (u_dc from [pdo].voltages);
+                                     # leave out for a drive that compensates (most do)
 
     [modes]                          # 0x6060 values
     current = -1                     # current vector (current-fed law)
@@ -73,7 +77,8 @@ from gateway.errors import UserError
 
 _SECTIONS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "drive": {"name": str, "eds": str, "dbc": str, "node": int, "device_type": int,
-              "emulator": bool, "gateway_node": int, "dbc_node": int, "bitrate": int},
+              "emulator": bool, "gateway_node": int, "dbc_node": int, "bitrate": int,
+              "modulator_dc_link_v": (int, float)},
     "modes": {"current": int, "voltage": int, "torque": int, "velocity": int, "position": int,
               "default": str},
     "pdo": {"control": str, "setpoints": str, "load": str, "currents": str, "voltages": str,
@@ -166,6 +171,9 @@ class DriveProfile:
     sdo_timeout_s: float = 0.5
     current_peak_a: float | None = None
     dc_link_v: tuple[float, float] | None = None
+    #: V: the DC link an uncompensated modulator assumes (None: the drive compensates its
+    #: DC link, the voltage it reports is the one it applies)
+    modulator_dc_link_v: float | None = None
     signals: dict[str, tuple[str, str]] = field(default_factory=dict)
     objects: dict[str, tuple[int, int]] = field(default_factory=dict)
     gateway_node: int = 0x7F
@@ -273,6 +281,7 @@ def _from_mapping(data: dict[str, Any], source: str, base: Path) -> DriveProfile
     _check_timing(t, source)
     _check_limits(lim, source)
     _check_nodes(d, source)
+    _check_modulator(d, source)
     _check_bus(d, data.get("pdo", {}), source)
     prof = _build_profile(data, source, base)
     for what, path in (("eds", prof.eds), ("dbc", prof.dbc)):
@@ -413,6 +422,15 @@ def _check_bus(d: dict[str, Any], p: dict[str, Any], source: str) -> None:
                         "synchronous, every n-th SYNC (CiA 301 types 1..240)")
 
 
+def _check_modulator(d: dict[str, Any], source: str) -> None:
+    """[drive].modulator_dc_link_v: a DC-link voltage in V (0 < U < 100000)."""
+    u = d.get("modulator_dc_link_v")
+    if u is not None and not 0.0 < u < 1e5:
+        raise UserError(f"{source}: [drive].modulator_dc_link_v = {u!r} must be the DC link "
+                        "the drive's modulator assumes, in V (0 < U < 100000); leave it out "
+                        "for a drive that compensates its DC link")
+
+
 def _check_nodes(d: dict[str, Any], source: str) -> None:
     """[drive] ``node``, ``gateway_node``, ``dbc_node``: CANopen node ids (1..127); the
     gateway's differs from the drive's."""
@@ -451,6 +469,8 @@ def _build_profile(data: dict[str, Any], source: str, base: Path) -> DriveProfil
         sdo_timeout_s=float(t.get("sdo_timeout_s", 0.5)),
         current_peak_a=None if peak is None else float(peak),
         dc_link_v=None if dc is None else (float(dc[0]), float(dc[1])),
+        modulator_dc_link_v=(None if d.get("modulator_dc_link_v") is None
+                             else float(d["modulator_dc_link_v"])),
         signals={role: _message_signal(v) for role, v in sg.items()},
         objects={key: _object_key(source, key, v) for key, v in ob.items()},
         gateway_node=d.get("gateway_node", 0x7F), dbc_node=d.get("dbc_node"),

@@ -519,7 +519,8 @@ def _toml_refusal(eds: DriveEds, choices: dict[str, Choice], setpoints_ok: bool)
 def _toml_drive(eds: DriveEds, name: str, node: int, eds_ref: str | None,
                 dbc_ref: str) -> list[str]:
     """[drive]: name, eds (``eds_ref``, else the EDS's path), dbc, node and device_type (the
-    EDS's 0x1000 default; commented out when it gives none)."""
+    EDS's 0x1000 default; commented out when it gives none); modulator_dc_link_v commented
+    out (a drive without DC-link compensation: the manual says)."""
     lines = ["", "[drive]", f"name = {_toml_str(name)}",
              f"eds = {_toml_str(eds_ref or str(eds.path))}",
              f"dbc = {_toml_str(dbc_ref)}              # written next to this file",
@@ -529,6 +530,10 @@ def _toml_drive(eds: DriveEds, name: str, node: int, eds_ref: str | None,
         lines.append(f"device_type = 0x{dt:08X}       # 0x1000 default of the EDS")
     else:
         lines.append("# device_type = 0x00010192     # the EDS gives no 0x1000 default")
+    lines += ["# modulator_dc_link_v = 560.0     # V: ONLY for a drive without DC-link "
+              "compensation",
+              "                                  # (manual): its applied voltage is the "
+              "reported × u_dc/this"]
     return lines
 
 

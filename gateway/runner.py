@@ -180,7 +180,7 @@ def _plan(target: BusTarget, profile: Profile, motor: MotorParams, spec: RunSpec
     loop = LoopConfig(n_cycles=round(duration / spec.period), sampling=spec.sampling,
                       timing=spec.timing, max_missed=spec.max_missed,
                       max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
-                      envelope=envelope)
+                      envelope=envelope, modulator_dc_link=drive.modulator_dc_link_v)
     return _Plan(target, profile, motor, spec, pd, loop, load_note)
 
 

@@ -227,7 +227,7 @@ def run_sampled(profile: Profile, motor: MotorParams, spec: RunSpec,
     ctl = _controller(profile, motor, spec)
     if watch is not None:
         watch.envelope = watch.envelope.for_controller(ctl)
-    cycle = ControlCycle(ctl, profile, sampling)
+    cycle = ControlCycle(ctl, profile, sampling, emulated_drive(spec).modulator_dc_link_v)
     link = PdoLink(spec.quantize, sampling.setpoint_frame, _emulator(spec.drive_mode))
     rec = Record(cycle.row_type)
     if on_record is not None:
@@ -347,7 +347,8 @@ def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
                      sampling=sampling, max_missed=spec.max_missed,
                      max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
                      envelope=watch.envelope if watch is not None else None,
-                     envelope_cycles=watch.cycles if watch is not None else 3)
+                     envelope_cycles=watch.cycles if watch is not None else 3,
+                     modulator_dc_link=drive_profile.modulator_dc_link_v)
     ctl = _controller(profile, motor, spec)
 
     def make_loop(carrier: Any) -> CycleLoop:

@@ -53,7 +53,10 @@ setpoint, i.e. the true current is the sensor model inverted (noise excluded).
 Inverter voltage errors (``current-loop`` and ``voltage``; the reported voltage stays the
 commanded one, as a real drive reports its reference): dead time, −dead_time·f_pwm·u_dc·
 sign(i_k) on each phase k, from the true phase currents at the step start; DC-link ripple,
-the applied vector scaled by 1 + u_dc_ripple·sin(2π·u_dc_ripple_hz·t) at the step midpoint.
+the applied vector scaled by 1 + u_dc_ripple·sin(2π·u_dc_ripple_hz·t) at the step midpoint
+(the modulator assumes the nominal u_dc: no DC-link compensation). The reported DC link
+(TPDO2's u_dc) is the period's mean of that rippled DC link, as a drive that measures its
+DC link every PWM period reports it; in ``ideal`` mode (no inverter) the nominal u_dc.
 
 Plant-side options of the constructor (see :mod:`plant.scenario`): ``load`` =
 f(t, T_L) gives the dynamometer torque at time t from the value T_L passed to
@@ -132,7 +135,8 @@ class Measurement:
     """One sample at the end of a period.
 
     i_s_ab: stator current with sensor errors, A.  u_s_ab: average applied (terminal)
-    voltage over the period, V.  u_dc: DC-link voltage, V.  Truth for diagnostics:
+    voltage over the period, V.  u_dc: the DC-link voltage's mean over the period, V
+    (its ripple included; ``ideal`` mode: the nominal u_dc).  Truth for diagnostics:
     w_m (rad/s), psi_r_ab (Wb), T_e (N·m) at the sample instant.
     limit_active: the voltage limit clipped during the period (never in ``ideal`` mode,
     which has no voltage limit: its reported voltage may exceed u_lim).
@@ -284,6 +288,23 @@ class Drive:
             u_ab += complex((2.0 * e_a - e_b - e_c) / 3.0, (e_b - e_c) / SQRT3)
         return u_ab
 
+    def _dc_link(self, n: int) -> float:
+        """The DC link's mean over the n internal steps from step ``self._n`` (what the
+        drive reports, V): u_dc·(1 + u_dc_ripple·mean sin(2π·u_dc_ripple_hz·t_mid)), the
+        ripple at each step's midpoint as :meth:`_u_error` applies it; the sum of sines in
+        closed form, sin(ω·t_c)·sin(n·ωh/2)/(n·sin(ωh/2)), t_c the period's midpoint."""
+        p = self.params
+        if p.u_dc_ripple == 0.0:
+            return self._u_dc
+        w = 2.0 * math.pi * p.u_dc_ripple_hz
+        half = 0.5 * w * self._h
+        h, t0 = self._h, self._n * self._h
+        if abs(math.sin(half)) < 1e-9:  # a whole number of ripple periods per step
+            mean = sum(math.sin(w * (t0 + (k + 0.5) * h)) for k in range(n)) / n
+        else:
+            mean = math.sin(w * (t0 + 0.5 * n * h)) * math.sin(n * half) / (n * math.sin(half))
+        return self._u_dc * (1.0 + p.u_dc_ripple * mean)
+
     def _drift(self, t_mid: float) -> None:
         """Motor parameters at t_mid (linear drifts); the coefficients of (1) follow."""
         m = self.motor
@@ -422,8 +443,9 @@ class Drive:
             u_avg, limited = self._advance_ideal(n, T_L), False
         else:
             u_avg, limited = self._advance_inverter(n, T_L)
+        u_dc = self._u_dc if self._ideal else self._dc_link(n)
         self._n += n
-        return self._measure(u_avg, limited)
+        return self._measure(u_avg, limited, u_dc)
 
     def advance_held(self, periods: int, T: float, T_L: float) -> Measurement:
         """:meth:`advance` ``periods`` times with the setpoints held (a drive that saw no SYNC
@@ -726,10 +748,10 @@ class Drive:
         self._psi = psi_end
         return c.M_over_L_r * (psi_end - psi)
 
-    def _measure(self, u_avg: complex, limited: bool) -> Measurement:
+    def _measure(self, u_avg: complex, limited: bool, u_dc: float) -> Measurement:
         i = self._i
         psi = self._psi
         # exact sensors: what _sense computes, without the call
         i_meas = self._g * i + self._i_offset if self._exact_sensors else self._sense(i)
         T_e = self._c.M_over_L_r * (psi.real * i.imag - psi.imag * i.real)
-        return _measurement(i_meas, u_avg, self._u_dc, self._w, psi, T_e, limited)
+        return _measurement(i_meas, u_avg, u_dc, self._w, psi, T_e, limited)

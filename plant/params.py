@@ -51,7 +51,8 @@ class DriveParams:
         sign(i_phase) (the classic dead-time voltage error), unseen by the drive's report.
     u_dc_ripple, u_dc_ripple_hz: DC-link voltage ripple, relative amplitude and frequency:
         the applied voltage is scaled by 1 + u_dc_ripple·sin(2π·u_dc_ripple_hz·t) while the
-        modulator assumes the nominal u_dc (the reported voltage is the commanded one).
+        modulator assumes the nominal u_dc (the reported voltage is the commanded one; the
+        reported DC link, the period's mean, carries the ripple).
     """
 
     mode: DriveMode = DriveMode.CURRENT_LOOP

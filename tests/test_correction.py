@@ -144,9 +144,10 @@ def test_a_still_frame_or_ab_setpoints_need_no_turn():
 def test_the_dead_time_is_averaged_over_an_interval_where_a_phase_current_changes_sign():
     """(C2) over a commanded interval whose current turns through phase a's zero a quarter
     of the way in: phase a's error counts −½ (+ for a quarter, − for three), not the sign
-    at the midpoint; the sample that ends the interval is corrected by the same error, and
-    after a withheld command (the drive held the interval before's setpoints) by the
-    sample's own current."""
+    at the midpoint; the sample that ends the interval, read at both its ends, is corrected
+    by (C2′) along the line between the two currents, the same error where the current
+    was the one asked for; after a withheld command (the drive held the interval before's
+    setpoints) too."""
     T, w_0, u_dead = 1e-3, 100.0, 10.0
     eps_0 = 0.5 * math.pi - 0.25 * T * w_0  # phase a's current cos(θ) crosses at τ = ¼
     c = SensorCorrection(u_dead=u_dead)
@@ -155,7 +156,8 @@ def test_the_dead_time_is_averaged_over_an_interval_where_a_phase_current_change
     inner = _Recorder(cmd)
     ctl = CorrectedController(inner, c, T, 0)
     u_rep = complex(20.0, -3.0)
-    out = ctl.step(None, Sample(1j, u_rep))
+    i_start = cmath.exp(1j * eps_0)  # the current asked for at the interval's start
+    out = ctl.step(None, Sample(i_start, u_rep))
     mid = cmath.exp(1j * (eps_0 + 0.5 * T * w_0))
     du = (out.u_s_dq_ref - cmd.u_s_dq_ref) * mid
     a = cmath.exp(2j * math.pi / 3)
@@ -165,11 +167,14 @@ def test_the_dead_time_is_averaged_over_an_interval_where_a_phase_current_change
     assert du == pytest.approx(expected, abs=2e-3 * u_dead)
     # at the midpoint phase a's current is negative already: its sign's error is −1
     assert abs(du - c.voltage_error(cmd.i_s_dq_ref * mid)) == pytest.approx(u_dead / 3, rel=2e-3)
-    # the sample that ends it: the reported voltage less the same error
+    # the sample that ends it: the reported voltage less the error along the sampled
+    # currents' line (the chord of the turn: phase a crosses at the same quarter, to 1e-4)
     i_end = cmath.exp(1j * (eps_0 + T * w_0))
     ctl.step(None, Sample(i_end, u_rep))
-    assert inner.seen[-1].u_s_ab == pytest.approx(u_rep - du, abs=1e-12)
-    # a withheld command: the interval's error is the sample's current's
+    assert inner.seen[-1].u_s_ab == pytest.approx(u_rep - c.voltage_error_over(i_start, i_end),
+                                                  abs=1e-12)
+    assert inner.seen[-1].u_s_ab == pytest.approx(u_rep - du, abs=2e-3 * u_dead)
+    # a withheld command: the drive held the setpoints, the samples still read both ends
     ctl.withhold()
     ctl.step(None, Sample(i_end, u_rep))
     assert inner.seen[-1].u_s_ab == pytest.approx(u_rep - c.voltage_error(i_end), abs=1e-12)
@@ -177,16 +182,19 @@ def test_the_dead_time_is_averaged_over_an_interval_where_a_phase_current_change
 
 def test_a_voltage_drive_with_dead_time_runs_at_the_nominal_precision_with_its_file(tmp_path):
     """The full-order law on a voltage drive with 2 µs dead time (the reported voltage the
-    commanded one) and the dead time in the motor file: within 0.08 rad/s RMS (measured
-    0.041; nominal plant 0.0047). With the error at each interval's midpoint current it
-    was 0.62; without the file the run's own identification fits it (below)."""
+    commanded one) and the dead time in the motor file: within 0.12 rad/s RMS (measured
+    0.076; nominal plant 0.0047). With the error at each interval's midpoint current it
+    was 0.62, along the current the law asked for 0.041: the sampled currents' line, (C2′),
+    is the better estimate where the current is not the one asked for (`real-drive` with
+    its load observed: a guard stop → 1.73), docs/robustness.md §12; without the file the
+    run's own identification fits it (below)."""
     plant = tmp_path / "dead.toml"
     plant.write_text('[scenario]\nname = "dead-time"\n[inverter]\ndead_time = 2e-6\n')
     motor = tmp_path / "motor.toml"
     motor.write_text(PAPER_MOTOR + f"[commissioning]\nu_dead = {2e-6 * 10e3 * 560.0}\n")
     rms = _rms(tmp_path, "dead", "--plant", str(plant), "--law", "full-order", "--drive",
                "voltage", "--motor", str(motor))
-    assert rms < 0.08, rms
+    assert rms < 0.12, rms
 
 def _rms(tmp_path, name: str, *options: str) -> float:
     out = tmp_path / name
@@ -432,7 +440,8 @@ def test_the_real_drive_plant_runs_the_full_order_law_with_its_dead_time_fitted(
     +20 %) on the voltage drive, the load told: the current settles at a sector boundary
     (one phase's current zero, its mean sign a further unknown); u_dead within 2 %, R_s
     within 1 % of the warming plant's and the run completes (measured 11.35 V, 5.805 Ω,
-    0.28 rad/s RMS; it diverged at 0.39 s)."""
+    0.36 rad/s RMS (0.28 with the error along the current asked for); it diverged at
+    0.39 s)."""
     rms = _rms(tmp_path, "run", "--plant", "real-drive", "--law", "full-order", "--drive",
                "voltage", "--load", "known")
     ident = _identification(tmp_path, "run")

@@ -56,10 +56,12 @@ def test_a_load_step_goes_to_the_load_not_the_inertia():
 
 
 def _paper(plant: str, **kw):
+    """The paper's profile on ``plant``, watched by the divergence guard the run's own
+    (`simulate`'s: the envelope of the profile with the controller's current limit)."""
     profile = paper_profile()
-    watch = DivergenceWatch(profile_envelope(profile, MOTOR, 14.0))
     spec = sim_config(plant=resolve_scenario(plant), discretisation="exact", identify=True,
                       **kw)
+    watch = DivergenceWatch(profile_envelope(profile, MOTOR, spec.gains.i_max))
     result = run(profile, MOTOR, spec, watch=watch)
     rec = result.arrays()
     e = rec["w_m"] - rec["w_ref"]

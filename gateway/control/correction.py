@@ -138,7 +138,8 @@ def _mean_sign(x0: float, x1: float) -> float:
     """The mean of sign(x) over an interval where x moves linearly from ``x0`` to ``x1``."""
     s0, s1 = _sign(x0), _sign(x1)
     if s0 == s1 or s0 == 0.0 or s1 == 0.0:
-        return 0.5 * (s0 + s1) if s0 != s1 else s0
+        # one end at zero: x has the other end's sign over the whole interval
+        return s0 or s1
     tau = x0 / (x0 - x1)  # the crossing, as a share of the interval
     return s0 * (2.0 * tau - 1.0)
 
@@ -194,6 +195,9 @@ class CorrectedController:
         # interval commanded d + 1 steps before
         self._turns: deque[_Commanded] = deque([_Commanded()] * (delay + 1))
         self._sampled = _Commanded()  # the interval that ended at the last sample
+        #: the true current at the last sample (None before the first, and after a lost
+        #: sample: the interval after it was not sampled at both ends)
+        self._i_last: complex | None = None
 
     def __getattr__(self, name: str) -> Any:  # the inner controller's other attributes
         if name == "inner":  # not yet set (copy, pickle): no recursion
@@ -208,9 +212,13 @@ class CorrectedController:
         if phi:
             i_read -= c.offset_ab * (cmath.exp(1j * phi) - 1.0)
         i_true = c.true_current(i_read)
-        # the inverter's error over the interval that ended: the one its command was
+        # the inverter's error over the interval that ended, (C2′): along the currents
+        # sampled at its two ends where both were (on a voltage drive the current is not
+        # the one the law asked for, and near a phase's zero the error's sign is the
+        # current's that flowed, docs/robustness.md §12); else the one its command was
         # corrected for (_command), where that command was sent
-        du = ended.du
+        i_last, self._i_last = self._i_last, i_true
+        du = c.voltage_error_over(i_last, i_true) if i_last is not None else ended.du
         u_applied = sample.u_s_ab - (c.voltage_error(i_true) if du is None else du)
         cmd = self.inner.step(refs, replace(sample, i_s_ab=i_true, u_s_ab=u_applied))
         return self._command(cmd)
@@ -263,6 +271,7 @@ class CorrectedController:
         self._turns.append(self._held())
 
     def _coast_turn(self) -> None:
+        self._i_last = None
         self._turns.append(self._held())
         self._sampled = self._turns.popleft()  # the interval that ended unsampled
 

@@ -435,6 +435,16 @@ class InertiaTracker:
         """The watch (I5) still takes readings (not stopped by a long coast or the caller)."""
         return not self._watch_off
 
+    def rescale_load(self, f: float) -> None:
+        """ℓ → f·ℓ with its covariance: the load's deceleration against a J the laws now
+        apply 1/f times the one it was read against (ℓ = T_L/J; (I6))."""
+        self._l *= f
+        self._p02 *= f
+        self._p12 *= f
+        self._p22 *= f * f
+        self._p23 *= f
+        self._p24 *= f
+
     def hold_ratio(self) -> None:
         """ρ is held through the next reading (a consider state, as after a load step): for
         a reading of a rotor no torque is asked of, whose model's torque is the sensors'

@@ -176,6 +176,7 @@ class SampledController:
         "_kept",
         "_lag",
         "_load_at",
+        "_load_filter",
         "_load_observed",
         "_load_watch",
         "_measured",
@@ -250,6 +251,11 @@ class SampledController:
         track_j = config.inertia is InertiaSource.TRACKED and self._inertia_off is None
         self.inertia = (InertiaTracker(T=T, load=self._load_observed, inertia=track_j)
                         if track_j or self._load_observed else None)
+        # and where J is tracked too, the load the laws get is a second filter's, on the
+        # same readings with the J they apply (ρ held at 1 there, (I6)): the first one's ρ̂,
+        # which a load's steps and ramps leave uncertain, is its test of J alone
+        self._load_filter = (InertiaTracker(T=T, load=True, inertia=False)
+                             if track_j and self._load_observed else None)
         # the load told: once J is settled the filter watches the readings against it, and
         # observes the load from the reading that rejects it on ((I5), §10); on a drive that
         # holds the current only (the ideal source): on a PI current loop the load
@@ -450,6 +456,16 @@ class SampledController:
         T_hat = self._T_hat
         A = self._a_int + self._T * T_hat / self._J if T_hat else self._a_int
         rho_applied = self._rho
+        lf = self._load_filter
+        if lf is not None and not lf.frozen:
+            if lost:
+                lf.coast(A)
+            elif psi_k is None:
+                lf.update(0.0, 0.0, A, 0.0)
+            else:
+                lf.update(self._w_mid, self._e_hat, A,
+                          psi_k.real * psi_k.real + psi_k.imag * psi_k.imag,
+                          self._flux_error_gain(eps_k))
         if lost:
             rho = tracker.coast(A / rho_applied)
         elif psi_k is None:
@@ -463,6 +479,8 @@ class SampledController:
         if rho != rho_applied:
             self._rho = rho
             self._scale_inertia()
+            if lf is not None:  # its ℓ, T̂_L/J, against the J the laws apply from now on
+                lf.rescale_load(rho / rho_applied)
         if tracker.reset:
             tracker.reset = False
             return tracker.speed
@@ -741,7 +759,7 @@ class SampledController:
             if w_reset is not None:
                 w_k = w_reset
             if self._load_observed and measured and not self.inertia.frozen:  # (I4)
-                tracker = self.inertia
+                tracker = self._load_filter or self.inertia
                 T_hat = self._T_hat = tracker.load * self._J
                 w_k += min(tracker.tuning.k_s * T, 1.0) * (tracker.speed - w_k)
         self._measured = True
@@ -1142,6 +1160,15 @@ class FullOrderSampledController(SampledController):
             # (a 2 % gain error on phase b with the true flux: the model's spurious torque
             # had J rejected at 0.255 s of the magnetisation, and the run rang at 3.4 rad/s)
             self.inertia.hold_ratio()
+        elif (measured and self._load_observed and not self.inertia.switched
+              and rh.dw_ref == 0.0 and r1.dw_ref == 0.0):
+            # the load observed, the file's J standing, and no acceleration asked over the
+            # interval: the torque the law raises holds the speed against the load, ρ·A =
+            # ℓ·T, and a reading cannot tell ρ from ℓ ((I4)); J is read on the speed
+            # reference's ramps (a load step at constant speed, with readings as noisy as a
+            # real drive's dead time makes them, had the file's J rejected at 0.52 s with
+            # ρ̂ 0, and the run stopped; docs/robustness.md §12)
+            self.inertia.hold_ratio()
         if measured:
             mu = self._mu
             int_psi = self._T_6 * (psi0 + 4.0 * p_h + p_1)
@@ -1226,7 +1253,7 @@ class FullOrderSampledController(SampledController):
             if w_reset is not None:
                 w_k = w_reset
             if self._load_observed and measured and not self.inertia.frozen:  # (I4)
-                tracker = self.inertia
+                tracker = self._load_filter or self.inertia
                 self._T_hat = tracker.load * self._J
                 w_k += min(tracker.tuning.k_s * T, 1.0) * (tracker.speed - w_k)
         T_hat = self._T_hat  # the load observed (0 otherwise): added to the profile's
