@@ -1003,7 +1003,9 @@ class FullOrderSampledController(SampledController):
         SampledController.__init__(self, motor, replace(config, law=Law.CURRENT_FED),
                                    refs_at, eps_0, w_hat)
         self.config = config
-        self._load_watch = False  # (I5) is the current-fed law's: this law takes no T̂_L
+        # (I5) as the current-fed law's (set above: this law's drive is not a PI current
+        # loop): the told load watched once J has settled, and a load it leaves out observed
+        # from the reading that rejects it on (docs/robustness.md §12)
         self._from_sample = True  # the voltage drive's trajectory from the measured current
         g = self._g
         if g.k_w * self._T > g.k_w_T_max:
@@ -1149,8 +1151,8 @@ class FullOrderSampledController(SampledController):
         (the current model's flux then: they hold the filter's ω and D at rest; measured,
         J × 2 0.011 rad/s RMS with them, 0.020 without). ``measured``: the flux at t_k is a
         reading of the interval (:meth:`_fo_measured`)."""
-        if self.inertia.frozen:  # ρ settled, or a long coast: no reading to take
-            self._measured = True
+        if self.inertia.frozen and not (self._load_watch and self.inertia.settled):
+            self._measured = True  # ρ settled (the told load not watched), or a long coast
             return None
         _, w0, tl_j, _, rh, r1, _, i_h, p_h, i_1, p_1 = model
         psi0, i0 = self._psi_prev, self._i_prev
@@ -1201,6 +1203,7 @@ class FullOrderSampledController(SampledController):
         # the past interval by the model: the estimator's current integral, then ω̂
         psi0 = self._psi_prev if self._psi_prev is not None else 0j
         T_hat_before = self._T_hat  # the load observed over it (0 otherwise)
+        self._note_told_move(win, k)  # (I5) does not count these readings
         kept = self._kept  # the last step's prediction of this interval (_fo_model, inline)
         if (kept is not None and kept[0] is prev and kept[1] is self._i_prev
                 and kept[2] is psi0 and kept[3] is self._w_prev):
@@ -1380,6 +1383,7 @@ class FullOrderSampledController(SampledController):
         T_L = win[0].T_L + self._T_hat if self._T_hat else win[0].T_L  # T̂_L added
         f0 = (self._mu * (psi0.real * i0.imag - psi0.imag * i0.real)
               - T_L / self._J)  # the mechanical copy of (27) alone
+        self._note_told_move(win, self._k)  # in the interval lost: (I5) stops
         i_k, psi_k, w_k, _ = self._fo_finish(
             self._fo_predict(prev, i0, psi0, self._w_prev, win[0], win[1], win[2], f0, T_L),
             adapt=False)
