@@ -163,14 +163,15 @@ def _summary(out: Path) -> dict:
 def test_the_real_drive_plant_completes_with_the_full_order_law_and_its_load_observed(
         tmp_path: Path) -> None:
     """`real-drive` on the voltage drive with the defaults (its load observed): it stopped at
-    2.0 s; now it completes (measured 1.54 rad/s RMS). Its J is the file's: the load steps
-    at constant speed are not read as inertia (ρ̂ went to 0 at the first), and the J the
-    tracker may take on the ramps is within 20 % (measured: taken at 0.482 s, 12 % low)."""
+    2.0 s; now it completes (measured 1.09 rad/s RMS). Its J is the file's: the load steps
+    at constant speed are not read as inertia (ρ̂ went to 0 at the first), and the test
+    asks 8σ with the load observed (at 4σ the file's J was rejected at 0.482 s for one 12 %
+    low)."""
     out = tmp_path / "rd"
     assert main(["simulate", "--no-figures", "--out", str(out), "--plant", "real-drive",
                  "--law", "full-order", "--drive-mode", "voltage"]) == 0
     s = _summary(out)
-    assert s["speed_error"]["rms"] < 3.0, s["speed_error"]
+    assert s["speed_error"]["rms"] < 2.0, s["speed_error"]
     inertia = s["identification"]["inertia"]
-    assert 0.8 < inertia["ratio"] < 1.25, inertia
+    assert not inertia["applied"] and 0.8 < inertia["ratio"] < 1.25, inertia
     assert inertia["T_L_observed"] == pytest.approx(0.5, abs=0.5), inertia  # the profile's end

@@ -75,27 +75,31 @@ RHO_RANGE = (0.2, 5.0)
 class InertiaTuning:
     """The tracker's tuning (what ``--inertia tracked`` uses; docs/robustness.md §9).
 
-    z, persist: the test that rejects the file's J: |ρ̂ − 1| > z·σ_ρ for ``persist``
-    samples in a row. p_rho: the prior variance of ρ. q_w: the speed's process noise per
-    sample, (rad/s)². q_rho: ρ's per sample. r0, n0: the prior of the measurement's
-    variance ((rad/s·Wb)², the variance of (I1) times |ψ|²) and its weight in samples;
-    r_min: its floor. p_d, q_d: the prior variance of each component of the flux's
-    (a, b)-constant error D (Wb²) and its process noise per sample; p_d_lost: D's variance
-    after an interval the controller coasted through; max_coast: the coasted intervals in a
-    row after which the tracker stops (an unknown late latch after 113 of them shifted the
-    estimator's integral by 0.45 Wb, beyond what (I3) holds to first order). p_l, q_l: the
-    prior variance of ℓ ((rad/s²)²) and its process noise ((rad/s²)² per second: per sample
-    q_l·T), with the load observed; k_s: the pull of ω̂ towards the filter's speed then,
-    1/s ((I4)); z_load, hold: the innovation (in standard deviations) taken as a load step,
-    and the readings ρ is held for after one. settle: the standard deviation of ρ̂ at which
-    the filter stops when the load is not observed (J is constant). persist_load: with the
-    load told, the readings in a row, each beyond z_load standard deviations on the same
-    side (and growing), that may reject the told load once the filter has stopped
-    (:meth:`InertiaTracker.watch`, (I5)); max_gate: the outliers in a row after which, not
-    grown, they are a jump of the reading, taken; settle_told: how long after the told load
-    last moved outliers are not counted, s (the drive's own response to it)."""
+    z, persist: the test that rejects the file's J: |ρ̂ − 1| > z·σ_ρ for ``persist`` samples
+    in a row; z_observed its z with the load observed (ℓ a state: J is then read from the
+    changes of the acceleration alone, where the readings' errors run in one sign for tens
+    of readings and σ_ρ, which takes them as white, understates ρ̂'s error: `real-drive`,
+    whose J is the file's, reached 5–7σ; docs/robustness.md §12). p_rho: the prior variance
+    of ρ. q_w: the speed's process noise per sample, (rad/s)². q_rho: ρ's per sample. r0,
+    n0: the prior of the measurement's variance ((rad/s·Wb)², the variance of (I1) times
+    |ψ|²) and its weight in samples; r_min: its floor. p_d, q_d: the prior variance of each
+    component of the flux's (a, b)-constant error D (Wb²) and its process noise per sample;
+    p_d_lost: D's variance after an interval the controller coasted through; max_coast: the
+    coasted intervals in a row after which the tracker stops (an unknown late latch after
+    113 of them shifted the estimator's integral by 0.45 Wb, beyond what (I3) holds to first
+    order). p_l, q_l: the prior variance of ℓ ((rad/s²)²) and its process noise ((rad/s²)²
+    per second: per sample q_l·T), with the load observed; k_s: the pull of ω̂ towards the
+    filter's speed then, 1/s ((I4)); z_load, hold: the innovation (in standard deviations)
+    taken as a load step, and the readings ρ is held for after one. settle: the standard
+    deviation of ρ̂ at which the filter stops when the load is not observed (J is constant).
+    persist_load: with the load told, the readings in a row, each beyond z_load standard
+    deviations on the same side (and growing), that may reject the told load once the filter
+    has stopped (:meth:`InertiaTracker.watch`, (I5)); max_gate: the outliers in a row after
+    which, not grown, they are a jump of the reading, taken; settle_told: how long after the
+    told load last moved outliers are not counted, s (the drive's own response to it)."""
 
     z: float = 4.0
+    z_observed: float = 8.0
     persist: int = 1
     p_rho: float = 1.0
     q_w: float = 1e-4
@@ -318,7 +322,8 @@ class InertiaTracker:
         self._p33, self._p34, self._p44 = p33 + t.q_d, p34, p44 + t.q_d
         p11 = self._p11
         if weight > 0.0 and not self.switched and self._hold == 0:
-            if abs(rho - 1.0) > t.z * max(p11, 0.0) ** 0.5:
+            z = t.z_observed if self._q_l else t.z
+            if abs(rho - 1.0) > z * max(p11, 0.0) ** 0.5:
                 self._run += 1
                 if self._run >= t.persist:
                     self.switched = self.reset = True

@@ -61,7 +61,7 @@ from gateway.control.controller import (
     wrap_angle,
 )
 from gateway.control.estimator import IntervalFluxEstimator, IntervalRsAdaptiveFluxEstimator
-from gateway.control.inertia_tracker import InertiaTracker
+from gateway.control.inertia_tracker import InertiaTracker, InertiaTuning
 from gateway.control.interface import (
     Command,
     ControllerContext,
@@ -135,6 +135,10 @@ class SampledController:
     and the frame angle at t_k is the one the command for I_k carried. Every number is the
     one the plain expressions give (tests/test_fast_paths.py, tools/same_signals.py).
     """
+
+    #: the pull of ω̂ towards the inertia filter's speed with the load observed, 1/s ((I4),
+    #: docs/robustness.md §10)
+    PULL_K_S = 500.0
 
     # slots: a step reads some forty of them; an instance dict of that size loses CPython's
     # fast attribute access (its shared keys hold 30). "__dict__": others may add their own.
@@ -249,12 +253,13 @@ class SampledController:
         # T̂_L = ℓ̂·J in (15), (16) in place of the profile's, ω̂ pulled towards its speed
         self._load_observed = config.load is LoadSource.OBSERVED  # (not with rs-adaptive)
         track_j = config.inertia is InertiaSource.TRACKED and self._inertia_off is None
-        self.inertia = (InertiaTracker(T=T, load=self._load_observed, inertia=track_j)
+        tuning = InertiaTuning(k_s=self.PULL_K_S)
+        self.inertia = (InertiaTracker(tuning, T=T, load=self._load_observed, inertia=track_j)
                         if track_j or self._load_observed else None)
         # and where J is tracked too, the load the laws get is a second filter's, on the
         # same readings with the J they apply (ρ held at 1 there, (I6)): the first one's ρ̂,
         # which a load's steps and ramps leave uncertain, is its test of J alone
-        self._load_filter = (InertiaTracker(T=T, load=True, inertia=False)
+        self._load_filter = (InertiaTracker(tuning, T=T, load=True, inertia=False)
                              if track_j and self._load_observed else None)
         # the load told: once J is settled the filter watches the readings against it, and
         # observes the load from the reading that rejects it on ((I5), §10); on a drive that
@@ -989,6 +994,11 @@ class FullOrderSampledController(SampledController):
     (the unknown e_ω term dropped). ω0 is (26) at the midpoint; the observer (27) with w of
     (32) is integrated with Simpson's rule on the model's trajectory.
     """
+
+    #: the pull (I4) on this law's ω̂: its readings carry the voltage drive's errors (the
+    #: dead time's near the crossings), and (27) carries ω̂ between them; over 25 noise seeds
+    #: of `real-drive` 200 s⁻¹ completed every one (500: one stop), docs/robustness.md §12
+    PULL_K_S = 200.0
 
     _lookahead = 1  # the end of the commanded interval, 2(k + d) + 2
     __slots__ = ("_T_6", "_a21", "_c1", "_decay", "_decay_gain", "_eps_k", "_gamma_2", "_i_prev",
