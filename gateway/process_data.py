@@ -51,6 +51,9 @@ ROLE_HINTS: dict[str, str] = {
     "target_torque": "the CiA 402 target torque 0x6071 (cyclic synchronous torque)",
     "target_velocity": "the CiA 402 target velocity 0x60FF (cyclic synchronous velocity)",
     "target_position": "the CiA 402 target position 0x607A (cyclic synchronous position)",
+    "u_dc": "the DC-link voltage, the CiA 402 DC link circuit voltage 0x6079 (or a "
+            "manufacturer object with its mean over the period), or leave "
+            "[drive].modulator_dc_link_v out for a drive that compensates its DC link",
     "w_m": "the speed: the CiA 402 velocity actual value 0x606C, or the emulator's truth",
     "psi_ra": "the emulator's true rotor flux (TPDO3); real drives have none: use --flux "
               "estimated",

@@ -266,6 +266,12 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
     plan.pd.require(required_roles(spec, plan.pd, getattr(ctl, "requires", ())),
                     f"{who} with a {spec.drive_mode} drive",
                     master.node.object_dictionary.indices)
+    if drive.modulator_dc_link_v is not None and not spec.drive_mode.standard:
+        # the reported voltages are scaled by the reported DC link (gateway.cycle): without
+        # it they would be taken as applied, silently
+        plan.pd.require(("u_dc",), f"[drive].modulator_dc_link_v = "
+                        f"{drive.modulator_dc_link_v:g} (a modulator without DC-link "
+                        "compensation)")
     counter = master.configure(spec.period, plan.pd, drive.remap, drive.mode_of(spec.drive_mode),
                                _emulator_settings(master, drive, spec),
                                sync_overflow=SYNC_OVERFLOW)

@@ -175,3 +175,26 @@ def test_the_real_drive_plant_completes_with_the_full_order_law_and_its_load_obs
     inertia = s["identification"]["inertia"]
     assert not inertia["applied"] and 0.8 < inertia["ratio"] < 1.25, inertia
     assert inertia["T_L_observed"] == pytest.approx(0.5, abs=0.5), inertia  # the profile's end
+
+
+def test_a_drive_that_sends_no_dc_link_cannot_say_its_modulator_is_uncompensated(
+        emulator, tmp_path: Path, capsys) -> None:
+    """A profile with ``modulator_dc_link_v`` whose voltages' PDO carries no u_dc: the run
+    is refused at bring-up, by name, before the drive is enabled (its voltages would be
+    taken as applied, silently)."""
+    import gateway
+    from dbc import DBC_PATH
+
+    text = (Path(gateway.__file__).parent / "drives" / "emulator.toml").read_text()
+    dbc = "\n".join(line for line in DBC_PATH.read_text().split("\n") if "u_dc" not in line)
+    (tmp_path / "d.dbc").write_text(dbc.replace("BO_ 641 TPDO2: 6 DRIVE", "BO_ 641 TPDO2: 4 DRIVE"))
+    path = tmp_path / "drive.toml"
+    path.write_text(text.replace('dbc = "builtin:drive.dbc"', 'dbc = "d.dbc"'))
+    emu = emulator("voltage")
+    rc = main(["run", "-i", "virtual", "-c", emu.channel, "--drive", str(path), "--law",
+               "full-order", "--drive-mode", "voltage", "--reference", "profiles/quick.toml",
+               "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "modulator_dc_link_v = 560" in err and "u_dc" in err and "0x6079" in err, err
+    assert "Traceback" not in err
