@@ -57,12 +57,12 @@ def _eds_default(master: DriveMaster, name: str) -> float:
 
 def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = ()
                    ) -> tuple[str, ...]:
-    """The roles a run needs of the drive: the statusword (the controlword too for a
-    standard drive), the measured currents and applied
-    voltages, the frame for (d, q) setpoints, the setpoints the drive mode uses, the true
-    flux only for ``--flux true``, and what the controller ``requires`` (its optional
-    attribute, e.g. ``("w_m",)``: a speed sensor). A standard drive (CST, CSV): the CiA 402
-    words, its target, and what the controller requires."""
+    """The roles a run needs of the drive: the statusword (the controlword too for a standard
+    drive), the measured currents and applied voltages (and the DC link where the profile's
+    modulator does not compensate it), the frame for (d, q) setpoints, the setpoints the
+    drive mode uses, the true flux only for ``--flux true``, and what the controller
+    ``requires`` (its optional attribute, e.g. ``("w_m",)``: a speed sensor). A standard
+    drive (CST, CSV): the CiA 402 words, its target, and what the controller requires."""
     if spec.drive_mode.standard:  # the drive's own control: its target, its statusword
         assert spec.drive_mode.target is not None
         roles = ["controlword", "statusword", spec.drive_mode.target]
@@ -72,6 +72,8 @@ def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = (
     # the controlword may be left to SDO, written when it changes (enable, shutdown) and
     # held by the drive between: a lean mapping (gateway/drives/emulator-lean.toml)
     roles = ["statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
+    if pd.scales_voltage:  # a modulator without DC-link compensation: u_dc scales them
+        roles.append("u_dc")
     if frame is SetpointFrame.DQ:
         roles += ["eps_0", "w_0"]
     roles += [u1, u2] if spec.drive_mode is DriveMode.VOLTAGE else [i1, i2]
@@ -266,12 +268,6 @@ def _bring_up(bus: can.BusABC, master: DriveMaster, plan: _Plan, own_echo: bool)
     plan.pd.require(required_roles(spec, plan.pd, getattr(ctl, "requires", ())),
                     f"{who} with a {spec.drive_mode} drive",
                     master.node.object_dictionary.indices)
-    if drive.modulator_dc_link_v is not None and not spec.drive_mode.standard:
-        # the reported voltages are scaled by the reported DC link (gateway.cycle): without
-        # it they would be taken as applied, silently
-        plan.pd.require(("u_dc",), f"[drive].modulator_dc_link_v = "
-                        f"{drive.modulator_dc_link_v:g} (a modulator without DC-link "
-                        "compensation)")
     counter = master.configure(spec.period, plan.pd, drive.remap, drive.mode_of(spec.drive_mode),
                                _emulator_settings(master, drive, spec),
                                sync_overflow=SYNC_OVERFLOW)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import cmath
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -196,5 +197,9 @@ def test_a_drive_that_sends_no_dc_link_cannot_say_its_modulator_is_uncompensated
                "--out", str(tmp_path / "run")])
     err = capsys.readouterr().err
     assert rc == 2, err
-    assert "modulator_dc_link_v = 560" in err and "u_dc" in err and "0x6079" in err, err
+    assert "needs u_dc" in err and "modulator_dc_link_v" in err and "0x6079" in err, err
     assert "Traceback" not in err
+    # `profile check` says it too: no drive mode of the paper's laws can run
+    assert main(["profile", "check", str(path)]) == 1
+    out = capsys.readouterr().out
+    assert re.search(r"--drive-mode voltage\s+cannot run the paper's laws: no u_dc", out), out
