@@ -461,31 +461,30 @@ class SampledController:
         T_hat = self._T_hat
         A = self._a_int + self._T * T_hat / self._J if T_hat else self._a_int
         rho_applied = self._rho
-        lf = self._load_filter
-        if lf is not None and not lf.frozen:
-            if lost:
-                lf.coast(A)
-            elif psi_k is None:
-                lf.update(0.0, 0.0, A, 0.0)
-            else:
-                lf.update(self._w_mid, self._e_hat, A,
-                          psi_k.real * psi_k.real + psi_k.imag * psi_k.imag,
-                          self._flux_error_gain(eps_k))
+        lf = self._load_filter  # (I6): the same reading, A with the applied J
+        if lf is not None and lf.frozen:
+            lf = None
         if lost:
+            if lf is not None:
+                lf.coast(A)
             rho = tracker.coast(A / rho_applied)
         elif psi_k is None:
+            if lf is not None:
+                lf.update(0.0, 0.0, A, 0.0)
             rho = tracker.update(0.0, 0.0, A / rho_applied, 0.0)
         else:
-            rho = tracker.update(self._w_mid, self._e_hat, A / rho_applied,
-                                 psi_k.real * psi_k.real + psi_k.imag * psi_k.imag,
-                                 self._flux_error_gain(eps_k))
+            weight = psi_k.real * psi_k.real + psi_k.imag * psi_k.imag
+            g = self._flux_error_gain(eps_k)
+            if lf is not None:
+                lf.update(self._w_mid, self._e_hat, A, weight, g)
+            rho = tracker.update(self._w_mid, self._e_hat, A / rho_applied, weight, g)
             if tracker.reset:
                 self._rho_at = self._k
         if rho != rho_applied:
             self._rho = rho
             self._scale_inertia()
-            if lf is not None:  # its ℓ, T̂_L/J, against the J the laws apply from now on
-                lf.rescale_load(rho / rho_applied)
+            if self._load_filter is not None:  # its ℓ, T̂_L/J, against the applied J
+                self._load_filter.rescale_load(rho / rho_applied)
         if tracker.reset:
             tracker.reset = False
             return tracker.speed
