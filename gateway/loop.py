@@ -127,9 +127,7 @@ class LoopConfig:
     coasting cycle's current step is not a loss of control). heartbeat_cob_id,
     heartbeat_every: in lockstep the gateway's heartbeat also goes out before every n-th
     SYNC, so that a drive supervising it in simulated time (the emulator's SYNC time base)
-    sees it at the same cycles whatever the host's load (0: not sent by the loop).
-    modulator_dc_link: the drive profile's ``modulator_dc_link_v`` (V; None: the drive
-    compensates its DC link), :class:`gateway.cycle.ControlCycle`'s."""
+    sees it at the same cycles whatever the host's load (0: not sent by the loop)."""
 
     n_cycles: int
     sampling: Sampling = field(default_factory=Sampling)
@@ -143,7 +141,6 @@ class LoopConfig:
     envelope_cycles: int = 3
     heartbeat_cob_id: int = 0
     heartbeat_every: int = 0
-    modulator_dc_link: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "timing", Timing(self.timing))
@@ -196,7 +193,7 @@ class CycleLoop:
         self._marks = fault_marks or (lambda k: 0)
         self.pd = pd
         self.ctl = controller
-        self.cycle = ControlCycle(controller, profile, cfg.sampling, cfg.modulator_dc_link)
+        self.cycle = ControlCycle(controller, profile, cfg.sampling, pd.modulator_dc_link)
         self.cfg = cfg
         self.own_echo = own_echo
         self.fault = fault or threading.Event()

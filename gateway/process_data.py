@@ -95,12 +95,13 @@ class ProcessData:
     """The PDOs of one drive at one node (see the module docstring)."""
 
     def __init__(self, pdos: Iterable[Pdo], source: str = "",
-                 scales_voltage: bool = False) -> None:
+                 modulator_dc_link: float | None = None) -> None:
         self.pdos: tuple[Pdo, ...] = tuple(pdos)
         self.source = source
-        #: the drive's modulator does not compensate its DC link (the profile's
-        #: ``modulator_dc_link_v``): its voltages are scaled by its u_dc, which it must send
-        self.scales_voltage = scales_voltage
+        #: the DC link the drive's modulator assumes where it does not compensate its DC
+        #: link, V (the profile's ``modulator_dc_link_v``; None: it does): its voltages are
+        #: scaled by its u_dc, which it must send (:func:`gateway.cycle.sample_from`)
+        self.modulator_dc_link = modulator_dc_link
         self.tpdos = tuple(p for p in self.pdos if p.tx)
         self.rpdos = tuple(p for p in self.pdos if not p.tx)
         self.by_cob_id = {p.cob_id: p for p in self.tpdos}
@@ -209,4 +210,4 @@ def process_data(profile: DriveProfile, node: int | None = None,
         if (cob_id & 0x7F) == base and 0x180 <= cob_id < 0x580:
             cob_id += node - base
         pdos.append(Pdo(msg, cob_id, MessageCodec(msg, cob_id, specs, m.length), signals, tx))
-    return ProcessData(pdos, profile.source, profile.modulator_dc_link_v is not None)
+    return ProcessData(pdos, profile.source, profile.modulator_dc_link_v)

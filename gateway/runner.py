@@ -72,7 +72,7 @@ def required_roles(spec: RunSpec, pd: ProcessData, requires: tuple[str, ...] = (
     # the controlword may be left to SDO, written when it changes (enable, shutdown) and
     # held by the drive between: a lean mapping (gateway/drives/emulator-lean.toml)
     roles = ["statusword", "i_sa", "i_sb", "u_sa", "u_sb"]
-    if pd.scales_voltage:  # a modulator without DC-link compensation: u_dc scales them
+    if pd.modulator_dc_link is not None:  # no DC-link compensation: u_dc scales them
         roles.append("u_dc")
     if frame is SetpointFrame.DQ:
         roles += ["eps_0", "w_0"]
@@ -182,7 +182,7 @@ def _plan(target: BusTarget, profile: Profile, motor: MotorParams, spec: RunSpec
     loop = LoopConfig(n_cycles=round(duration / spec.period), sampling=spec.sampling,
                       timing=spec.timing, max_missed=spec.max_missed,
                       max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
-                      envelope=envelope, modulator_dc_link=drive.modulator_dc_link_v)
+                      envelope=envelope)
     return _Plan(target, profile, motor, spec, pd, loop, load_note)
 
 

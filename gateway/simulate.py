@@ -347,8 +347,7 @@ def _run_linked(profile: Profile, motor: MotorParams, spec: RunSpec,
                      sampling=sampling, max_missed=spec.max_missed,
                      max_miss_rate=spec.max_miss_rate, plausibility=plausibility,
                      envelope=watch.envelope if watch is not None else None,
-                     envelope_cycles=watch.cycles if watch is not None else 3,
-                     modulator_dc_link=drive_profile.modulator_dc_link_v)
+                     envelope_cycles=watch.cycles if watch is not None else 3)
     ctl = _controller(profile, motor, spec)
 
     def make_loop(carrier: Any) -> CycleLoop:
